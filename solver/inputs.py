@@ -1,0 +1,184 @@
+"""Inputs shared by the reconstruction and the filters: radar accuracies, plots, bounds.
+
+SI units and radians inside the package; degrees appear only at the HTTP edge.
+Frame (see spec/reconstruction.md section 1): ``x`` north, ``z`` east, azimuth and heading
+clockwise from north, so a plot at ``(r, psi)`` lies at ``(r cos psi, r sin psi)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+class InputError(ValueError):
+    """Bad input, located by a field path such as ``("plots", 17, "t")``.
+
+    The service turns it into a 422 whose message names the field and index.
+    """
+
+    def __init__(self, loc: tuple[str | int, ...], message: str):
+        self.loc = loc
+        self.message = message
+        super().__init__(f"{format_loc(loc)} {message}")
+
+
+def format_loc(loc: tuple[str | int, ...]) -> str:
+    """``("plots", 17, "t")`` -> ``plots[17].t``."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else part
+    return out
+
+
+@dataclass(frozen=True)
+class Radar:
+    """A priori accuracies of one radar.
+
+    ``range_error_m`` and ``azimuth_error_rad`` are the maximum errors (``eps_r``, ``eps_psi``)
+    that size the uncertainty ellipses; the sigmas are standard deviations for statistical
+    weighting (default one third of the maximum errors). ``max_altitude_m`` and
+    ``max_elevation_rad`` (``h_max``, ``alpha_max``) drive the unknown-altitude correction.
+    """
+
+    range_error_m: float
+    azimuth_error_rad: float
+    range_sigma_m: float | None = None
+    azimuth_sigma_rad: float | None = None
+    max_altitude_m: float = 0.0
+    max_elevation_rad: float = 0.0
+
+    @property
+    def sigma_r(self) -> float:
+        """Range standard deviation (m)."""
+        return self.range_sigma_m if self.range_sigma_m is not None else self.range_error_m / 3
+
+    @property
+    def sigma_psi(self) -> float:
+        """Azimuth standard deviation (rad)."""
+        if self.azimuth_sigma_rad is not None:
+            return self.azimuth_sigma_rad
+        return self.azimuth_error_rad / 3
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` for non-finite, negative or zero accuracies."""
+        checks: list[tuple[str, float | None, bool]] = [
+            ("range_error_m", self.range_error_m, True),
+            ("azimuth_error_rad", self.azimuth_error_rad, True),
+            ("range_sigma_m", self.range_sigma_m, True),
+            ("azimuth_sigma_rad", self.azimuth_sigma_rad, True),
+            ("max_altitude_m", self.max_altitude_m, False),
+            ("max_elevation_rad", self.max_elevation_rad, False),
+        ]
+        for name, value, positive in checks:
+            if value is None:
+                continue
+            if not np.isfinite(value):
+                raise InputError(("radar", name), "must be a finite number")
+            if value < 0 or (positive and value == 0):
+                raise InputError(("radar", name), "must be positive" if positive else
+                                 "must not be negative")
+        if self.max_elevation_rad >= np.pi / 2:
+            raise InputError(("radar", "max_elevation_rad"), "must be below 90 degrees")
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Box bounds of the aircraft model: lateral ``u`` and longitudinal ``w`` accelerations
+    (m/s^2) and speed ``v`` (m/s). Defaults are the seed's real-data values."""
+
+    u: tuple[float, float] = (-7.0, 7.0)
+    w: tuple[float, float] = (-2.0, 3.0)
+    v: tuple[float, float] = (30.0, 330.0)
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` unless ``lo < hi``, ``w_lo <= 0 <= w_hi``, ``v_lo > 0``."""
+        for name in ("u", "w", "v"):
+            lo, hi = getattr(self, name)
+            if not (np.isfinite(lo) and np.isfinite(hi)):
+                raise InputError(("bounds", name), "must be finite numbers")
+            if not lo < hi:
+                raise InputError(("bounds", name), f"is inverted or empty: [{lo}, {hi}]")
+        if not self.u[0] <= 0 <= self.u[1]:
+            raise InputError(("bounds", "u"), "must contain 0 (straight flight)")
+        if not self.w[0] <= 0 <= self.w[1]:
+            raise InputError(("bounds", "w"), "must contain 0 (constant speed)")
+        if self.v[0] <= 0:
+            raise InputError(("bounds", "v"), "lower speed bound must be positive")
+
+
+@dataclass(frozen=True)
+class Plots:
+    """Radar plots of one aircraft: times (s, strictly increasing), slant ranges (m, > 0),
+    azimuths (rad, clockwise from north, normalised to [0, 2 pi)), and optional altitudes
+    (m; NaN where unknown)."""
+
+    t: FloatArray
+    range_m: FloatArray
+    azimuth_rad: FloatArray
+    altitude_m: FloatArray | None = field(default=None)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        t: ArrayLike,
+        range_m: ArrayLike,
+        azimuth_rad: ArrayLike,
+        altitude_m: ArrayLike | None = None,
+    ) -> Plots:
+        """Build validated plots from array-likes (see :meth:`validate`)."""
+        alt = None if altitude_m is None else np.asarray(altitude_m, dtype=float).copy()
+        if alt is not None and np.all(np.isnan(alt)):
+            alt = None
+        plots = cls(
+            t=np.asarray(t, dtype=float).copy(),
+            range_m=np.asarray(range_m, dtype=float).copy(),
+            azimuth_rad=np.mod(np.asarray(azimuth_rad, dtype=float), 2 * np.pi),
+            altitude_m=alt,
+        )
+        plots.validate()
+        return plots
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` naming the first offending plot and field."""
+        n = self.t.shape[0]
+        arrays = {"t": self.t, "range_m": self.range_m, "azimuth_rad": self.azimuth_rad}
+        if self.altitude_m is not None:
+            arrays["altitude_m"] = self.altitude_m
+        for name, arr in arrays.items():
+            if arr.ndim != 1 or arr.shape[0] != n:
+                raise InputError(("plots",), f"field {name} has {arr.shape} values, expected {n}")
+        if n == 0:
+            raise InputError(("plots",), "must contain at least one plot")
+        for name in ("t", "range_m", "azimuth_rad"):
+            bad = np.flatnonzero(~np.isfinite(arrays[name]))
+            if bad.size:
+                raise InputError(("plots", int(bad[0]), name), "must be a finite number")
+        bad = np.flatnonzero(self.range_m <= 0)
+        if bad.size:
+            raise InputError(("plots", int(bad[0]), "range_m"), "must be positive")
+        if self.altitude_m is not None:
+            alt = self.altitude_m
+            bad = np.flatnonzero(np.isinf(alt) | (alt < 0) | (alt >= self.range_m))
+            if bad.size:
+                i = int(bad[0])
+                raise InputError(("plots", i, "altitude_m"),
+                                 f"must be finite, >= 0 and below the slant range ({alt[i]})")
+        bad = np.flatnonzero(np.diff(self.t) <= 0)
+        if bad.size:
+            i = int(bad[0]) + 1
+            raise InputError(("plots", i, "t"), f"is not after plots[{i - 1}].t "
+                             f"({self.t[i]!r} <= {self.t[i - 1]!r})")
+
+
+ArrayLike = FloatArray | list[float] | tuple[float, ...]

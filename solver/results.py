@@ -1,0 +1,102 @@
+"""Results of the reconstruction and of the filters (plain arrays, no web types)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .inputs import FloatArray
+
+
+@dataclass
+class StateSeries:
+    """Horizontal states at times ``t``: position ``(x, z)`` (m), velocity ``(vx, vz)`` (m/s).
+
+    ``cov``, when present, is the ``(n, 4, 4)`` covariance over ``(x, z, vx, vz)``.
+    """
+
+    t: FloatArray
+    x: FloatArray
+    z: FloatArray
+    vx: FloatArray
+    vz: FloatArray
+    cov: FloatArray | None = None
+
+    @property
+    def speed(self) -> FloatArray:
+        """Ground speed ``hypot(vx, vz)`` (m/s)."""
+        return np.hypot(self.vx, self.vz)
+
+    @property
+    def heading(self) -> FloatArray:
+        """Heading clockwise from north in [0, 2 pi) (rad)."""
+        return np.mod(np.arctan2(self.vz, self.vx), 2 * np.pi)
+
+    @property
+    def states(self) -> FloatArray:
+        """``(n, 4)`` array of ``(x, z, vx, vz)``."""
+        return np.column_stack([self.x, self.z, self.vx, self.vz])
+
+    @classmethod
+    def from_states(cls, t: FloatArray, states: FloatArray,
+                    cov: FloatArray | None = None) -> StateSeries:
+        """Build from an ``(n, 4)`` array of ``(x, z, vx, vz)``."""
+        s = np.asarray(states, dtype=float)
+        return cls(np.asarray(t, dtype=float), s[:, 0], s[:, 1], s[:, 2], s[:, 3], cov)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One constant-control piece: controls ``u``, ``w`` (m/s^2) on ``[t_start, t_end]`` and
+    the state ``(x, z, heading, speed)`` at ``t_start`` (heading in rad)."""
+
+    t_start: float
+    t_end: float
+    x: float
+    z: float
+    heading: float
+    speed: float
+    u: float
+    w: float
+
+
+@dataclass
+class Diagnostics:
+    """What the reconstruction did: counts, failures, criterion values, time spent."""
+
+    method: str = "sliding"
+    windows_solved: int = 0
+    trial_windows: int = 0
+    solver_failures: int = 0
+    fallbacks: int = 0
+    criterion: str = "R2"
+    criterion_values: list[float] = field(default_factory=list)
+    nlp_solve_ms: list[float] = field(default_factory=list)
+    elapsed_ms: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+    extra: dict[str, float | int | str] = field(default_factory=dict)
+
+
+@dataclass
+class Reconstruction:
+    """Piecewise-constant-control trajectory: its segments, the state at every plot time (input
+    order), samples on a regular time step, and diagnostics."""
+
+    segments: list[Segment]
+    at_plots: StateSeries
+    samples: StateSeries
+    diagnostics: Diagnostics
+
+
+@dataclass
+class FilterEstimate:
+    """Output of one recursive estimator: the state ``(x, z, vx, vz)`` and its covariance at
+    every plot time, plus free-form diagnostics (e.g. IMM model probabilities)."""
+
+    name: str
+    states: StateSeries
+    info: dict[str, FloatArray | float | str] = field(default_factory=dict)
