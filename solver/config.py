@@ -1,0 +1,44 @@
+"""Settings of one reconstruction (every value has a documented default)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from .inputs import Bounds, InputError
+
+Criterion = Literal["R1", "R2"]
+Method = Literal["refined", "sliding"]
+NlpSolver = Literal["sqpmethod", "ipopt"]
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """How to reconstruct.
+
+    ``window_plots`` (m) plots per window (the seed used 3-5; 3 was best on hard manoeuvres);
+    ``trial_step_s``: spacing of the extra trial start points between plots; ``criterion``: R1
+    (least squares) or R2 (ellipse-shaped, default); ``sample_step_s``: spacing of the regular
+    samples; ``method``: ``refined`` (the full-track NLP seeded by the sliding windows) or
+    ``sliding`` (the seed's method alone); ``nlp_solver``: the window NLP's CasADi plugin.
+    """
+
+    bounds: Bounds = field(default_factory=Bounds)
+    window_plots: int = 3
+    trial_step_s: float = 5.0
+    criterion: Criterion = "R2"
+    sample_step_s: float = 1.0
+    method: Method = "refined"
+    nlp_solver: NlpSolver = "sqpmethod"
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` for values no reconstruction can use."""
+        self.bounds.validate()
+        if self.window_plots < 2:
+            raise InputError(("window", "plots"), "must be at least 2")
+        if not self.trial_step_s > 0:
+            raise InputError(("window", "trial_step_s"), "must be positive")
+        if not self.sample_step_s > 0:
+            raise InputError(("sample_step_s",), "must be positive")
+        if self.criterion not in ("R1", "R2"):
+            raise InputError(("criterion",), "must be R1 or R2")
