@@ -1,0 +1,250 @@
+"""The FastAPI application: ``service.app:app`` (contract: spec/api.md, version 1)."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.exceptions import HTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from solver.inputs import InputError, format_loc
+
+from . import __version__
+from .convert import to_job
+from .logs import LOGGER, setup_logging
+from .metrics import Metrics
+from .models import ErrorResponse, Health, ReconstructionRequest, ReconstructionResponse
+from .pool import Busy, SolverPool
+from .settings import Settings, get_settings
+from .workers import SolveError
+
+DESCRIPTION = """\
+Reconstructs one aircraft's trajectory from a batch of radar plots (time, slant range, azimuth)
+by sliding constant-control windows (each window a bounded CasADi NLP), optionally refined over
+the whole track, and runs recursive filters beside it.
+
+**Conventions.** SI units; the unit is in every field name. Horizontal plane centred on the
+radar: `x` north, `z` east (m). Azimuth and heading in degrees, clockwise from north.
+Velocities in m/s, accelerations in m/s^2, times in s (any origin, strictly increasing).
+
+**Errors.** Every error answer is an `ErrorResponse`: `message` names the field and, for plots,
+the index (`plots[17].t is not after plots[16].t (38.2 <= 40.0)`); `detail` lists every problem.
+422: malformed or physically impossible input (NaN and Infinity included); 413: body over the
+size limit; 503: all solvers busy and the queue full (see `Retry-After`).
+"""
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    413: {"model": ErrorResponse, "description": "Request body over the size limit."},
+    422: {"model": ErrorResponse, "description": "Invalid input; the message names the field "
+          "and plot index."},
+    500: {"model": ErrorResponse, "description": "Internal error (a bug; never bad input)."},
+    503: {"model": ErrorResponse, "description": "Solvers busy and queue full; retry after "
+          "`Retry-After` seconds."},
+}
+
+
+def _error(status: int, message: str, detail: list[dict[str, Any]] | None = None,
+           headers: dict[str, str] | None = None) -> JSONResponse:
+    body = ErrorResponse.model_validate({"message": message, "detail": detail or []})
+    return JSONResponse(body.model_dump(), status_code=status, headers=headers)
+
+
+def _clean_loc(loc: tuple[Any, ...]) -> list[str | int]:
+    """FastAPI's ``("body", "plots", 3, "t")`` -> ``["plots", 3, "t"]``."""
+    parts = [p if isinstance(p, int) else str(p) for p in loc]
+    return parts[1:] if parts[:1] == ["body"] and len(parts) > 1 else parts
+
+
+# ------------------------------------------------------------------------------ middleware
+
+
+class BodyLimit:
+    """Refuse bodies over ``max_bytes`` with 413: at once from ``Content-Length``, else while
+    reading a chunked body."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int):
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        too_large = f"request body is larger than the limit of {self.max_bytes} bytes"
+        length = dict(scope["headers"]).get(b"content-length")
+        if length is not None and length.isdigit() and int(length) > self.max_bytes:
+            await _error(413, too_large)(scope, receive, send)
+            return
+        received = 0
+
+        async def limited() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise HTTPException(413, too_large)
+            return message
+
+        await self.app(scope, limited, send)
+
+
+class Observe:
+    """Time every request; count it in the metrics; log one JSON line; echo X-Request-ID."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics, access_log: bool):
+        self.app = app
+        self.metrics = metrics
+        self.access_log = access_log
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        headers = dict(scope["headers"])
+        rid = headers.get(b"x-request-id", b"").decode("latin-1")[:64] or uuid.uuid4().hex[:16]
+        status = 500
+
+        async def send_observed(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                message.setdefault("headers", [])
+                message["headers"] = [*message["headers"],
+                                      (b"x-request-id", rid.encode("latin-1"))]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_observed)
+        finally:
+            elapsed = time.perf_counter() - start
+            route = scope.get("route")
+            path = getattr(route, "path", None) or "<unmatched>"
+            method = scope["method"]
+            self.metrics.requests.labels(method, path, str(status)).inc()
+            self.metrics.latency.labels(method, path).observe(elapsed)
+            if self.access_log:
+                LOGGER.info("request", extra={"fields": {
+                    "request_id": rid, "method": method, "path": scope["path"], "route": path,
+                    "status": status, "duration_ms": round(elapsed * 1e3, 2),
+                    "client": (scope.get("client") or ("", 0))[0],
+                    "bytes_in": int(headers.get(b"content-length", b"0") or 0)
+                    if headers.get(b"content-length", b"0").isdigit() else None}})
+
+
+# ------------------------------------------------------------------------------------- app
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the application for ``settings`` (default: from the environment)."""
+    settings = settings or get_settings()
+    metrics = Metrics()
+    pool = SolverPool(settings, metrics)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        setup_logging(settings.log_level)
+        LOGGER.info("starting", extra={"fields": settings.model_dump()})
+        pool.start()
+        yield
+        await pool.close()
+
+    app = FastAPI(
+        title="Radar trajectory reconstruction",
+        version=__version__,
+        summary="Best-estimate aircraft trajectories from recorded radar plots.",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        openapi_tags=[
+            {"name": "reconstruction", "description": "Trajectory reconstruction."},
+            {"name": "operations", "description": "Health, readiness and metrics."},
+        ],
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.pool = pool
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(Observe, metrics=metrics, access_log=settings.access_log)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        items = [{"loc": _clean_loc(tuple(e.get("loc", ()))), "msg": str(e.get("msg", "")),
+                  "type": str(e.get("type", "value_error"))} for e in exc.errors()]
+        first = items[0] if items else {"loc": [], "msg": "invalid request"}
+        where = format_loc(tuple(first["loc"])) or "body"
+        more = f" (and {len(items) - 1} more)" if len(items) > 1 else ""
+        return _error(422, f"{where}: {first['msg']}{more}", items)
+
+    @app.exception_handler(InputError)
+    async def invalid_input(request: Request, exc: InputError) -> JSONResponse:
+        msg = f"{format_loc(exc.loc)} {exc.message}"
+        return _error(422, msg, [{"loc": list(exc.loc), "msg": msg, "type": "value_error"}])
+
+    @app.exception_handler(HTTPException)
+    async def http_error(request: Request, exc: HTTPException) -> JSONResponse:
+        return _error(exc.status_code, str(exc.detail), headers=exc.headers)
+
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, exc: Exception) -> JSONResponse:
+        LOGGER.error("unhandled error", exc_info=exc)
+        return _error(500, f"internal error: {type(exc).__name__}")
+
+    @app.post("/v1/reconstructions", response_model=ReconstructionResponse, responses=_ERRORS,
+              tags=["reconstruction"], summary="Reconstruct a trajectory from radar plots")
+    async def create_reconstruction(body: ReconstructionRequest) -> Response:
+        """Reconstruct one aircraft's trajectory from its plots, and run the requested filters.
+
+        The solve runs in a worker process; while all workers are busy the request waits in a
+        bounded queue (503 with `Retry-After` when that is full too).
+        """
+        job = to_job(body, settings.nlp_solver, settings.max_plots, settings.max_samples)
+        try:
+            outcome = await pool.run(job)
+        except Busy as e:
+            return _error(503, str(e), headers={"Retry-After": str(settings.retry_after_s)})
+        except SolveError as e:
+            metrics.solves.labels(job.config.method, "error").inc()
+            LOGGER.error("solve failed", extra={"fields": {"error": str(e)}})
+            return _error(500, "the reconstruction failed: " + str(e).splitlines()[0])
+        if outcome.body is None:
+            metrics.solves.labels(job.config.method, "input_error").inc()
+            raise InputError(outcome.error_loc, outcome.error_message)
+        metrics.solves.labels(job.config.method, "ok").inc()
+        metrics.solver_failures.inc(outcome.solver_failures)
+        return Response(outcome.body, media_type="application/json")
+
+    @app.get("/healthz", response_model=Health, tags=["operations"], summary="Liveness")
+    async def healthz() -> Health:
+        """The process is alive and its event loop answers (also while solving)."""
+        return Health(status="ok")
+
+    @app.get("/readyz", response_model=Health, tags=["operations"], summary="Readiness",
+             responses={503: {"model": Health, "description": "Not ready (yet)."}})
+    async def readyz() -> Response:
+        """Ready once every worker has built and warmed the CasADi solvers."""
+        health = Health(status=pool.state, detail=pool.detail)  # type: ignore[arg-type]
+        return JSONResponse(health.model_dump(), status_code=200 if pool.state == "ready"
+                            else 503)
+
+    @app.get("/metrics", response_class=PlainTextResponse, tags=["operations"],
+             summary="Prometheus metrics",
+             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
+                              "description": "Prometheus text exposition format."}})
+    async def metrics_endpoint() -> Response:
+        """Request counts and latencies by route and status, solves by outcome, solver
+        failures, queue state, readiness."""
+        return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+    return app
+
+
+app = create_app()

@@ -1,0 +1,241 @@
+"""Request and response bodies of ``POST /v1/reconstructions`` (contract: spec/api.md, v1).
+
+Units are in the field names; angles are degrees at this edge (radians inside ``solver``).
+Frame: ``x`` north, ``z`` east (metres, radar at the origin); azimuth and heading clockwise
+from north. Pydantic checks types, finiteness and list shapes here; the physical checks
+(positive range, increasing times, bounds order...) live in ``solver`` ``validate()`` methods
+and come back as the same 422 error body.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from solver.estimation import FILTER_NAMES
+
+FilterName = Literal[FILTER_NAMES]  # type: ignore[valid-type]
+
+
+class _In(BaseModel):
+    """Request parts: unknown fields are errors, NaN and Infinity are rejected."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class _Out(BaseModel):
+    """Response parts: finite numbers only (a NaN would be a solver bug, not a value)."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+
+# ----------------------------------------------------------------------------------- request
+
+
+class RadarIn(_In):
+    """A priori accuracies and geometry limits of the radar that produced the plots."""
+
+    range_error_m: float = Field(
+        description="A priori maximum slant-range error `eps_r` (m, > 0); sizes the "
+        "uncertainty ellipses.", examples=[500.0])
+    azimuth_error_deg: float = Field(
+        description="A priori maximum azimuth error `eps_psi` (degrees, > 0).", examples=[1.5])
+    range_sigma_m: float | None = Field(
+        None, description="Slant-range standard deviation (m, > 0) for statistical weighting "
+        "and the filters. Default: `range_error_m / 3`.", examples=[166.7])
+    azimuth_sigma_deg: float | None = Field(
+        None, description="Azimuth standard deviation (degrees, > 0). Default: "
+        "`azimuth_error_deg / 3`.", examples=[0.5])
+    max_altitude_m: float = Field(
+        0.0, description="Highest possible aircraft altitude `h_max` (m, >= 0) for the "
+        "unknown-altitude correction. 0 = no correction.", examples=[15000.0])
+    max_elevation_deg: float = Field(
+        0.0, description="Highest elevation angle `alpha_max` (degrees, 0 <= value < 90) for "
+        "the unknown-altitude correction. 0 = no correction.", examples=[60.0])
+
+
+class PlotIn(_In):
+    """One radar plot (one detection of the aircraft)."""
+
+    t: float = Field(description="Time (s, any origin); strictly increasing along `plots`.",
+                     examples=[0.0])
+    range_m: float = Field(description="Slant range (m, > 0).", examples=[81234.5])
+    azimuth_deg: float = Field(
+        description="Azimuth (degrees, clockwise from north); any real value, normalised to "
+        "[0, 360).", examples=[123.4])
+    altitude_m: float | None = Field(
+        None, description="Known altitude (m, 0 <= value < range_m), e.g. Mode C from a "
+        "secondary radar: the plot's ground position then uses it exactly instead of the "
+        "unknown-altitude ellipse correction. Omit or null when unknown.", examples=[None])
+
+
+Pair = list[float]
+
+
+def _pair(default: tuple[float, float], what: str, unit: str) -> Pair:
+    return Field(list(default), min_length=2, max_length=2,
+                 description=f"[min, max] of {what} ({unit}); min < max. "
+                 f"Default {list(default)}.", examples=[list(default)])
+
+
+class BoundsIn(_In):
+    """Box bounds of the aircraft model (constant controls per segment)."""
+
+    u: Pair = _pair((-7.0, 7.0), "the lateral (normal) acceleration, positive turning right; "
+                    "must contain 0", "m/s^2")
+    w: Pair = _pair((-2.0, 3.0), "the longitudinal acceleration; must contain 0", "m/s^2")
+    v: Pair = _pair((30.0, 330.0), "the ground speed; min > 0", "m/s")
+
+
+class WindowIn(_In):
+    """Sliding-window settings of the reconstruction."""
+
+    plots: int = Field(
+        3, description="Plots per window `m` (>= 2, at most the number of plots). The seed "
+        "used 3-5; 3 follows hard manoeuvres best.", examples=[3])
+    trial_step_s: float = Field(
+        5.0, description="Spacing (s, > 0) of the extra trial start points between plots, "
+        "where the controls may switch.", examples=[5.0])
+
+
+class ReconstructionRequest(_In):
+    """A batch of plots of one aircraft from one radar, and how to reconstruct it."""
+
+    radar: RadarIn
+    plots: list[PlotIn] = Field(
+        min_length=1, description="The aircraft's plots in time order (at least one; the "
+        "service's `max_plots` setting caps the count).")
+    bounds: BoundsIn = Field(default_factory=BoundsIn,
+                             description="Model bounds. Default: the seed's real-data values.")
+    window: WindowIn = Field(default_factory=WindowIn, description="Window settings.")
+    criterion: Literal["R1", "R2"] = Field(
+        "R2", description="Window fit criterion: `R1` plain least squares, `R2` residuals "
+        "weighted by each plot's uncertainty ellipse (default).")
+    method: Literal["refined", "sliding"] = Field(
+        "refined", description="`refined` (default): the sliding-window result refined by one "
+        "full-track NLP that uses every plot before and after each point. `sliding`: the "
+        "seed's pure sliding-window result.")
+    filters: list[FilterName] = Field(  # type: ignore[valid-type]
+        default_factory=list, description="Recursive estimators to run beside the "
+        "reconstruction, each answered under `filters.<name>`. Default: none (the "
+        f"reconstruction alone). Known: {', '.join(FILTER_NAMES)}.",
+        examples=[["singer", "quasi_optimal"]])
+    sample_step_s: float = Field(
+        1.0, description="Spacing (s, > 0) of the regular samples `trajectory.samples`.",
+        examples=[1.0])
+
+
+# ---------------------------------------------------------------------------------- response
+
+Cov = list[list[float]]
+_COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2")
+
+
+class StateOut(_Out):
+    """Reconstructed state at one time."""
+
+    t: float = Field(description="Time (s, the request's origin).")
+    x: float = Field(description="North position (m).")
+    z: float = Field(description="East position (m).")
+    vx: float = Field(description="North velocity (m/s).")
+    vz: float = Field(description="East velocity (m/s).")
+    heading_deg: float = Field(description="Heading (degrees clockwise from north, [0, 360)).")
+    speed: float = Field(description="Ground speed (m/s).")
+    cov: Cov | None = Field(None, description=f"{_COV}; null when the method gives none.")
+
+
+class SegmentOut(_Out):
+    """One constant-control piece of the trajectory, with the state at its start."""
+
+    t_start: float = Field(description="Start time (s).")
+    t_end: float = Field(description="End time (s).")
+    u: float = Field(description="Lateral acceleration (m/s^2, positive turning right).")
+    w: float = Field(description="Longitudinal acceleration (m/s^2).")
+    x: float = Field(description="North position at `t_start` (m).")
+    z: float = Field(description="East position at `t_start` (m).")
+    heading_deg: float = Field(description="Heading at `t_start` (degrees clockwise from north).")
+    speed: float = Field(description="Ground speed at `t_start` (m/s).")
+
+
+class TrajectoryOut(_Out):
+    """The reconstructed trajectory."""
+
+    segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
+    at_plots: list[StateOut] = Field(description="State at every plot time, in input order, "
+                                     "one per plot.")
+    samples: list[StateOut] = Field(description="States every `sample_step_s` over the track.")
+
+
+class FilterStateOut(_Out):
+    """One recursive estimate."""
+
+    t: float = Field(description="Plot time (s).")
+    x: float = Field(description="North position (m).")
+    z: float = Field(description="East position (m).")
+    vx: float = Field(description="North velocity (m/s).")
+    vz: float = Field(description="East velocity (m/s).")
+    cov: Cov = Field(description=_COV + ".")
+
+
+class FilterOut(_Out):
+    """Output of one recursive estimator."""
+
+    states: list[FilterStateOut] = Field(description="One estimate per plot, in input order.")
+
+
+class DiagnosticsOut(_Out):
+    """What the reconstruction did."""
+
+    method: str = Field(description="Method that produced the trajectory.")
+    windows_solved: int = Field(description="Window NLPs solved (current windows).")
+    trial_windows: int = Field(0, description="Trial window NLPs solved.")
+    solver_failures: int = Field(description="NLP solves that failed (each survived by a "
+                                 "fallback).")
+    fallbacks: int = Field(0, description="Times a fallback candidate replaced a failed solve.")
+    criterion: str = Field("R2", description="Criterion used (R1 or R2).")
+    criterion_values: list[float] = Field(
+        default_factory=list, description="Criterion value of every accepted window.")
+    nlp_solves: int = Field(0, description="NLP solves timed.")
+    nlp_solve_ms_total: float = Field(0.0, description="Time inside NLP solves (ms).")
+    elapsed_ms: float = Field(description="Reconstruction time (ms).")
+    filters_ms: float = Field(0.0, description="Time running the requested filters (ms).")
+    queue_ms: float = Field(0.0, description="Time the request waited for a solver (ms).")
+    warnings: list[str] = Field(default_factory=list, description="Non-fatal remarks.")
+    extra: dict[str, float | int | str] = Field(
+        default_factory=dict, description="Method-specific figures.")
+
+
+class ReconstructionResponse(_Out):
+    """The reconstruction, the requested filter estimates, and diagnostics."""
+
+    trajectory: TrajectoryOut
+    filters: dict[str, FilterOut] = Field(
+        default_factory=dict, description="Estimates of the requested filters, by name.")
+    diagnostics: DiagnosticsOut
+
+
+# ------------------------------------------------------------------------------------ errors
+
+
+class ErrorItem(BaseModel):
+    """One problem with the request."""
+
+    loc: list[str | int] = Field(description="Path of the field, e.g. [\"plots\", 17, \"t\"].")
+    msg: str = Field(description="What is wrong, e.g. \"plots[17].t is not after plots[16].t "
+                     "(38.2 <= 40.0)\".")
+    type: str = Field(description="Error kind, e.g. `value_error`, `float_type`.")
+
+
+class ErrorResponse(BaseModel):
+    """Every 4xx/5xx answer of the service."""
+
+    message: str = Field(description="Summary naming the field (and plot index).")
+    detail: list[ErrorItem] = Field(default_factory=list, description="All problems found.")
+
+
+class Health(BaseModel):
+    """Liveness or readiness."""
+
+    status: Literal["ok", "ready", "starting", "failed"]
+    detail: str = ""

@@ -1,0 +1,64 @@
+"""Service configuration from environment variables (prefix ``TRAJRECON_``).
+
+Every setting has an embedded default, so ``python -m service`` runs with no environment at all.
+Example: ``TRAJRECON_PORT=9000 TRAJRECON_WORKERS=4 python -m service``.
+"""
+
+from __future__ import annotations
+
+import os
+from functools import cache
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def _cores() -> int:
+    """CPUs this process may run on (the affinity mask, not the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+class Settings(BaseSettings):
+    """Runtime settings; each field maps to ``TRAJRECON_<NAME>`` (case-insensitive)."""
+
+    model_config = SettingsConfigDict(env_prefix="TRAJRECON_", extra="ignore")
+
+    host: str = Field("127.0.0.1", description="Interface to listen on (0.0.0.0 in Docker).")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port.")
+    workers: int = Field(default_factory=_cores, ge=1,
+                         description="Solver worker processes (default: the usable cores).")
+    executor: Literal["process", "thread"] = Field(
+        "process", description="Worker kind: processes (parallel solves) or threads (one "
+        "process; solves serialise on the GIL).")
+    max_concurrent_solves: int | None = Field(
+        None, ge=1, description="Solves running at once (default: the number of workers).")
+    max_queued_solves: int = Field(
+        32, ge=0, description="Requests allowed to wait for a solver slot; beyond this the "
+        "service answers 503 with Retry-After.")
+    retry_after_s: int = Field(2, ge=1, description="Retry-After value of a 503 (s).")
+    max_body_bytes: int = Field(2_000_000, ge=1024, description="Largest accepted request "
+                                "body (bytes); larger bodies get 413.")
+    max_plots: int = Field(20_000, ge=1, description="Most plots accepted in one request.")
+    max_samples: int = Field(100_000, ge=1, description="Most regular samples in one answer "
+                             "(track duration / sample_step_s).")
+    nlp_solver: Literal["sqpmethod", "ipopt"] = Field(
+        "sqpmethod", description="CasADi plugin for the window NLPs.")
+    warmup: bool = Field(True, description="Build and warm the CasADi solvers in every worker "
+                         "before /readyz reports ready.")
+    warmup_window_plots: list[int] = Field(
+        [3], description="Window sizes to warm up (JSON list, e.g. [3,4,5]).")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        "INFO", description="Level of the JSON logs on stderr.")
+    access_log: bool = Field(True, description="Log every request (method, path, status, ms).")
+
+    @property
+    def solve_slots(self) -> int:
+        """Solves allowed to run at once."""
+        return self.max_concurrent_solves or self.workers
+
+
+@cache
+def get_settings() -> Settings:
+    """The process-wide settings, read once from the environment."""
+    return Settings()

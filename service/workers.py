@@ -1,0 +1,87 @@
+"""Solver workers: the reconstruction runs in a pool, off the event loop.
+
+Each worker builds and warms the CasADi solvers once (``init_worker``), then serves
+``solve`` calls. A worker returns the finished JSON body, so the serialisation of large answers
+runs in parallel too and the event loop only moves bytes.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from dataclasses import dataclass
+
+import numpy as np
+
+from solver.config import ReconstructionConfig
+from solver.inputs import InputError, Plots, Radar
+from solver.motion import propagate
+
+from .convert import Job, response_dict
+from .models import ReconstructionResponse
+
+
+class SolveError(RuntimeError):
+    """A reconstruction raised inside a worker (a solver bug: the input had passed
+    validation). Carries the worker's traceback as text; picklable."""
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a worker sends back: a JSON body, or an input error the solver found late."""
+
+    body: bytes | None
+    solver_failures: int = 0
+    error_loc: tuple[str | int, ...] = ()
+    error_message: str = ""
+
+
+def synthetic_track(n: int) -> tuple[Plots, Radar]:
+    """``n`` noiseless plots every 10 s of a 200 m/s aircraft turning at 2 m/s^2 (warm-up)."""
+    t = 10.0 * np.arange(n)
+    x, z, _, _ = propagate(50e3, 20e3, 0.5, 200.0, 2.0, 0.2, t)
+    radar = Radar(range_error_m=300.0, azimuth_error_rad=np.deg2rad(0.5))
+    return Plots.from_arrays(t, np.hypot(x, z), np.arctan2(z, x)), radar
+
+
+def warm_up(window_sizes: list[int], nlp_solver: str) -> None:
+    """Build and run every solver a request may need, once per window size."""
+    from solver.reconstruct import reconstruct
+
+    for m in window_sizes:
+        plots, radar = synthetic_track(max(2 * m + 2, 8))
+        config = ReconstructionConfig(window_plots=m, nlp_solver=nlp_solver)  # type: ignore[arg-type]
+        reconstruct(plots, radar, config)
+
+
+def init_worker(window_sizes: list[int], nlp_solver: str, warm: bool) -> None:
+    """Pool initializer: warm the solvers before the first request reaches this worker."""
+    if warm:
+        warm_up(window_sizes, nlp_solver)
+
+
+def ping() -> float:
+    """A no-op task; the first one a fresh worker runs comes after its warm-up."""
+    return time.time()
+
+
+def solve(job: Job, enqueued_at: float) -> Outcome:
+    """Reconstruct, run the requested filters, and serialise the validated response."""
+    from solver.estimation import run_filters
+    from solver.reconstruct import reconstruct
+
+    started = time.time()
+    try:
+        rec = reconstruct(job.plots, job.radar, job.config)
+        t0 = time.perf_counter()
+        estimates = run_filters(list(job.filters), job.plots, job.radar) if job.filters else {}
+        filters_ms = (time.perf_counter() - t0) * 1e3
+        body = response_dict(rec, estimates)
+        body["diagnostics"]["filters_ms"] = filters_ms
+        body["diagnostics"]["queue_ms"] = max(0.0, (started - enqueued_at) * 1e3)
+        out = ReconstructionResponse.model_validate(body)
+        return Outcome(out.model_dump_json().encode(), rec.diagnostics.solver_failures)
+    except InputError as e:
+        return Outcome(None, error_loc=e.loc, error_message=e.message)
+    except Exception as e:
+        raise SolveError(f"{type(e).__name__}: {e}\n{traceback.format_exc()}") from None
