@@ -1,0 +1,191 @@
+"""Sliding extended windows (spec/reconstruction.md section 6): the seed's reconstruction.
+
+An extended window is a start (time + state ``(x, z, phi, v)``) plus the ``m`` plots strictly
+after it. The current window is fitted by constant controls (:mod:`solver.window`); candidate
+starts are taken on its trajectory at its plot times and every ``trial_step_s`` from its first
+plot up to its last; each candidate's trial window (the ``m`` plots strictly after it) is fitted,
+and the lowest criterion wins. The current trajectory up to the winning candidate becomes a final
+segment (the controls switch there) and the winner becomes the current window. When the current
+window holds the last plot it is accepted whole.
+
+Defined behaviours:
+
+- Trial windows need ``m`` plots: a candidate with fewer than ``m`` plots after it is not tried
+  (a 1-plot window is fitted exactly by the two controls, so any per-plot comparison would always
+  pick it). While the current window does not hold the last plot, its first-plot candidate has
+  ``m`` plots after it, so the slide always advances by at least one plot.
+- Missed plots: a window simply takes the next ``m`` plots; candidates every ``trial_step_s``
+  let the controls switch inside the gap.
+- Near-duplicate times (strictly increasing but close): fitted like any others; the initial
+  velocity uses the first plot at least ``max(1 s, median spacing / 2)`` after the first plot
+  (:func:`initial_state`), so two nearly simultaneous plots never set it.
+- Fewer than ``m + 1`` plots: one window with all plots after the first (warning).
+  2 plots: one straight constant-speed segment between the two ellipse centres (speed clipped
+  to the bounds, warning if clipped). 1 plot: no segments; the state at the plot is its ellipse
+  centre with zero velocity (warning).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .config import ReconstructionConfig
+from .geometry import uncertainty_ellipses
+from .guess import initial_guess
+from .inputs import FloatArray, Plots, Radar
+from .motion import propagate
+from .results import Diagnostics, Reconstruction, Segment, StateSeries
+from .trajectory import evaluate, sample_times
+from .window import solve_windows, w_box
+
+MIN_BASELINE_S = 1.0  # shortest time between the two plots that set the initial velocity
+
+
+def criterion_data(plots: Plots, radar: Radar, criterion: str
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """Ellipse centres ``cx, cz (n,)``, weight entries ``(n, 3)`` scaled for the solver, and the
+    factor that turns a scaled criterion value back into the criterion's units.
+
+    R2 weights are used as they are (values near the number of plots for a good fit); R1 is
+    ``|d|^2`` in m^2, solved as ``|d|^2 / eps_r^2`` so that the solver's tolerances mean the same
+    thing for both criteria.
+    """
+    ell = uncertainty_ellipses(plots, radar)
+    if criterion == "R2":
+        return ell.cx, ell.cz, ell.weights(), 1.0
+    scale = float(radar.range_error_m) ** 2
+    abc = np.tile([1.0 / scale, 0.0, 1.0 / scale], (len(plots), 1))
+    return ell.cx, ell.cz, abc, scale
+
+
+def initial_state(t: FloatArray, cx: FloatArray, cz: FloatArray, v_box: tuple[float, float]
+                  ) -> tuple[FloatArray, bool]:
+    """Start ``(x0, z0, phi0, v0)`` at the first ellipse centre, heading and speed towards the
+    first plot at least ``max(MIN_BASELINE_S, median spacing / 2)`` later (else the last plot);
+    the speed is clipped to ``v_box``. Returns the state and whether the speed was clipped."""
+    baseline = max(MIN_BASELINE_S, 0.5 * float(np.median(np.diff(t))))
+    j = int(np.searchsorted(t, t[0] + baseline, side="left"))
+    j = min(max(j, 1), len(t) - 1)
+    dx, dz = cx[j] - cx[0], cz[j] - cz[0]
+    speed = np.hypot(dx, dz) / (t[j] - t[0])
+    heading = float(np.mod(np.arctan2(dz, dx), 2 * np.pi))
+    v0 = float(np.clip(speed, *v_box))
+    return np.array([cx[0], cz[0], heading, v0]), bool(v0 != speed)
+
+
+class _Fitter:
+    """Fits batches of extended windows over one track's data and keeps the diagnostics."""
+
+    def __init__(self, t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray,
+                 config: ReconstructionConfig, diag: Diagnostics):
+        self.t, self.cx, self.cz, self.abc = t, cx, cz, abc
+        self.config, self.diag = config, diag
+        self.clamped = 0
+
+    def fit(self, start: FloatArray, t_start: FloatArray, first: np.ndarray, m: int,
+            extra: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+        """Fit ``n`` windows: starts ``(n, 4)`` at times ``t_start (n,)``, plots
+        ``first[k] .. first[k] + m - 1``. Returns ``(u, w)`` as ``(n, 2)`` and the values."""
+        idx = first[:, None] + np.arange(m)
+        t_rel = self.t[idx] - t_start[:, None]
+        cx, cz, abc = self.cx[idx], self.cz[idx], self.abc[idx]
+        bounds = self.config.bounds
+        lbw, ubw, clamped = w_box(start[:, 3], t_rel[:, -1], bounds)
+        self.clamped += int(clamped.sum())
+        guess, _ = initial_guess(start, t_rel, cx, cz, abc, bounds.u, lbw, ubw, extra)
+        fits = solve_windows(start, t_rel, cx, cz, abc, guess, lbw, ubw, bounds,
+                             self.config.nlp_solver)
+        d = self.diag
+        d.windows_solved += len(first)
+        d.solver_failures += int(fits.failed.sum())
+        d.fallbacks += int(fits.fallback.sum())
+        d.nlp_solve_ms.extend(fits.solve_ms.tolist())
+        return np.column_stack([fits.u, fits.w]), fits.value
+
+
+def _segment(t0: float, t1: float, state: FloatArray, uw: FloatArray) -> Segment:
+    return Segment(float(t0), float(t1), float(state[0]), float(state[1]),
+                   float(np.mod(state[2], 2 * np.pi)), float(state[3]), float(uw[0]),
+                   float(uw[1]))
+
+
+def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start: FloatArray,
+          m: int, config: ReconstructionConfig, diag: Diagnostics, value_scale: float = 1.0
+          ) -> list[Segment]:
+    """Segments of the sliding extended windows from ``start`` at ``t[0]`` (needs
+    ``len(t) >= m + 1``). Appends each accepted window's criterion value to ``diag``."""
+    n = len(t)
+    fitter = _Fitter(t, cx, cz, abc, config, diag)
+    step = config.trial_step_s
+    cur_t, cur_s, cur_k = float(t[0]), start, 1
+    uw, val = fitter.fit(cur_s[None, :], np.array([cur_t]), np.array([cur_k]), m)
+    cur_uw, cur_val = uw[0], float(val[0])
+    segments: list[Segment] = []
+    while True:
+        last = cur_k + m - 1
+        if last == n - 1:
+            segments.append(_segment(cur_t, t[last], cur_s, cur_uw))
+            diag.criterion_values.append(cur_val * value_scale)
+            break
+        t_first, t_last = t[cur_k], t[last]
+        extra_times = t_first + step * np.arange(1, int(np.ceil((t_last - t_first) / step)))
+        cand = np.union1d(t[cur_k:last + 1], extra_times[extra_times < t_last])
+        first = np.searchsorted(t, cand, side="right")
+        keep = first + m - 1 <= n - 1
+        cand, first = cand[keep], first[keep]
+        x, z, phi, v = propagate(cur_s[0], cur_s[1], cur_s[2], cur_s[3], cur_uw[0], cur_uw[1],
+                                 cand - cur_t)
+        states = np.column_stack([x, z, phi, v])
+        extra = np.broadcast_to(cur_uw, (len(cand), 1, 2))
+        uw, val = fitter.fit(states, cand, first, m, extra)
+        diag.trial_windows += len(cand)
+        best = int(np.argmin(val))
+        segments.append(_segment(cur_t, cand[best], cur_s, cur_uw))
+        diag.criterion_values.append(cur_val * value_scale)
+        cur_t, cur_s, cur_k = float(cand[best]), states[best], int(first[best])
+        cur_uw, cur_val = uw[best], float(val[best])
+    if fitter.clamped:
+        diag.warnings.append(f"{fitter.clamped} window start(s) had a speed outside the bounds; "
+                             "their longitudinal acceleration was pinned")
+    return segments
+
+
+def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig
+                        ) -> Reconstruction:
+    """Reconstruct by sliding extended windows (the seed's method; see the module docstring)."""
+    clock = time.perf_counter()
+    diag = Diagnostics(method="sliding", criterion=config.criterion)
+    t = plots.t
+    n = len(t)
+    cx, cz, abc, scale = criterion_data(plots, radar, config.criterion)
+    if n == 1:
+        diag.warnings.append("only one plot: no trajectory; the state at the plot is its "
+                             "position with zero velocity")
+        state = StateSeries(t.copy(), cx.copy(), cz.copy(), np.zeros(1), np.zeros(1))
+        diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
+        samples = StateSeries(t.copy(), cx.copy(), cz.copy(), np.zeros(1), np.zeros(1))
+        return Reconstruction([], state, samples, diag)
+    start, clipped = initial_state(t, cx, cz, config.bounds.v)
+    if n == 2:
+        diag.warnings.append("only two plots: one straight constant-speed segment")
+        if clipped:
+            diag.warnings.append("the speed between the two plots is outside the speed bounds "
+                                 "and was clipped")
+        segments = [Segment(float(t[0]), float(t[1]), *map(float, start), 0.0, 0.0)]
+    else:
+        m = config.window_plots
+        if n - 1 < m:
+            diag.warnings.append(f"window of {m} plots is longer than the track; one window "
+                                 f"with all {n - 1} plots after the first is used")
+            m = n - 1
+        if clipped:
+            diag.warnings.append("initial speed from the first plots was outside the speed "
+                                 "bounds and was clipped")
+        segments = slide(t, cx, cz, abc, start, m, config, diag, scale)
+    at_plots = evaluate(segments, t)
+    samples = evaluate(segments, sample_times(t[0], t[-1], config.sample_step_s))
+    diag.extra["accepted_windows"] = len(diag.criterion_values)
+    diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
+    return Reconstruction(segments, at_plots, samples, diag)

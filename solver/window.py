@@ -1,0 +1,174 @@
+"""One window: the constant-control fit as a CasADi NLP (spec/reconstruction.md section 5).
+
+Decision variables ``(u, w)``; parameters: the start state ``(x0, z0, phi0, v0)``, the ``m`` plot
+times relative to the start, the ``m`` ellipse centres and the ``m`` weight entries ``(a, b, c)``.
+Objective: the criterion ``sum a dx^2 + 2 b dx dz + c dz^2`` (R1 is ``a = c = 1, b = 0``).
+The speed bound ``v_min <= v0 + w T <= v_max`` (``T`` the last plot time) is linear in ``w``, so
+it is folded into the box on ``w`` at call time (:func:`w_box`): the NLP has box constraints only.
+
+One solver per ``(m, plugin)``, built once (SX graph, ``functools.cache``); windows differ only
+in the parameter vector and the bounds. The default plugin is ``sqpmethod`` with the ``qrqp``
+active-set QP and a Gauss-Newton Hessian ``2 J^T J`` of the weighted residuals
+``r_i = L_i^T d_i`` (``M_i = L_i L_i^T``): positive semidefinite, so every QP is convex, and
+close to the exact Hessian near a good fit. ``ipopt`` is selectable.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import cache
+
+import casadi as ca
+import numpy as np
+
+from .config import NlpSolver
+from .inputs import Bounds, FloatArray
+from .motion import propagate, propagate_ca
+
+N_START = 4  # x0, z0, phi0, v0
+CONVERGED = frozenset({"Solve_Succeeded", "Solve_Succeeded_To_Acceptable_Level",
+                       "Search_Direction_Becomes_Too_Small"})
+"""Return statuses taken as converged. sqpmethod stops with ``Search_Direction_Becomes_Too_Small``
+when its step is below ``min_step_size``: no further progress is possible at that point."""
+
+
+def n_params(m: int) -> int:
+    """Length of the parameter vector of an ``m``-plot window."""
+    return N_START + 6 * m
+
+
+def pack_params(start: FloatArray, t: FloatArray, cx: FloatArray, cz: FloatArray,
+                abc: FloatArray) -> FloatArray:
+    """``(n, 4 + 6 m)`` parameter rows: start, times, centres x, centres z, a, b, c."""
+    return np.hstack([start, t, cx, cz, abc[..., 0], abc[..., 1], abc[..., 2]])
+
+
+def _window_expressions(m: int):
+    """Symbols ``(u, w)``, ``p`` and the weighted residual vector ``r`` (``R = |r|^2``)."""
+    uw = ca.SX.sym("uw", 2)
+    p = ca.SX.sym("p", n_params(m))
+    start = p[0:N_START]
+    res = []
+    for i in range(m):
+        t, cx, cz = p[N_START + i], p[N_START + m + i], p[N_START + 2 * m + i]
+        a, b, c = p[N_START + 3 * m + i], p[N_START + 4 * m + i], p[N_START + 5 * m + i]
+        s = propagate_ca(start, uw[0], uw[1], t)
+        dx, dz = s[0] - cx, s[1] - cz
+        sa = ca.sqrt(a)
+        # Cholesky of M = [[a, b], [b, c]]:
+        # d^T M d = (sqrt(a) dx + b/sqrt(a) dz)^2 + (c - b^2/a) dz^2
+        res += [sa * dx + b / sa * dz, ca.sqrt(ca.fmax(c - b * b / a, 0.0)) * dz]
+    return uw, p, ca.vertcat(*res)
+
+
+@cache
+def window_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = "gauss-newton"
+                  ) -> ca.Function:
+    """The NLP solver of ``m``-plot windows: ``x = (u, w)``, ``p`` as :func:`pack_params`."""
+    uw, p, r = _window_expressions(m)
+    f = ca.dot(r, r)
+    nlp = {"x": uw, "p": p, "f": f}
+    if plugin == "sqpmethod":
+        opts: dict = {
+            "qpsol": "qrqp",
+            "qpsol_options": {"print_iter": False, "print_header": False, "print_info": False,
+                              "error_on_fail": False},
+            "print_header": False, "print_iteration": False, "print_status": False,
+            "print_time": False, "error_on_fail": False, "max_iter": 50,
+            "tol_pr": 1e-9, "tol_du": 1e-9,
+        }
+        if hessian == "gauss-newton":
+            lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", 0)
+            jr = ca.jacobian(r, uw)
+            h = lam_f * 2 * ca.mtimes(jr.T, jr)
+            opts["hess_lag"] = ca.Function("nlp_hess_l", [uw, p, lam_f, lam_g], [h],
+                                           ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        else:
+            opts["convexify_strategy"] = "regularize"
+        return ca.nlpsol(f"window{m}_sqp", "sqpmethod", nlp, opts)
+    if plugin == "ipopt":
+        opts = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
+                "ipopt.tol": 1e-10, "error_on_fail": False}
+        return ca.nlpsol(f"window{m}_ipopt", "ipopt", nlp, opts)
+    raise ValueError(f"unknown NLP solver {plugin!r}")
+
+
+def w_box(v0: FloatArray, t_end: FloatArray, bounds: Bounds
+          ) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    """Box on ``w`` with the speed bound folded in: ``v_min <= v0 + w T <= v_max``.
+
+    Returns ``(lbw, ubw, clamped)``. ``clamped`` marks starts whose speed is outside the bounds
+    (accepted states never are); for them the box shrinks to the single ``w`` (within
+    ``[w_min, w_max]``) that brings the speed nearest the bounds by ``T``.
+    """
+    (w_lo, w_hi), (v_lo, v_hi) = bounds.w, bounds.v
+    lbw = np.maximum(w_lo, (v_lo - v0) / t_end)
+    ubw = np.minimum(w_hi, (v_hi - v0) / t_end)
+    clamped = lbw > ubw
+    pin = np.where(v0 < v_lo, np.minimum(w_hi, lbw), np.maximum(w_lo, ubw))
+    return np.where(clamped, pin, lbw), np.where(clamped, pin, ubw), clamped
+
+
+def criterion(start: FloatArray, u: FloatArray, w: FloatArray, t: FloatArray, cx: FloatArray,
+              cz: FloatArray, abc: FloatArray) -> FloatArray:
+    """Window criterion in numpy. ``start (..., 4)``, ``u, w (...)``, data ``(..., m[, 3])``."""
+    x, z, _, _ = propagate(start[..., 0:1], start[..., 1:2], start[..., 2:3], start[..., 3:4],
+                           u[..., None], w[..., None], t)
+    dx, dz = x - cx, z - cz
+    return np.sum(abc[..., 0] * dx * dx + 2 * abc[..., 1] * dx * dz + abc[..., 2] * dz * dz,
+                  axis=-1)
+
+
+@dataclass
+class WindowFits:
+    """Solutions of ``n`` windows: controls, criterion values and what happened."""
+
+    u: FloatArray
+    w: FloatArray
+    value: FloatArray
+    failed: np.ndarray  # solver reported failure or returned a non-finite/out-of-box point
+    fallback: np.ndarray  # the initial guess was kept (solver point unusable or no better)
+    solve_ms: FloatArray
+
+
+def solve_windows(start: FloatArray, t: FloatArray, cx: FloatArray, cz: FloatArray,
+                  abc: FloatArray, guess: FloatArray, lbw: FloatArray, ubw: FloatArray,
+                  bounds: Bounds, plugin: NlpSolver = "sqpmethod") -> WindowFits:
+    """Solve ``n`` windows of ``m`` plots (arrays with a leading ``n``), one NLP call each.
+
+    ``guess (n, 2)`` must lie in the box (it is clipped). A window whose solver fails, or whose
+    returned point is non-finite, outside the box or worse than the guess, keeps the guess
+    (a fallback); solver failures are flagged either way.
+    """
+    n, m = t.shape
+    solver = window_solver(m, plugin)
+    params = pack_params(start, t, cx, cz, abc)
+    lbu, ubu = bounds.u
+    g = np.column_stack([np.clip(guess[:, 0], lbu, ubu), np.clip(guess[:, 1], lbw, ubw)])
+    g_val = criterion(start, g[:, 0], g[:, 1], t, cx, cz, abc)
+    u, w, val = g[:, 0].copy(), g[:, 1].copy(), g_val.copy()
+    failed = np.zeros(n, dtype=bool)
+    fallback = np.zeros(n, dtype=bool)
+    ms = np.empty(n)
+    for k in range(n):
+        t0 = time.perf_counter()
+        sol = solver(x0=g[k], p=params[k], lbx=[lbu, lbw[k]], ubx=[ubu, ubw[k]])
+        ms[k] = (time.perf_counter() - t0) * 1e3
+        ok = solver.stats()["return_status"] in CONVERGED
+        x = np.asarray(sol["x"]).ravel()
+        usable = bool(np.all(np.isfinite(x)))
+        if usable:
+            # active-set steps land on the bounds up to rounding; snap them
+            xu, xw = float(np.clip(x[0], lbu, ubu)), float(np.clip(x[1], lbw[k], ubw[k]))
+            usable = abs(xu - x[0]) < 1e-6 and abs(xw - x[1]) < 1e-6
+        failed[k] = not (ok and usable)
+        if usable:
+            v = float(criterion(start[k], np.asarray(xu), np.asarray(xw), t[k], cx[k], cz[k],
+                                abc[k]))
+            usable = bool(np.isfinite(v)) and v <= g_val[k]
+        if usable:
+            u[k], w[k], val[k] = xu, xw, v
+        else:
+            fallback[k] = True
+    return WindowFits(u, w, val, failed, fallback, ms)
