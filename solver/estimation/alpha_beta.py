@@ -1,0 +1,121 @@
+"""Growing-memory alpha-beta and alpha-beta-gamma filters with a memory cap (seed 004, spec
+filters.md section 4), per axis on the plot points.
+
+Until the cap the gains are those of the least-squares polynomial fit (line, or parabola for
+``order=3``) to all past plots at their actual times, computed as a Kalman filter with no
+process noise and unit measurement noise from an exact first fit (2 or 3 plots). For a constant
+step ``T`` they equal the closed forms ``alpha_k = 2(2k+1)/((k+1)(k+2))``,
+``beta_k = 6/((k+1)(k+2))`` (and ``g, h, kappa`` for ``order=3``, acceleration gain
+``2 kappa / T^2``). From plot ``k_max`` on the gains stay at the closed-form values for
+``k_max`` (velocity gain ``beta / T`` with the actual step) so the filter keeps following
+manoeuvres. Both axes use the same scalar gains (unweighted fit, as the paper).
+
+The covariance reported is that of these gains under the straight-line model with the plots'
+converted measurement covariances (Joseph form, no process noise): honest on straight legs,
+optimistic in turns.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..inputs import FloatArray
+from ..results import FilterEstimate
+from .common import SIGMA_V0, cartesian_output, estimate
+from .measurements import PolarPlots
+
+K_MAX = 6
+"""Default memory cap (plots): chosen on the dev benchmark (see the module README)."""
+
+
+def closed_form_gains(k: int | FloatArray, order: int = 2) -> FloatArray:
+    """Growing-memory gains for a constant step: ``(alpha, beta)`` or ``(g, h, kappa)``."""
+    k = np.asarray(k, dtype=float)
+    if order == 2:
+        den = (k + 1) * (k + 2)
+        return np.stack([2 * (2 * k + 1) / den, 6 / den], -1)
+    den = (k + 1) * (k + 2) * (k + 3)
+    return np.stack([3 * (3 * k**2 + 3 * k + 2) / den, 18 * (2 * k + 1) / den, 30 / den], -1)
+
+
+def transition(T: float, order: int) -> FloatArray:
+    """Per-axis polynomial transition ``[p, v(, a)]``."""
+    if order == 2:
+        return np.array([[1.0, T], [0.0, 1.0]])
+    return np.array([[1.0, T, T * T / 2], [0.0, 1.0, T], [0.0, 0.0, 1.0]])
+
+
+def gain_sequence(t: FloatArray, order: int = 2, k_max: int | None = K_MAX) -> FloatArray:
+    """``(n, order)`` per-axis gains ``K_k`` such that ``x_k = x_pred + K_k (y_k - p_pred)``.
+
+    ``K_0 = e_0``; ``K_1`` fits the line through two plots; for ``order=3`` ``K_2`` fits the
+    parabola through three; then the recursive least-squares (unit-noise Kalman) gains until
+    ``k_max``, the capped closed-form gains after.
+    """
+    n, m = t.shape[0], order
+    K = np.zeros((n, m))
+    if n == 0:
+        return K
+    K[0, 0] = 1.0
+    H = np.zeros(m)
+    H[0] = 1.0
+    M: FloatArray | None = None  # unit-noise covariance of the current fit
+    for k in range(1, n):
+        T = t[k] - t[k - 1]
+        if k_max is not None and k >= k_max:
+            g = closed_form_gains(k_max, order)
+            K[k] = g / np.array([1.0, T, T * T / 2][:m])
+            continue
+        if k == 1:
+            K[k, 0], K[k, 1] = 1.0, 1.0 / T
+            if m == 2:
+                M = np.linalg.inv(np.array([[1.0, -T], [1.0, 0.0]]).T
+                                  @ np.array([[1.0, -T], [1.0, 0.0]]))
+            continue
+        if m == 3 and k == 2:
+            tau = t[:3] - t[2]
+            A = np.column_stack([np.ones(3), tau, tau**2 / 2])
+            # state after the update = A^-1 y; with x_pred built from the line through plots 0, 1,
+            # the gain is the column of A^-1 acting on the new plot's residual
+            Ainv = np.linalg.inv(A)
+            K[k] = Ainv[:, 2]
+            M = Ainv @ Ainv.T
+            continue
+        assert M is not None
+        F = transition(T, m)
+        Mp = F @ M @ F.T
+        K[k] = Mp[:, 0] / (Mp[0, 0] + 1.0)
+        M = Mp - np.outer(K[k], Mp[0])
+    return K
+
+
+def run_alpha_beta(meas: PolarPlots, order: int = 2, k_max: int | None = K_MAX) -> FilterEstimate:
+    if order not in (2, 3):
+        raise ValueError(f"order must be 2 (alpha-beta) or 3 (alpha-beta-gamma), not {order!r}")
+    if k_max is not None and k_max < order:
+        raise ValueError(f"k_max must be at least {order}, not {k_max!r}")
+    t = meas.t
+    n, m = t.shape[0], order
+    y = meas.points()
+    R = meas.converted_cov()
+    K = gain_sequence(t, order, k_max)
+    x = np.zeros((n, 2, m))  # axis, derivative
+    P = np.zeros((n, 2 * m, 2 * m))  # blocks [x-axis, z-axis]
+    x[0, :, 0] = y[0]
+    P[0][np.ix_([0, m], [0, m])] = R[0]
+    for j in range(1, m):
+        P[0, j, j] = P[0, m + j, m + j] = SIGMA_V0**2 if j == 1 else 100.0
+    H = np.zeros((2, 2 * m))
+    H[0, 0] = H[1, m] = 1.0
+    eye = np.eye(2 * m)
+    for k in range(1, n):
+        F = transition(t[k] - t[k - 1], m)
+        xp = x[k - 1] @ F.T
+        x[k] = xp + K[k][None, :] * (y[k] - xp[:, 0])[:, None]
+        F2 = np.kron(np.eye(2), F)
+        K2 = np.kron(np.eye(2), K[k][:, None])
+        IKH = eye - K2 @ H
+        Pk = IKH @ (F2 @ P[k - 1] @ F2.T) @ IKH.T + K2 @ R[k] @ K2.T
+        P[k] = 0.5 * (Pk + Pk.T)
+    s, C = cartesian_output(x.reshape(n, 2 * m), P, m)
+    return estimate("alpha_beta", t, s, C, gains=K, order=float(order))

@@ -1,0 +1,128 @@
+"""Kalman predict / update / smooth (FilterPy-style explicit matrices, Joseph-form updates).
+
+- :func:`predict`, :func:`update` : one step of a linear Gaussian filter.
+- :func:`position_update` : update of a state whose position sits at indices ``pos`` from one
+  polar plot, as a converted measurement or an EKF update (see ``measurements.py``).
+- :func:`filter_track` : a linear-model filter over a whole track (``Phi``, ``Q`` per step).
+- :func:`channel_filter` : many independent scalar-measurement filters at once (batch axis ``B``);
+  used per radar coordinate; an optional gain rule replaces the Kalman gain.
+- :func:`rts_smoother` : Rauch-Tung-Striebel fixed-interval smoother.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..inputs import FloatArray
+from .measurements import PolarPlots, converted_cov, polar_innovation
+
+
+def predict(x: FloatArray, P: FloatArray, Phi: FloatArray, Q: FloatArray
+            ) -> tuple[FloatArray, FloatArray]:
+    """``x = Phi x``, ``P = Phi P Phi^T + Q``."""
+    return Phi @ x, Phi @ P @ Phi.T + Q
+
+
+def update(x: FloatArray, P: FloatArray, nu: FloatArray, H: FloatArray, R: FloatArray
+           ) -> tuple[FloatArray, FloatArray, float, float]:
+    """Update with innovation ``nu``: ``K = P H^T S^-1``, Joseph form for ``P``; returns also the
+    normalised innovation squared ``nu^T S^-1 nu`` and ``log det S`` (for likelihoods)."""
+    PHt = P @ H.T
+    S = H @ PHt + R
+    Sinv = np.linalg.inv(S)
+    K = PHt @ Sinv
+    IKH = np.eye(P.shape[0]) - K @ H
+    P = IKH @ P @ IKH.T + K @ R @ K.T
+    return x + K @ nu, P, float(nu @ Sinv @ nu), float(np.log(np.linalg.det(S)))
+
+
+def position_update(x: FloatArray, P: FloatArray, meas: PolarPlots, k: int, pos: tuple[int, int],
+                    mode: str) -> tuple[FloatArray, FloatArray, float, float]:
+    """Update with plot ``k``; ``mode`` ``"converted"`` or ``"ekf"``."""
+    H = np.zeros((2, x.shape[0]))
+    H[0, pos[0]] = H[1, pos[1]] = 1.0
+    p = x[list(pos)]
+    if mode == "converted":
+        d, psi = meas.d[k], meas.psi[k]
+        z = np.array([d * np.cos(psi), d * np.sin(psi)])
+        R = converted_cov(np.hypot(p[0], p[1]), np.arctan2(p[1], p[0]), meas.sigma_d[k],
+                          meas.sigma_psi)
+        return update(x, P, z - p, H, R)
+    if mode == "ekf":
+        nu, J = polar_innovation(p, meas.d[k], meas.psi[k])
+        R = np.diag([meas.sigma_d[k] ** 2, meas.sigma_psi**2])
+        return update(x, P, nu, J @ H, R)
+    raise ValueError(f"unknown measurement mode {mode!r} (use 'converted' or 'ekf')")
+
+
+def filter_track(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
+                 meas: PolarPlots, pos: tuple[int, int], mode: str
+                 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Filter plots ``1..n-1`` after the prior ``(x0, P0)`` at plot 0 (built from plot 0).
+
+    Returns filtered ``xf (n, m)``, ``Pf (n, m, m)``, predicted ``xp``, ``Pp`` (index 0 = prior)
+    and the normalised innovations squared ``(n,)`` (0 at plot 0).
+    """
+    n, m = len(meas), x0.shape[0]
+    xf, Pf = np.empty((n, m)), np.empty((n, m, m))
+    xp, Pp = np.empty((n, m)), np.empty((n, m, m))
+    nis = np.zeros(n)
+    x, P = x0, P0
+    xf[0] = xp[0] = x
+    Pf[0] = Pp[0] = P
+    for k in range(1, n):
+        x, P = predict(x, P, Phi[k - 1], Q[k - 1])
+        xp[k], Pp[k] = x, P
+        x, P, nis[k], _ = position_update(x, P, meas, k, pos, mode)
+        xf[k], Pf[k] = x, P
+    return xf, Pf, xp, Pp, nis
+
+
+def channel_filter(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
+                   z: FloatArray, R: FloatArray,
+                   gain: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
+                   ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``B`` independent filters with scalar measurements ``z[k, b]`` of the first state component.
+
+    ``x0 (B, m)``, ``P0 (B, m, m)``, ``Phi``/``Q`` ``(n-1, B, m, m)``, ``z (n, B)``,
+    ``R (n, B)``. ``gain(k, nu / sqrt(S), K_kalman) -> K`` may replace the Kalman gain ``(B, m)``;
+    the covariance is then propagated for the gain actually used (Joseph form). Returns filtered
+    ``xf (n, B, m)``, ``Pf (n, B, m, m)`` and the normalised innovations ``(n, B)``.
+    """
+    n, (B, m) = z.shape[0], x0.shape
+    xf, Pf = np.empty((n, B, m)), np.empty((n, B, m, m))
+    nus = np.zeros((n, B))
+    x, P = x0.copy(), P0.copy()
+    xf[0], Pf[0] = x, P
+    eye = np.eye(m)
+    for k in range(1, n):
+        F = Phi[k - 1]
+        x = np.einsum("bij,bj->bi", F, x)
+        P = F @ P @ np.transpose(F, (0, 2, 1)) + Q[k - 1]
+        S = P[:, 0, 0] + R[k]
+        nu = z[k] - x[:, 0]
+        K = P[:, :, 0] / S[:, None]
+        nus[k] = nu / np.sqrt(S)
+        if gain is not None:
+            K = gain(k, nus[k], K)
+        IKH = eye - K[:, :, None] * eye[0][None, None, :]
+        P = IKH @ P @ np.transpose(IKH, (0, 2, 1)) + R[k][:, None, None] * (
+            K[:, :, None] * K[:, None, :])
+        x = x + K * nu[:, None]
+        xf[k], Pf[k] = x, P
+    return xf, Pf, nus
+
+
+def rts_smoother(xf: FloatArray, Pf: FloatArray, xp: FloatArray, Pp: FloatArray,
+                 Phi: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``C_k = Pf_k Phi_k^T Pp_{k+1}^-1``; ``xs_k = xf_k + C_k (xs_{k+1} - xp_{k+1})``;
+    ``Ps_k = Pf_k + C_k (Ps_{k+1} - Pp_{k+1}) C_k^T``."""
+    xs, Ps = xf.copy(), Pf.copy()
+    for k in range(xf.shape[0] - 2, -1, -1):
+        C = np.linalg.solve(Pp[k + 1], Phi[k] @ Pf[k]).T
+        xs[k] = xf[k] + C @ (xs[k + 1] - xp[k + 1])
+        Ps[k] = Pf[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
+        Ps[k] = 0.5 * (Ps[k] + Ps[k].T)
+    return xs, Ps

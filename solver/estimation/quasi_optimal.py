@@ -1,0 +1,92 @@
+"""Quasi-optimal control-law filter of seed 001 (Kostoglotov, Penkov, Lazarenko 2023), per radar
+coordinate ``s`` (ground range, azimuth):
+
+    q'' = -sqrt(Lambda) q' + Lambda r,    r' = -alpha r + w,    z = q + v,
+
+state ``[q, q', r]``, ``w`` white with density ``2 alpha sigma_M^2`` (``r`` stationary with RMS
+``sigma_M``: metres on the range channel, ``sigma_M / d`` radians on the azimuth channel, ``d`` the
+median ground range). Discretisation ``"exact"`` (matrix exponential, Van Loan) or ``"taylor"``
+(the paper's ``Phi = I + F T + F^2 T^2/2``, ``Q = Gamma (2 alpha sigma_M^2 / T) Gamma^T``).
+
+``lam="auto"`` picks ``Lambda`` per channel by the discrepancy principle (paper eq. 5): among
+``LAMBDA_GRID`` the smallest (most smoothing) value whose filtered residual functional
+``J = mean((z_k - q_k)^2 / sigma_k^2)`` does not exceed 1, the known measurement variance,
+interpolated in ``log Lambda``; all grid values run in one batched pass.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..inputs import FloatArray
+from ..results import FilterEstimate
+from .common import SIGMA_V0, channels_to_cartesian, estimate, polar_channels
+from .measurements import PolarPlots
+from .models import quasi_optimal
+
+LAMBDA = 0.01
+"""Default ``Lambda`` (1/s^2): natural period ``2 pi / sqrt(Lambda)`` about 60 s."""
+ALPHA = 0.01
+"""Default ``alpha`` (1/s): residual correlation time 100 s."""
+SIGMA_M = 2000.0
+"""Default RMS of the residual drive ``r`` on the range channel (m)."""
+LAMBDA_GRID = np.logspace(-4, 0, 17)
+
+
+def _channels(meas: PolarPlots, lams: FloatArray, alpha: float, sigma_m: float, method: str
+              ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Run range and azimuth channels for every ``Lambda`` in ``lams`` (batch: ranges, azimuths)."""
+    dt = np.diff(meas.t)
+    d_ref = float(np.median(meas.d))
+    G = lams.size
+    Phi = np.empty((dt.size, 2 * G, 3, 3))
+    Q = np.empty_like(Phi)
+    for g, lam in enumerate(lams):
+        Ph, Qg = quasi_optimal(dt, float(lam), alpha, sigma_m, method)
+        Phi[:, g], Phi[:, G + g] = Ph, Ph
+        Q[:, g], Q[:, G + g] = Qg, Qg / d_ref**2
+    prior = np.array([[0.0, SIGMA_V0**2, sigma_m**2]] * G
+                     + [[0.0, (SIGMA_V0 / d_ref) ** 2, (sigma_m / d_ref) ** 2]] * G)
+    xf, Pf, _, R = polar_channels(meas, Phi, Q, prior)
+    z = np.concatenate([np.repeat(meas.d[:, None], G, 1), np.repeat(meas.psi[:, None], G, 1)], 1)
+    J = np.mean((z - xf[:, :, 0]) ** 2 / R, axis=0)
+    return xf, Pf, J, d_ref
+
+
+def discrepancy_lambda(lams: FloatArray, J: FloatArray) -> float:
+    """Smallest ``Lambda`` with ``J(Lambda) <= 1`` (log-linear interpolation on the grid)."""
+    ok = np.flatnonzero(J <= 1.0)
+    if ok.size == 0:
+        return float(lams[-1])
+    i = int(ok[0])
+    if i == 0:
+        return float(lams[0])
+    a, b = J[i - 1], J[i]
+    f = (a - 1.0) / (a - b)
+    return float(np.exp(np.log(lams[i - 1]) + f * (np.log(lams[i]) - np.log(lams[i - 1]))))
+
+
+def run_quasi_optimal(meas: PolarPlots, lam: float | str = LAMBDA, alpha: float = ALPHA,
+                      sigma_m: float = SIGMA_M, discretisation: str = "exact") -> FilterEstimate:
+    info: dict[str, FloatArray | float | str] = {"discretisation": discretisation}
+    if isinstance(lam, str):
+        if lam != "auto":
+            raise ValueError(f"lam must be a number or 'auto', not {lam!r}")
+        if len(meas) < 3:
+            lams = np.array([LAMBDA, LAMBDA])
+        else:
+            _, _, J, _ = _channels(meas, LAMBDA_GRID, alpha, sigma_m, discretisation)
+            G = LAMBDA_GRID.size
+            lams = np.array([discrepancy_lambda(LAMBDA_GRID, J[:G]),
+                             discrepancy_lambda(LAMBDA_GRID, J[G:])])
+    else:
+        if not lam > 0:
+            raise ValueError(f"lam must be positive, not {lam!r}")
+        lams = np.array([float(lam)])
+    xf, Pf, J, _ = _channels(meas, lams, alpha, sigma_m, discretisation)
+    G = lams.size
+    # range channel 0; azimuth channel: its own Lambda (index G + last) when chosen per channel
+    s, P = channels_to_cartesian(xf, Pf, 0, 2 * G - 1)
+    info.update(lambda_range=float(lams[0]), lambda_azimuth=float(lams[-1]),
+                discrepancy_range=float(J[0]), discrepancy_azimuth=float(J[-1]))
+    return estimate("quasi_optimal", meas.t, s, P, **info)

@@ -1,0 +1,48 @@
+"""Singer filter (spec filters.md section 1): per axis ``[p, p', p'']`` with
+``p''' = -alpha p'' + w``, exact transition and Van Loan process noise.
+
+``frame="cartesian"`` (default): north and east axes in one 6-state filter updated from each polar
+plot (converted measurement or EKF). ``frame="polar"``: ground range and azimuth filtered as
+separate channels, as in seed 001's comparison (azimuth manoeuvre sigma ``sigma_m / d``).
+
+Defaults: ``alpha = 1/20 s^-1`` (manoeuvre time constant 20 s: Singer's "lazy turn" is 60 s,
+evasive 10-20 s; civil turns last 20-60 s) and ``sigma_m = 2 m/s^2``; both chosen on the dev
+benchmark (see benchmarks/results/filters_seed001.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..results import FilterEstimate
+from .common import (SIGMA_V0, cartesian_output, cartesian_prior, channels_to_cartesian, estimate,
+                     polar_channels)
+from .kalman import filter_track
+from .measurements import PolarPlots
+from .models import singer, two_axes
+
+ALPHA = 1 / 20
+SIGMA_M = 2.0
+
+
+def run_singer(meas: PolarPlots, alpha: float = ALPHA, sigma_m: float = SIGMA_M,
+               measurement: str = "converted", frame: str = "cartesian") -> FilterEstimate:
+    dt = np.diff(meas.t)
+    if frame == "cartesian":
+        Phi, Q = singer(dt, alpha, sigma_m)
+        x0, P0 = cartesian_prior(meas, 3, (sigma_m**2,))
+        xf, Pf, _, _, nis = filter_track(x0, P0, two_axes(Phi), two_axes(Q), meas, (0, 3),
+                                         measurement)
+        s, P = cartesian_output(xf, Pf, 3)
+        return estimate("singer", meas.t, s, P, nis=nis)
+    if frame == "polar":
+        d_ref = float(np.median(meas.d))
+        Phi_r, Q_r = singer(dt, alpha, sigma_m)
+        Phi = np.stack([Phi_r, Phi_r], 1)
+        Q = np.stack([Q_r, Q_r / d_ref**2], 1)
+        prior = np.array([[0.0, SIGMA_V0**2, sigma_m**2],
+                          [0.0, (SIGMA_V0 / d_ref) ** 2, (sigma_m / d_ref) ** 2]])
+        xf, Pf, _, _ = polar_channels(meas, Phi, Q, prior)
+        s, P = channels_to_cartesian(xf, Pf, 0, 1)
+        return estimate("singer", meas.t, s, P, frame="polar")
+    raise ValueError(f"unknown frame {frame!r} (use 'cartesian' or 'polar')")

@@ -1,0 +1,121 @@
+"""Motion models and Kalman pieces against independent references (matrix exponential, quadrature,
+discrete ARE, ODE integration, finite differences)."""
+
+import numpy as np
+import pytest
+from scipy.integrate import quad_vec, solve_ivp
+from scipy.linalg import expm, solve_discrete_are
+
+from solver.estimation.discretize import taylor, van_loan
+from solver.estimation.kalman import predict, update
+from solver.estimation.models import (ct_predict, cv, quasi_optimal, quasi_optimal_F, singer,
+                                      singer_F, singer_transition)
+
+STEPS = np.array([1e-6, 1e-3, 0.1, 1.0, 4.8, 10.0, 19.0, 60.0])
+
+
+def brute_noise(F, G, qc, T):
+    """``int_0^T e^{Fs} G qc G^T e^{F^T s} ds`` by adaptive quadrature."""
+    G = G.reshape(-1, 1)
+
+    def f(s):
+        E = expm(F * s)
+        return E @ G @ G.T @ E.T * qc
+
+    return quad_vec(f, 0.0, T, epsabs=0, epsrel=1e-12)[0]
+
+
+@pytest.mark.parametrize("alpha", [1e-6, 1 / 60, 1 / 20, 1.0, 5.0])
+def test_singer_transition_equals_matrix_exponential(alpha):
+    Phi = singer_transition(STEPS, alpha)
+    for T, P in zip(STEPS, Phi, strict=True):
+        ref = expm(singer_F(alpha) * T)
+        np.testing.assert_allclose(P, ref, rtol=1e-12, atol=1e-15 * max(1.0, T * T))
+
+
+@pytest.mark.parametrize("alpha", [1e-4, 1 / 20, 1.0])
+def test_singer_noise_equals_quadrature(alpha):
+    sigma_m = 2.0
+    _, Q = singer(STEPS, alpha, sigma_m)
+    for T, Qk in zip(STEPS, Q, strict=True):
+        ref = brute_noise(singer_F(alpha), np.array([0.0, 0.0, 1.0]), 2 * alpha * sigma_m**2, T)
+        scale = np.sqrt(np.outer(np.diag(ref), np.diag(ref)))
+        assert np.all(np.abs(Qk - ref) <= 1e-9 * scale + 1e-300)
+        assert np.all(np.linalg.eigvalsh(Qk) >= -1e-12 * np.max(np.abs(Qk)))
+
+
+def test_singer_noise_small_step_series():
+    """For ``alpha T -> 0`` Q tends to the white-jerk closed form ``q [T^5/20, T^4/8, T^3/6; ...]``;
+    the expanded Singer closed form loses every digit there, Van Loan must not."""
+    alpha, sigma_m, T = 1e-3, 1.0, np.array([1e-2])
+    q = 2 * alpha * sigma_m**2
+    _, Q = singer(T, alpha, sigma_m)
+    t = T[0]
+    ref = q * np.array([[t**5 / 20, t**4 / 8, t**3 / 6], [t**4 / 8, t**3 / 3, t**2 / 2],
+                        [t**3 / 6, t**2 / 2, t]])
+    np.testing.assert_allclose(Q[0], ref, rtol=1e-4)
+
+
+def test_quasi_optimal_exact_and_taylor():
+    lam, alpha, sm = 0.01, 0.01, 2000.0
+    F = quasi_optimal_F(lam, alpha)
+    Phi, Q = quasi_optimal(STEPS, lam, alpha, sm, "exact")
+    for T, P, Qk in zip(STEPS, Phi, Q, strict=True):
+        np.testing.assert_allclose(P, expm(F * T), rtol=1e-11, atol=1e-11)
+        ref = brute_noise(F, np.array([0.0, 0.0, 1.0]), 2 * alpha * sm**2, T)
+        np.testing.assert_allclose(Qk, ref, rtol=1e-8, atol=1e-12 * np.max(np.abs(ref)))
+    # the paper's Taylor transition is second order: error ~ T^3
+    Pt, Qt = quasi_optimal(np.array([0.1, 0.2]), lam, alpha, sm, "taylor")
+    Pe, Qe = quasi_optimal(np.array([0.1, 0.2]), lam, alpha, sm, "exact")
+    e = [np.max(np.abs(Pt[i] - Pe[i])) for i in range(2)]
+    assert 6 < e[1] / e[0] < 10
+    # ... and its noise agrees with the exact one to leading order
+    np.testing.assert_allclose(Qt[0][2, 2], Qe[0][2, 2], rtol=0.05)
+    with pytest.raises(ValueError):
+        quasi_optimal(STEPS, lam, alpha, sm, "euler")
+
+
+def test_cv_equals_van_loan():
+    F = np.array([[0.0, 1.0], [0.0, 0.0]])
+    P1, Q1 = cv(STEPS, 3.0)
+    P2, Q2 = van_loan(F, np.array([0.0, 1.0]), 3.0, STEPS)
+    np.testing.assert_allclose(P1, P2, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(Q1, Q2, rtol=1e-9, atol=1e-20)
+    Pt, _ = taylor(F, np.array([0.0, 1.0]), 3.0, STEPS)
+    np.testing.assert_allclose(Pt, P1, atol=1e-12)  # exact for a nilpotent F
+
+
+@pytest.mark.parametrize("T", [1.0, 10.0])
+def test_singer_steady_state_gain_matches_dare(T):
+    alpha, sigma_m, R = 1 / 20, 2.0, 400.0**2
+    Phi, Q = singer(np.array([T]), alpha, sigma_m)
+    Phi, Q = Phi[0], Q[0]
+    H = np.array([[1.0, 0.0, 0.0]])
+    x, P = np.zeros(3), np.diag([R, 300.0**2, sigma_m**2])
+    for _ in range(2000):
+        x, P = predict(x, P, Phi, Q)
+        K = P @ H.T / (H @ P @ H.T + R)
+        x, P, _, _ = update(x, P, np.zeros(1), H, np.array([[R]]))
+    Pss = solve_discrete_are(Phi.T, H.T, Q, np.array([[R]]))
+    Kss = Pss @ H.T / (H @ Pss @ H.T + R)
+    np.testing.assert_allclose(K, Kss, rtol=1e-8)
+
+
+@pytest.mark.parametrize("omega", [0.0, 1e-9, 1e-5, 0.02, -0.05])
+def test_coordinated_turn_against_ode_and_finite_differences(omega):
+    x0 = np.array([1000.0, -2000.0, 120.0, -40.0, omega])
+    T = 12.0
+
+    def rhs(_, s):
+        return [s[2], s[3], -s[4] * s[3], s[4] * s[2], 0.0]
+
+    ref = solve_ivp(rhs, (0, T), x0, rtol=1e-12, atol=1e-10, method="DOP853").y[:, -1]
+    fx, J = ct_predict(x0, T)
+    np.testing.assert_allclose(fx, ref, rtol=1e-10, atol=1e-7)
+    num = np.empty((5, 5))
+    for j in range(5):
+        h = 1e-6 * max(1.0, abs(x0[j])) if j < 4 else 1e-7
+        e = np.zeros(5)
+        e[j] = h
+        num[:, j] = (ct_predict(x0 + e, T)[0] - ct_predict(x0 - e, T)[0]) / (2 * h)
+    np.testing.assert_allclose(J, num, rtol=1e-6, atol=1e-6)
