@@ -16,9 +16,9 @@ is below 10 m).
   turn with unknown rate (EKF prediction, ``omega`` a random walk). No smoothed IMM: neither
   library has one.
 
-Both start from two-point differencing of the first two plots. Tuning values per profile come
-from ``python -m benchmarks.tune`` (a grid search on the dev set, see :data:`TUNED`) and are
-frozen here.
+Both start from a diffuse prior updated with the first plot (velocity 0 +- 300 m/s per axis).
+Tuning values per profile come from ``python -m benchmarks.tune`` (a grid search on the dev set,
+see :data:`TUNED`) and are frozen here.
 """
 
 from __future__ import annotations
@@ -73,22 +73,25 @@ def converted_measurements(plots: Plots, radar: Radar) -> tuple[FloatArray, Floa
     return np.column_stack([e.cx, e.cz]), cov
 
 
-def _two_point_start(t: FloatArray, z: FloatArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """State ``(x, vx, z, vz)`` at ``t[0]`` and its covariance from the first two plots."""
-    if len(t) < 2:
-        x0 = np.array([z[0, 0], 0.0, z[0, 1], 0.0])
-        P0 = np.diag([R[0, 0, 0], 300.0**2, R[0, 1, 1], 300.0**2])
-        return x0, P0
-    dt = t[1] - t[0]
-    v = (z[1] - z[0]) / dt
-    x0 = np.array([z[0, 0], v[0], z[0, 1], v[1]])
-    P0 = np.zeros((4, 4))
-    idx_p, idx_v = [0, 2], [1, 3]
-    P0[np.ix_(idx_p, idx_p)] = R[0]
-    P0[np.ix_(idx_p, idx_v)] = -R[0] / dt
-    P0[np.ix_(idx_v, idx_p)] = -R[0] / dt
-    P0[np.ix_(idx_v, idx_v)] = (R[0] + R[1]) / dt**2
+V_PRIOR = 300.0  # m/s: standard deviation of the velocity prior (about v_max of the bounds)
+P_PRIOR = 1e5  # m: standard deviation of the position prior (diffuse; the first plot decides)
+
+
+def _start(z: FloatArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """State ``(x, vx, z, vz)`` at the first plot and its covariance after that plot: position
+    the first plot point with its converted covariance, velocity 0 +- ``V_PRIOR`` per axis (a
+    weak prior, so each plot is used exactly once)."""
+    x0 = np.array([z[0, 0], 0.0, z[0, 1], 0.0])
+    P0 = np.diag([0.0, V_PRIOR**2, 0.0, V_PRIOR**2])
+    P0[np.ix_([0, 2], [0, 2])] = R[0]
     return x0, P0
+
+
+def prior(z: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Diffuse prior at the first plot's time, before its update: centred on the first plot,
+    ``P_PRIOR`` on positions, ``V_PRIOR`` on velocities."""
+    return (np.array([z[0, 0], 0.0, z[0, 1], 0.0]),
+            np.diag([P_PRIOR**2, V_PRIOR**2, P_PRIOR**2, V_PRIOR**2]))
 
 
 def _series(t: FloatArray, means: FloatArray, covs: FloatArray) -> StateSeries:
@@ -109,7 +112,7 @@ def stonesoup_cv(plots: Plots, radar: Radar, q: float = 30.0,
     from stonesoup.smoother.kalman import KalmanSmoother
     from stonesoup.types.detection import Detection
     from stonesoup.types.hypothesis import SingleHypothesis
-    from stonesoup.types.state import GaussianState
+    from stonesoup.types.prediction import GaussianStatePrediction
     from stonesoup.types.track import Track
     from stonesoup.updater.kalman import KalmanUpdater
 
@@ -118,16 +121,17 @@ def stonesoup_cv(plots: Plots, radar: Radar, q: float = 30.0,
     transition = CombinedLinearGaussianTransitionModel([ConstantVelocity(q), ConstantVelocity(q)])
     predictor = KalmanPredictor(transition)
     updater = KalmanUpdater(measurement_model=None)
-    x0, P0 = _two_point_start(t, z, R)
-    prior = GaussianState(x0.reshape(-1, 1), P0, timestamp=EPOCH + timedelta(seconds=t[0]))
+    x0, P0 = prior(z)
+    state = GaussianStatePrediction(x0.reshape(-1, 1), P0,
+                                    timestamp=EPOCH + timedelta(seconds=t[0]))
     track = Track()
     for i in range(len(t)):
         model = LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=R[i])
         det = Detection(z[i].reshape(-1, 1), timestamp=EPOCH + timedelta(seconds=t[i]),
                         measurement_model=model)
-        prediction = prior if i == 0 else predictor.predict(prior, timestamp=det.timestamp)
-        prior = updater.update(SingleHypothesis(prediction, det))
-        track.append(prior)
+        prediction = state if i == 0 else predictor.predict(state, timestamp=det.timestamp)
+        state = updater.update(SingleHypothesis(prediction, det))
+        track.append(state)
     if smooth and len(t) > 1:
         track = KalmanSmoother(transition).smooth(track)
     means = np.array([np.asarray(s.state_vector, dtype=float).ravel() for s in track])
@@ -209,7 +213,7 @@ def filterpy_imm(plots: Plots, radar: Radar, tuning: ImmTuning | None = None) ->
     tuning = tuning or ImmTuning()
     t = plots.t
     z, R = converted_measurements(plots, radar)
-    x0, P0 = _two_point_start(t, z, R)
+    x0, P0 = _start(z, R)
     filters = [_ImmCv(tuning.q_cv), _ImmCt(tuning.q_ct, tuning.q_omega)]
     for f in filters:
         f.x = np.append(x0, 0.0).reshape(-1, 1)

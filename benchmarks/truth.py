@@ -108,8 +108,10 @@ def synthetic_seed_track(step_s: float = 1.0) -> Truth:
     """Piecewise-constant-control truth (``solver.motion.propagate``) shaped like seed 000's track.
 
     Controls :data:`SEED_LIKE_CONTROLS` from ``(x, z) = (-120 km, 40 km)`` heading north at
-    220 m/s, altitude 8000 m (ranges 31-163 km); sampled every ``step_s`` seconds (the spline
-    between 1-s samples is accurate to centimetres, except within a second of a control switch).
+    220 m/s, altitude 3000 m (ranges 31-163 km; a holding-pattern altitude, low enough that the
+    slant-range bias ``h^2 / 2r`` stays below 150 m); sampled every ``step_s`` seconds (the
+    spline between 1-s samples is accurate to centimetres, except within a second of a control
+    switch).
     """
     state = (-120e3, 40e3, 0.0, 220.0)
     ts, xs, zs, phis, vs = [np.array([0.0])], [np.array([state[0]])], [np.array([state[1]])], \
@@ -130,5 +132,5 @@ def synthetic_seed_track(step_s: float = 1.0) -> Truth:
     t, x, z = np.concatenate(ts), np.concatenate(xs), np.concatenate(zs)
     vx, vz = velocity(np.concatenate(phis), np.concatenate(vs))
     keep = np.concatenate([[True], np.diff(t) > 1e-6])
-    return Truth(SYNTHETIC, t[keep], x[keep], z[keep], np.full(keep.sum(), 8000.0),
+    return Truth(SYNTHETIC, t[keep], x[keep], z[keep], np.full(keep.sum(), 3000.0),
                  vx[keep], vz[keep])
