@@ -8,8 +8,15 @@ from scipy.linalg import expm, solve_discrete_are
 
 from solver.estimation.discretize import taylor, van_loan
 from solver.estimation.kalman import predict, update
-from solver.estimation.models import (ct_predict, cv, quasi_optimal, quasi_optimal_F, singer,
-                                      singer_F, singer_transition)
+from solver.estimation.models import (
+    ct_predict,
+    cv,
+    quasi_optimal,
+    quasi_optimal_F,
+    singer,
+    singer_F,
+    singer_transition,
+)
 
 STEPS = np.array([1e-6, 1e-3, 0.1, 1.0, 4.8, 10.0, 19.0, 60.0])
 

@@ -84,4 +84,5 @@ def estimate(name: str, t: FloatArray, states: FloatArray, cov: FloatArray,
              **info: FloatArray | float | str) -> FilterEstimate:
     """Pack ``(n, 4)`` states and ``(n, 4, 4)`` covariances (symmetrised)."""
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
-    return FilterEstimate(name=name, states=StateSeries.from_states(t, states, cov), info=dict(info))
+    series = StateSeries.from_states(t, states, cov)
+    return FilterEstimate(name=name, states=series, info=dict(info))

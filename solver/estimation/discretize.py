@@ -5,8 +5,8 @@
   one matrix exponential of ``[[-F, G qc G^T], [0, F^T]] T`` (Van Loan 1978): no cancellation for
   small ``T`` unlike expanded closed forms.
 - :func:`taylor` : the second-order series ``Phi = I + F T + F^2 T^2 / 2`` and
-  ``Gamma = (I T + F T^2 / 2 + F^2 T^3 / 6) G`` used by seed 001, with ``Q = Gamma (qc / T) Gamma^T``
-  (a white sequence of variance ``qc / T`` held over the step).
+  ``Gamma = (I T + F T^2 / 2 + F^2 T^3 / 6) G`` used by seed 001, with
+  ``Q = Gamma (qc / T) Gamma^T`` (a white sequence of variance ``qc / T`` held over the step).
 
 Steps are rounded to 1e-9 s and each distinct step is computed once (scans repeat the same
 ``T``; a missed plot gives a multiple of it).
@@ -26,8 +26,10 @@ def _unique_steps(dt: FloatArray) -> tuple[FloatArray, np.ndarray]:
     return keys, inverse.reshape(dt.shape)
 
 
-def van_loan(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Exact ``(Phi, Q)`` of shape ``(len(dt), n, n)`` for ``x' = F x + G w``, ``E[w w^T] = qc delta``."""
+def van_loan(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray
+             ) -> tuple[FloatArray, FloatArray]:
+    """Exact ``(Phi, Q)``, shape ``(len(dt), n, n)``, of ``x' = F x + G w``,
+    ``E[w w^T] = qc delta``."""
     n = F.shape[0]
     G = np.asarray(G, dtype=float).reshape(n, -1)
     steps, inverse = _unique_steps(dt)
@@ -49,7 +51,8 @@ def van_loan(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray) -> tuple[F
     return Phi[inverse], Q[inverse]
 
 
-def taylor(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray) -> tuple[FloatArray, FloatArray]:
+def taylor(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray
+           ) -> tuple[FloatArray, FloatArray]:
     """Seed 001's second-order Taylor ``(Phi, Q)``; ``Q = Gamma (qc / T) Gamma^T``."""
     n = F.shape[0]
     G = np.asarray(G, dtype=float).reshape(n, -1)

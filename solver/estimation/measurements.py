@@ -52,7 +52,7 @@ class PolarPlots:
         return np.column_stack([self.d * np.cos(self.psi), self.d * np.sin(self.psi)])
 
     def converted_cov(self, at: FloatArray | None = None) -> FloatArray:
-        """``(n, 2, 2)`` converted covariances, Jacobian at positions ``at`` (default: the plots)."""
+        """``(n, 2, 2)`` converted covariances, Jacobian at positions ``at`` (default: plots)."""
         if at is None:
             d, psi = self.d, self.psi
         else:

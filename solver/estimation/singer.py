@@ -15,8 +15,14 @@ from __future__ import annotations
 import numpy as np
 
 from ..results import FilterEstimate
-from .common import (SIGMA_V0, cartesian_output, cartesian_prior, channels_to_cartesian, estimate,
-                     polar_channels)
+from .common import (
+    SIGMA_V0,
+    cartesian_output,
+    cartesian_prior,
+    channels_to_cartesian,
+    estimate,
+    polar_channels,
+)
 from .kalman import filter_track
 from .measurements import PolarPlots
 from .models import singer, two_axes
