@@ -67,8 +67,9 @@ def _clean_loc(loc: tuple[Any, ...]) -> list[str | int]:
 
 
 class BodyLimit:
-    """Refuse bodies over ``max_bytes`` with 413: at once from ``Content-Length``, else while
-    reading a chunked body."""
+    """Refuse bodies over ``max_bytes`` with a JSON 413: at once from ``Content-Length``, else
+    while reading a chunked body. (FastAPI's own ``max_body_size`` answers plain text when
+    ``Content-Length`` is over the limit; every error here is an ``ErrorResponse``.)"""
 
     def __init__(self, app: ASGIApp, max_bytes: int):
         self.app = app
@@ -78,10 +79,9 @@ class BodyLimit:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        too_large = f"request body is larger than the limit of {self.max_bytes} bytes"
         length = dict(scope["headers"]).get(b"content-length")
         if length is not None and length.isdigit() and int(length) > self.max_bytes:
-            await _error(413, too_large)(scope, receive, send)
+            await _too_large(self.max_bytes)(scope, receive, send)
             return
         received = 0
 
@@ -91,10 +91,14 @@ class BodyLimit:
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.max_bytes:
-                    raise HTTPException(413, too_large)
+                    raise HTTPException(413)
             return message
 
         await self.app(scope, limited, send)
+
+
+def _too_large(max_bytes: int) -> JSONResponse:
+    return _error(413, f"request body is larger than the limit of {max_bytes} bytes")
 
 
 class Observe:
@@ -164,6 +168,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="Best-estimate aircraft trajectories from recorded radar plots.",
         description=DESCRIPTION,
         lifespan=lifespan,
+        generate_unique_id_function=lambda route: route.name,  # operationId = function name
         openapi_tags=[
             {"name": "reconstruction", "description": "Trajectory reconstruction."},
             {"name": "operations", "description": "Health, readiness and metrics."},
@@ -191,6 +196,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(HTTPException)
     async def http_error(request: Request, exc: HTTPException) -> JSONResponse:
+        if exc.status_code == 413:
+            return _too_large(settings.max_body_bytes)
+        if exc.status_code == 400:  # FastAPI: a body that is not UTF-8 text
+            return _error(422, "body: could not be decoded as UTF-8 JSON",
+                          [{"loc": ["body"], "msg": str(exc.detail), "type": "json_invalid"}])
         return _error(exc.status_code, str(exc.detail), headers=exc.headers)
 
     @app.exception_handler(Exception)
@@ -235,7 +245,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse(health.model_dump(), status_code=200 if pool.state == "ready"
                             else 503)
 
-    @app.get("/metrics", response_class=PlainTextResponse, tags=["operations"],
+    @app.get("/metrics", name="metrics", response_class=PlainTextResponse, tags=["operations"],
              summary="Prometheus metrics",
              responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
                               "description": "Prometheus text exposition format."}})

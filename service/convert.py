@@ -16,6 +16,8 @@ from solver.results import Diagnostics, FilterEstimate, Reconstruction, StateSer
 
 from .models import ReconstructionRequest
 
+DEFAULT_WINDOW_PLOTS: int = ReconstructionConfig().window_plots
+
 # solver field name -> request field name
 _RENAMED = {
     "azimuth_error_rad": "azimuth_error_deg",
@@ -75,7 +77,7 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
     b = req.bounds
     config = ReconstructionConfig(
         bounds=Bounds(u=(b.u[0], b.u[1]), w=(b.w[0], b.w[1]), v=(b.v[0], b.v[1])),
-        window_plots=req.window.plots,
+        window_plots=DEFAULT_WINDOW_PLOTS if req.window.plots is None else req.window.plots,
         trial_step_s=req.window.trial_step_s,
         criterion=req.criterion,
         sample_step_s=req.sample_step_s,
@@ -83,7 +85,7 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
         nlp_solver=nlp_solver,  # type: ignore[arg-type]
     )
     config.validate()
-    if config.window_plots > n:
+    if req.window.plots is not None and req.window.plots > n:
         raise InputError(("window", "plots"),
                          f"({config.window_plots}) is longer than the track ({n} plots)")
     span = float(plots.t[-1] - plots.t[0])

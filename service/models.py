@@ -91,9 +91,12 @@ class BoundsIn(_In):
 class WindowIn(_In):
     """Sliding-window settings of the reconstruction."""
 
-    plots: int = Field(
-        3, description="Plots per window `m` (>= 2, at most the number of plots). The seed "
-        "used 3-5; 3 follows hard manoeuvres best.", examples=[3])
+    plots: int | None = Field(
+        None, description="Plots per window `m` (>= 2). The seed used 3-5; 3 follows hard "
+        "manoeuvres best. Default (null): 3, or the whole track when it is shorter (one plot "
+        "gives only its position, two plots one straight constant-speed segment; see "
+        "`diagnostics.warnings`). An explicit value longer than the track is refused (422).",
+        examples=[3])
     trial_step_s: float = Field(
         5.0, description="Spacing (s, > 0) of the extra trial start points between plots, "
         "where the controls may switch.", examples=[5.0])

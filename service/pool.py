@@ -50,7 +50,7 @@ class SolverPool:
 
     def _new_executor(self) -> Executor:
         s = self.settings
-        args = (list(s.warmup_window_plots), s.nlp_solver, s.warmup)
+        args = (list(s.warmup_window_plots), s.nlp_solver, s.warmup, s.worker_niceness)
         if s.executor == "thread":
             return ThreadPoolExecutor(s.workers, "solver", init_worker, args)
         ctx = multiprocessing.get_context("spawn")

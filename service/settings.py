@@ -31,6 +31,9 @@ class Settings(BaseSettings):
     executor: Literal["process", "thread"] = Field(
         "process", description="Worker kind: processes (parallel solves) or threads (one "
         "process; solves serialise on the GIL).")
+    worker_niceness: int = Field(5, ge=0, le=19, description="CPU niceness added to worker "
+                                 "processes, so the HTTP event loop keeps answering when "
+                                 "solves saturate the cores.")
     max_concurrent_solves: int | None = Field(
         None, ge=1, description="Solves running at once (default: the number of workers).")
     max_queued_solves: int = Field(

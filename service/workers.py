@@ -7,6 +7,8 @@ runs in parallel too and the event loop only moves bytes.
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
 import traceback
 from dataclasses import dataclass
@@ -54,14 +56,30 @@ def warm_up(window_sizes: list[int], nlp_solver: str) -> None:
         reconstruct(plots, radar, config)
 
 
-def init_worker(window_sizes: list[int], nlp_solver: str, warm: bool) -> None:
-    """Pool initializer: warm the solvers before the first request reaches this worker."""
+_warm_up_error: str | None = None
+
+
+def init_worker(window_sizes: list[int], nlp_solver: str, warm: bool, niceness: int = 0) -> None:
+    """Pool initializer: lower this worker's CPU priority by ``niceness`` (so the event loop
+    keeps answering when solves saturate the cores), then warm the solvers before the first
+    request reaches this worker.
+
+    A failure is kept and reported by :func:`ping` (an initializer that raises would only
+    break the pool with no message)."""
+    global _warm_up_error
+    if niceness and multiprocessing.parent_process() is not None:  # processes, not threads
+        os.nice(niceness)
     if warm:
-        warm_up(window_sizes, nlp_solver)
+        try:
+            warm_up(window_sizes, nlp_solver)
+        except Exception as e:
+            _warm_up_error = f"{type(e).__name__}: {e}"
 
 
 def ping() -> float:
-    """A no-op task; the first one a fresh worker runs comes after its warm-up."""
+    """The readiness probe of one worker: runs after its warm-up, raises if that failed."""
+    if _warm_up_error is not None:
+        raise RuntimeError(_warm_up_error)
     return time.time()
 
 

@@ -1,0 +1,351 @@
+"""POST /v1/reconstructions and the operational endpoints, in process (real worker pool)."""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.convert import to_job
+from service.logs import LOGGER, JsonFormatter
+from service.models import ReconstructionRequest
+from service.pool import Busy, SolverPool
+from service.settings import Settings
+from solver.estimation import FILTER_NAMES
+from solver.reconstruct import reconstruct
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED_BATCH = json.loads((ROOT / "examples" / "seed_track.json").read_text())
+
+
+def batch(t_max: float = 600.0) -> dict:
+    """The committed seed-like example cut to its first ``t_max`` seconds."""
+    body = copy.deepcopy(SEED_BATCH)
+    body["plots"] = [p for p in body["plots"] if p["t"] <= t_max]
+    return body
+
+
+def wait_ready(client: TestClient, timeout: float = 60.0) -> None:
+    end = time.monotonic() + timeout
+    while client.get("/readyz").status_code != 200:
+        assert time.monotonic() < end, client.get("/readyz").json()
+        time.sleep(0.05)
+
+
+@pytest.fixture(scope="module")
+def client():
+    app = create_app(Settings(workers=2, max_plots=500, max_samples=20_000,
+                              max_body_bytes=200_000, access_log=True))
+    with TestClient(app) as c:
+        first = c.get("/readyz")
+        wait_ready(c)
+        c.first_readyz = first  # type: ignore[attr-defined]
+        yield c
+
+
+def post(client: TestClient, body: dict | str | bytes):
+    if isinstance(body, dict):
+        return client.post("/v1/reconstructions", json=body)
+    return client.post("/v1/reconstructions", content=body,
+                       headers={"content-type": "application/json"})
+
+
+# ------------------------------------------------------------------------------ round trip
+
+
+def test_readyz_waits_for_warm_solvers(client):
+    assert client.first_readyz.status_code == 503
+    assert client.first_readyz.json()["status"] == "starting"
+    assert client.get("/readyz").json() == {"status": "ready", "detail": ""}
+    assert client.get("/healthz").json()["status"] == "ok"
+
+
+def test_reconstruction_matches_in_process_solver(client):
+    body = batch(600.0)
+    r = post(client, body)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    job = to_job(ReconstructionRequest.model_validate(body), "sqpmethod", 500, 20_000)
+    ref = reconstruct(job.plots, job.radar, job.config)
+
+    at = out["trajectory"]["at_plots"]
+    assert [p["t"] for p in at] == [p["t"] for p in body["plots"]]
+    got = np.array([[p["x"], p["z"], p["vx"], p["vz"]] for p in at])
+    np.testing.assert_allclose(got, ref.at_plots.states, rtol=1e-9, atol=1e-6)
+    # heading clockwise from north, degrees; speed the norm of (vx, vz)
+    for p in at:
+        assert p["heading_deg"] == pytest.approx(
+            np.rad2deg(np.arctan2(p["vz"], p["vx"])) % 360.0, abs=1e-9)
+        assert p["speed"] == pytest.approx(np.hypot(p["vx"], p["vz"]), rel=1e-12)
+    seg = out["trajectory"]["segments"]
+    assert len(seg) == len(ref.segments)
+    assert seg[0]["t_start"] == body["plots"][0]["t"]
+    assert seg[-1]["t_end"] == pytest.approx(body["plots"][-1]["t"])
+    assert [s["u"] for s in seg] == pytest.approx([s.u for s in ref.segments], rel=1e-9, abs=1e-12)
+    samples = out["trajectory"]["samples"]
+    assert np.allclose(np.diff([s["t"] for s in samples]), 1.0)
+    if ref.at_plots.cov is not None:
+        cov = np.array([p["cov"] for p in at])
+        np.testing.assert_allclose(cov, ref.at_plots.cov, rtol=1e-9, atol=1e-9)
+        assert np.allclose(cov, np.transpose(cov, (0, 2, 1)))
+    d = out["diagnostics"]
+    assert d["method"] == "refined" and d["criterion"] == "R2"
+    assert d["windows_solved"] == ref.diagnostics.windows_solved > 0
+    assert d["elapsed_ms"] > 0 and d["queue_ms"] >= 0
+
+
+def test_truth_is_recovered_on_a_noiseless_turn(client):
+    """Degrees at the edge: a noiseless constant turn comes back with its own controls."""
+    from solver.motion import propagate, velocity
+
+    t = 10.0 * np.arange(12)
+    x, z, phi, v = propagate(60e3, -30e3, np.deg2rad(40.0), 180.0, 3.0, 0.0, t)
+    body = {
+        "radar": {"range_error_m": 100.0, "azimuth_error_deg": 0.2},
+        "plots": [{"t": float(a), "range_m": float(np.hypot(b, c)),
+                   "azimuth_deg": float(np.rad2deg(np.arctan2(c, b))) - 720.0}  # any real value
+                  for a, b, c in zip(t, x, z, strict=True)],
+    }
+    r = post(client, body)
+    assert r.status_code == 200, r.text
+    at = r.json()["trajectory"]["at_plots"]
+    vx, vz = velocity(phi, v)
+    np.testing.assert_allclose([p["x"] for p in at], x, atol=1.0)
+    np.testing.assert_allclose([p["z"] for p in at], z, atol=1.0)
+    np.testing.assert_allclose([p["vx"] for p in at], vx, atol=0.1)
+    np.testing.assert_allclose([p["vz"] for p in at], vz, atol=0.1)
+    seg = r.json()["trajectory"]["segments"][0]
+    assert seg["u"] == pytest.approx(3.0, abs=1e-3) and seg["w"] == pytest.approx(0, abs=1e-3)
+    assert seg["heading_deg"] == pytest.approx(40.0, abs=1e-3)
+    assert r.json()["diagnostics"]["method"] == "refined"
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_very_short_tracks_use_the_solver_defaults(client, n):
+    body = batch(100.0)
+    body["plots"] = body["plots"][:n]
+    r = post(client, body)
+    assert r.status_code == 200, r.text
+    assert len(r.json()["trajectory"]["at_plots"]) == n
+    assert r.json()["diagnostics"]["warnings"]
+
+
+def test_filters_run_beside_the_reconstruction(client):
+    body = batch(300.0)
+    body["filters"] = list(FILTER_NAMES)
+    r = post(client, body)
+    assert r.status_code == 200, r.text
+    filters = r.json()["filters"]
+    assert sorted(filters) == sorted(FILTER_NAMES)
+    for name, est in filters.items():
+        assert [s["t"] for s in est["states"]] == [p["t"] for p in body["plots"]], name
+        cov = np.array([s["cov"] for s in est["states"]])
+        assert cov.shape == (len(body["plots"]), 4, 4)
+    assert post(client, batch(300.0)).json()["filters"] == {}
+
+
+# ------------------------------------------------------------------------------ validation
+
+BAD = batch(300.0)
+
+
+def _with(path: str, value):
+    body = copy.deepcopy(BAD)
+    *head, last = path.split(".")
+    node = body
+    for key in head:
+        node = node[int(key)] if key.isdigit() else node.setdefault(key, {})
+    node[int(last) if last.isdigit() else last] = value
+    return body
+
+
+INVALID = [
+    # (case, body, expected message start)
+    ("duplicate t", _with("plots.5.t", BAD["plots"][4]["t"]),
+     "plots[5].t is not after plots[4].t"),
+    ("decreasing t", _with("plots.7.t", 1.0), "plots[7].t is not after plots[6].t"),
+    ("negative range", _with("plots.3.range_m", -5.0), "plots[3].range_m must be positive"),
+    ("zero range", _with("plots.0.range_m", 0.0), "plots[0].range_m must be positive"),
+    ("altitude above range", _with("plots.2.altitude_m", 1e9), "plots[2].altitude_m must be"),
+    ("inverted u bounds", _with("bounds.u", [7.0, -7.0]), "bounds.u is inverted or empty"),
+    ("inverted v bounds", _with("bounds.v", [330.0, 30.0]), "bounds.v is inverted or empty"),
+    ("three-value bounds", _with("bounds.w", [1.0, 2.0, 3.0]), "bounds.w: List should have at"),
+    ("window longer than track", _with("window.plots", 500),
+     "window.plots (500) is longer than the track"),
+    ("window of one plot", _with("window.plots", 1), "window.plots must be at least 2"),
+    ("zero trial step", _with("window.trial_step_s", 0.0), "window.trial_step_s must be positive"),
+    ("unknown filter", _with("filters", ["cv_rts", "kalmann"]), "filters[1]: Input should be"),
+    ("unknown criterion", _with("criterion", "R3"), "criterion: Input should be 'R1' or 'R2'"),
+    ("unknown method", _with("method", "magic"), "method: Input should be"),
+    ("negative radar error", _with("radar.range_error_m", -1.0),
+     "radar.range_error_m must be positive"),
+    ("azimuth error in degrees", _with("radar.azimuth_error_deg", 0.0),
+     "radar.azimuth_error_deg must be positive"),
+    ("elevation of 90 degrees", _with("radar.max_elevation_deg", 90.0),
+     "radar.max_elevation_deg must be below 90 degrees"),
+    ("string for a number", _with("plots.4.range_m", "far"),
+     "plots[4].range_m: Input should be a valid number"),
+    ("unknown field", _with("plots.1.speed", 3.0), "plots[1].speed: Extra inputs"),
+    ("no plots", _with("plots", []), "plots: List should have at least 1 item"),
+    ("too many samples", _with("sample_step_s", 1e-3), "sample_step_s (0.001 s) gives more"),
+    ("too many plots", {**BAD, "plots": [{"t": float(i), "range_m": 5e4, "azimuth_deg": 0.0}
+                                         for i in range(501)]}, "plots has 501 plots"),
+]
+
+
+@pytest.mark.parametrize(("case", "body", "message"), INVALID, ids=[c[0] for c in INVALID])
+def test_invalid_input_is_422_naming_the_field(client, case, body, message):
+    r = post(client, body)
+    assert r.status_code == 422, (case, r.text)
+    assert r.json()["message"].startswith(message), r.json()
+    assert r.json()["detail"]
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity", "1e999"])
+def test_non_finite_numbers_are_422(client, token):
+    text = json.dumps(BAD).replace('"range_m": ' + json.dumps(BAD["plots"][6]["range_m"]),
+                                   f'"range_m": {token}', 1)
+    assert token in text
+    r = post(client, text)
+    assert r.status_code == 422
+    assert r.json()["message"] == "plots[6].range_m: Input should be a finite number"
+
+
+@pytest.mark.parametrize("text", ["{", "[]", "null", '"plots"', "", "\xff"])
+def test_malformed_json_is_422(client, text):
+    r = post(client, text.encode("latin-1"))
+    assert r.status_code == 422, r.text
+    assert r.json()["message"]
+
+
+def test_oversize_body_is_413(client):
+    body = _with("plots", [{"t": float(i), "range_m": 5e4, "azimuth_deg": 1.0}
+                           for i in range(6000)])
+    r = post(client, body)
+    assert r.status_code == 413
+    assert "200000 bytes" in r.json()["message"]
+
+    def chunks():  # no Content-Length: the limit applies while reading
+        text = json.dumps(body).encode()
+        for i in range(0, len(text), 10_000):
+            yield text[i:i + 10_000]
+
+    r = client.post("/v1/reconstructions", content=chunks(),
+                    headers={"content-type": "application/json"})
+    assert r.status_code == 413
+
+
+# ------------------------------------------------------------------------------ operations
+
+
+def test_metrics_count_requests_solves_and_latency(client):
+    def value(text: str, prefix: str) -> float:
+        lines = [ln for ln in text.splitlines() if ln.startswith(prefix)]
+        return float(lines[0].rsplit(" ", 1)[1]) if lines else 0.0
+
+    ok = 'trajrecon_http_requests_total{method="POST",route="/v1/reconstructions",status="200"}'
+    bad = 'trajrecon_http_requests_total{method="POST",route="/v1/reconstructions",status="422"}'
+    solves = 'trajrecon_solves_total{method="refined",outcome="ok"}'
+    lat = ('trajrecon_http_request_duration_seconds_count{method="POST",'
+           'route="/v1/reconstructions"}')
+    before = client.get("/metrics").text
+    assert post(client, batch(200.0)).status_code == 200
+    assert post(client, _with("plots.2.t", -1.0)).status_code == 422
+    r = client.get("/metrics")
+    assert r.headers["content-type"].startswith("text/plain")
+    after = r.text
+    assert value(after, ok) == value(before, ok) + 1
+    assert value(after, bad) == value(before, bad) + 1
+    assert value(after, solves) == value(before, solves) + 1
+    assert value(after, lat) == value(before, lat) + 2
+    assert value(after, "trajrecon_ready") == 1.0
+    assert "trajrecon_solver_failures_total" in after
+
+
+def test_every_request_is_logged_as_json_with_timing(client):
+    records: list[logging.LogRecord] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record)
+
+    handler = Keep()
+    LOGGER.addHandler(handler)
+    try:
+        r = client.get("/healthz", headers={"x-request-id": "abc123"})
+    finally:
+        LOGGER.removeHandler(handler)
+    assert r.headers["x-request-id"] == "abc123"
+    line = json.loads(JsonFormatter().format(records[-1]))
+    assert line["msg"] == "request" and line["request_id"] == "abc123"
+    assert line["method"] == "GET" and line["path"] == "/healthz" and line["status"] == 200
+    assert 0 <= line["duration_ms"] < 1000
+
+
+def test_unknown_route_is_a_json_404(client):
+    r = client.get("/v2/nothing")
+    assert r.status_code == 404 and r.json()["message"] == "Not Found"
+
+
+def test_served_openapi_equals_the_committed_document(client):
+    committed = json.loads((ROOT / "openapi" / "openapi.json").read_text())
+    assert client.get("/openapi.json").json() == committed, (
+        "openapi/openapi.json is stale: run .venv/bin/python -m service.openapi")
+
+
+def test_settings_come_from_the_environment(monkeypatch):
+    monkeypatch.setenv("TRAJRECON_PORT", "9123")
+    monkeypatch.setenv("TRAJRECON_WORKERS", "3")
+    monkeypatch.setenv("TRAJRECON_MAX_BODY_BYTES", "5000")
+    monkeypatch.setenv("TRAJRECON_LOG_LEVEL", "DEBUG")
+    monkeypatch.setenv("TRAJRECON_WARMUP_WINDOW_PLOTS", "[3, 5]")
+    s = Settings()
+    assert (s.port, s.workers, s.max_body_bytes, s.log_level) == (9123, 3, 5000, "DEBUG")
+    assert s.warmup_window_plots == [3, 5] and s.solve_slots == 3
+    monkeypatch.setenv("TRAJRECON_PORT", "-1")
+    with pytest.raises(ValueError, match="port"):
+        Settings()
+
+
+def test_full_queue_is_refused_at_once():
+    """One slot, no queue: a second solve while the first runs raises Busy (-> 503)."""
+    settings = Settings(workers=1, max_concurrent_solves=1, max_queued_solves=0,
+                        executor="thread", warmup=False)
+    body = ReconstructionRequest.model_validate(batch(200.0))
+    job = to_job(body, "sqpmethod", 500, 20_000)
+
+    async def scenario() -> None:
+        from service.metrics import Metrics
+
+        pool = SolverPool(settings, Metrics())
+        pool.start()
+        first = asyncio.create_task(pool.run(job))
+        await asyncio.sleep(0)  # the first solve holds the only slot
+        with pytest.raises(Busy):
+            await pool.run(job)
+        assert (await first).body is not None
+        assert (await pool.run(job)).body is not None  # free again
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
+def test_failed_warm_up_leaves_service_alive_but_not_ready():
+    app = create_app(Settings(workers=1, warmup_window_plots=[1]))  # window of 1: invalid
+    with TestClient(app) as c:
+        end = time.monotonic() + 60
+        while c.get("/readyz").json()["status"] == "starting":
+            assert time.monotonic() < end
+            time.sleep(0.05)
+        r = c.get("/readyz")
+        assert r.status_code == 503 and r.json()["status"] == "failed"
+        assert "window.plots" in r.json()["detail"]
+        assert c.get("/healthz").status_code == 200
