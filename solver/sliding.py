@@ -38,9 +38,10 @@ from .inputs import FloatArray, Plots, Radar
 from .motion import propagate
 from .results import Diagnostics, Reconstruction, Segment, StateSeries
 from .trajectory import evaluate, sample_times
-from .window import solve_windows, w_box
+from .window import SwitchFit, solve_switch, solve_windows, w_box
 
 MIN_BASELINE_S = 1.0  # shortest time between the two plots that set the initial velocity
+SWITCH_GAP_S = 1e-3  # a refined switch stays this far before the trial window's first plot
 
 
 def criterion_data(plots: Plots, radar: Radar, criterion: str
@@ -105,47 +106,97 @@ class _Fitter:
         return np.column_stack([fits.u, fits.w]), fits.value
 
 
+    def fit_switch(self, cur_t: float, cur_s: FloatArray, cur_uw: FloatArray, c: float,
+                   uw: FloatArray, first: int, m: int) -> SwitchFit | None:
+        """Optimise the start time of the trial window at ``c`` (plots ``first ..``) between
+        the plot before it and (just before) its first plot, where the current trajectory's
+        speed is in bounds. ``None`` when that interval is too short to matter."""
+        v_lo, v_hi = self.config.bounds.v
+        lo, hi = self.t[first - 1] - cur_t, self.t[first] - cur_t - SWITCH_GAP_S
+        v0, w0 = cur_s[3], cur_uw[1]
+        if w0 > 0:
+            hi = min(hi, (v_hi - v0) / w0)
+        elif w0 < 0:
+            hi = min(hi, (v_lo - v0) / w0)
+        tau = c - cur_t
+        if hi - lo < SWITCH_GAP_S or not lo <= tau <= hi:
+            return None
+        idx = slice(first, first + m)
+        fit = solve_switch(cur_s, cur_uw, self.t[idx] - cur_t, self.cx[idx], self.cz[idx],
+                           self.abc[idx], np.array([uw[0], uw[1], tau]), (lo, hi),
+                           self.config.bounds, self.config.nlp_solver)
+        d = self.diag
+        d.windows_solved += 1
+        d.solver_failures += int(fit.failed)
+        d.nlp_solve_ms.append(fit.solve_ms)
+        return fit
+
+
 def _segment(t0: float, t1: float, state: FloatArray, uw: FloatArray) -> Segment:
     return Segment(float(t0), float(t1), float(state[0]), float(state[1]),
                    float(np.mod(state[2], 2 * np.pi)), float(state[3]), float(uw[0]),
                    float(uw[1]))
 
 
+def candidate_times(t: FloatArray, k: int, m: int, step: float, extend: bool) -> FloatArray:
+    """Candidate starts of the window of plots ``k .. k + m - 1``: its plot times and every
+    ``step`` from its first plot, up to its last plot, or with ``extend`` up to (excluding) the
+    next plot after it (the current controls carried on into the gap)."""
+    last = k + m - 1
+    t_end = t[last + 1] if extend and last + 1 < len(t) else t[last]
+    extra = t[k] + step * np.arange(1, int(np.ceil((t_end - t[k]) / step)))
+    return np.union1d(t[k:last + 1], extra[extra < t_end])
+
+
 def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start: FloatArray,
-          m: int, config: ReconstructionConfig, diag: Diagnostics, value_scale: float = 1.0
-          ) -> list[Segment]:
+          m: int, config: ReconstructionConfig, diag: Diagnostics, value_scale: float = 1.0,
+          seed_rule: bool = False) -> list[Segment]:
     """Segments of the sliding extended windows from ``start`` at ``t[0]`` (needs
-    ``len(t) >= m + 1``). Appends each accepted window's criterion value to ``diag``."""
+    ``len(t) >= m + 1``). Appends each accepted window's criterion value to ``diag``.
+
+    Two refinements of the seed's candidate set (off with ``seed_rule``): candidates continue
+    past the window's last plot up to the next plot (where the speed stays in bounds), and the
+    winning candidate's start time is then optimised continuously with its controls
+    (:func:`solver.window.solve_switch`) between the neighbouring plots, starting from the best
+    grid candidate of every trial plot set. Both only enlarge the set of trial windows the minimum
+    is taken over.
+    """
     n = len(t)
+    bounds = config.bounds
     fitter = _Fitter(t, cx, cz, abc, config, diag)
-    step = config.trial_step_s
     cur_t, cur_s, cur_k = float(t[0]), start, 1
     uw, val = fitter.fit(cur_s[None, :], np.array([cur_t]), np.array([cur_k]), m)
     cur_uw, cur_val = uw[0], float(val[0])
     segments: list[Segment] = []
-    while True:
-        last = cur_k + m - 1
-        if last == n - 1:
-            segments.append(_segment(cur_t, t[last], cur_s, cur_uw))
-            diag.criterion_values.append(cur_val * value_scale)
-            break
-        t_first, t_last = t[cur_k], t[last]
-        extra_times = t_first + step * np.arange(1, int(np.ceil((t_last - t_first) / step)))
-        cand = np.union1d(t[cur_k:last + 1], extra_times[extra_times < t_last])
+    while cur_k + m - 1 < n - 1:
+        cand = candidate_times(t, cur_k, m, config.trial_step_s, not seed_rule)
         first = np.searchsorted(t, cand, side="right")
-        keep = first + m - 1 <= n - 1
-        cand, first = cand[keep], first[keep]
         x, z, phi, v = propagate(cur_s[0], cur_s[1], cur_s[2], cur_s[3], cur_uw[0], cur_uw[1],
                                  cand - cur_t)
-        states = np.column_stack([x, z, phi, v])
+        keep = (first + m - 1 <= n - 1) & (v >= bounds.v[0]) & (v <= bounds.v[1])
+        cand, first = cand[keep], first[keep]
+        states = np.column_stack([x, z, phi, v])[keep]
         extra = np.broadcast_to(cur_uw, (len(cand), 1, 2))
         uw, val = fitter.fit(states, cand, first, m, extra)
         diag.trial_windows += len(cand)
-        best = int(np.argmin(val))
-        segments.append(_segment(cur_t, cand[best], cur_s, cur_uw))
+        b = int(np.argmin(val))
+        nxt_t, nxt_s, nxt_uw, nxt_val = float(cand[b]), states[b], uw[b], float(val[b])
+        nxt_k = int(first[b])
+        if not seed_rule:
+            # refine the best candidate of every plot interval (trial plot set)
+            for f in np.unique(first):
+                g = np.flatnonzero(first == f)
+                i = int(g[np.argmin(val[g])])
+                fit = fitter.fit_switch(cur_t, cur_s, cur_uw, float(cand[i]), uw[i], int(f), m)
+                if fit is not None and fit.value < nxt_val:
+                    nxt_t = cur_t + fit.tau
+                    nxt_s = np.array(propagate(*cur_s, *cur_uw, fit.tau))
+                    nxt_uw, nxt_val, nxt_k = np.array([fit.u, fit.w]), fit.value, int(f)
+        segments.append(_segment(cur_t, nxt_t, cur_s, cur_uw))
         diag.criterion_values.append(cur_val * value_scale)
-        cur_t, cur_s, cur_k = float(cand[best]), states[best], int(first[best])
-        cur_uw, cur_val = uw[best], float(val[best])
+        cur_t, cur_s, cur_k, cur_uw, cur_val = nxt_t, nxt_s, nxt_k, nxt_uw, nxt_val
+    segments.append(_segment(cur_t, t[n - 1], cur_s, cur_uw))
+    diag.criterion_values.append(cur_val * value_scale)
     if fitter.clamped:
         diag.warnings.append(f"{fitter.clamped} window start(s) had a speed outside the bounds; "
                              "their longitudinal acceleration was pinned")

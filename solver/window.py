@@ -44,31 +44,27 @@ def pack_params(start: FloatArray, t: FloatArray, cx: FloatArray, cz: FloatArray
     return np.hstack([start, t, cx, cz, abc[..., 0], abc[..., 1], abc[..., 2]])
 
 
-def _window_expressions(m: int):
-    """Symbols ``(u, w)``, ``p`` and the weighted residual vector ``r`` (``R = |r|^2``)."""
-    uw = ca.SX.sym("uw", 2)
-    p = ca.SX.sym("p", n_params(m))
-    start = p[0:N_START]
+def _residuals(start, u, w, t, data, m: int):
+    """Weighted residuals ``r`` (``R = |r|^2``) of positions propagated from ``start`` over the
+    relative times ``t[i]``; ``data`` holds centres x, z and weights a, b, c (``m`` each)."""
     res = []
     for i in range(m):
-        t, cx, cz = p[N_START + i], p[N_START + m + i], p[N_START + 2 * m + i]
-        a, b, c = p[N_START + 3 * m + i], p[N_START + 4 * m + i], p[N_START + 5 * m + i]
-        s = propagate_ca(start, uw[0], uw[1], t)
+        cx, cz = data[i], data[m + i]
+        a, b, c = data[2 * m + i], data[3 * m + i], data[4 * m + i]
+        s = propagate_ca(start, u, w, t[i])
         dx, dz = s[0] - cx, s[1] - cz
         sa = ca.sqrt(a)
         # Cholesky of M = [[a, b], [b, c]]:
         # d^T M d = (sqrt(a) dx + b/sqrt(a) dz)^2 + (c - b^2/a) dz^2
         res += [sa * dx + b / sa * dz, ca.sqrt(ca.fmax(c - b * b / a, 0.0)) * dz]
-    return uw, p, ca.vertcat(*res)
+    return ca.vertcat(*res)
 
 
-@cache
-def window_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = "gauss-newton"
-                  ) -> ca.Function:
-    """The NLP solver of ``m``-plot windows: ``x = (u, w)``, ``p`` as :func:`pack_params`."""
-    uw, p, r = _window_expressions(m)
+def _nlpsol(name: str, x: ca.SX, p: ca.SX, r: ca.SX, g: ca.SX, plugin: NlpSolver,
+            hessian: str) -> ca.Function:
+    """``min |r(x, p)|^2`` s.t. box on ``x`` and ``lbg <= g(x, p) <= ubg``."""
     f = ca.dot(r, r)
-    nlp = {"x": uw, "p": p, "f": f}
+    nlp = {"x": x, "p": p, "f": f, "g": g}
     if plugin == "sqpmethod":
         opts: dict = {
             "qpsol": "qrqp",
@@ -79,19 +75,54 @@ def window_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = "gauss
             "tol_pr": 1e-9, "tol_du": 1e-9,
         }
         if hessian == "gauss-newton":
-            lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", 0)
-            jr = ca.jacobian(r, uw)
+            # 2 J^T J of the residuals plus the exact Hessian of the (few, simple) constraints
+            lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", g.numel())
+            jr = ca.jacobian(r, x)
             h = lam_f * 2 * ca.mtimes(jr.T, jr)
-            opts["hess_lag"] = ca.Function("nlp_hess_l", [uw, p, lam_f, lam_g], [h],
+            if g.numel():
+                h += ca.hessian(ca.dot(lam_g, g), x)[0]
+            opts["hess_lag"] = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [h],
                                            ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         else:
             opts["convexify_strategy"] = "regularize"
-        return ca.nlpsol(f"window{m}_sqp", "sqpmethod", nlp, opts)
+        return ca.nlpsol(f"{name}_sqp", "sqpmethod", nlp, opts)
     if plugin == "ipopt":
         opts = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
                 "ipopt.tol": 1e-10, "error_on_fail": False}
-        return ca.nlpsol(f"window{m}_ipopt", "ipopt", nlp, opts)
+        return ca.nlpsol(f"{name}_ipopt", "ipopt", nlp, opts)
     raise ValueError(f"unknown NLP solver {plugin!r}")
+
+
+@cache
+def window_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = "gauss-newton"
+                  ) -> ca.Function:
+    """The NLP solver of ``m``-plot windows: ``x = (u, w)``, ``p`` as :func:`pack_params`."""
+    uw = ca.SX.sym("uw", 2)
+    p = ca.SX.sym("p", n_params(m))
+    t = [p[N_START + i] for i in range(m)]
+    r = _residuals(p[0:N_START], uw[0], uw[1], t, p[N_START + m:], m)
+    return _nlpsol(f"window{m}", uw, p, r, ca.SX(0, 1), plugin, hessian)
+
+
+@cache
+def switch_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = "gauss-newton"
+                  ) -> ca.Function:
+    """NLP of a trial window whose start time is free: ``x = (u, w, tau)``.
+
+    Parameters: the current window's start state (4) and controls ``(u_c, w_c)``, then the
+    trial window's data as in :func:`pack_params` with times relative to the current start.
+    The trial starts at ``tau`` on the current trajectory, ``propagate(start, u_c, w_c, tau)``.
+    Constraint ``g = v(tau) + w (t_m - tau)``: the speed at the window's last plot.
+    """
+    x = ca.SX.sym("uwt", 3)
+    p = ca.SX.sym("p", n_params(m) + 2)
+    u, w, tau = x[0], x[1], x[2]
+    start = propagate_ca(p[0:N_START], p[N_START], p[N_START + 1], tau)
+    off = N_START + 2
+    t = [p[off + i] - tau for i in range(m)]
+    r = _residuals(start, u, w, t, p[off + m:], m)
+    g = start[3] + w * t[-1]
+    return _nlpsol(f"switch{m}", x, p, r, g, plugin, hessian)
 
 
 def w_box(v0: FloatArray, t_end: FloatArray, bounds: Bounds
@@ -172,3 +203,46 @@ def solve_windows(start: FloatArray, t: FloatArray, cx: FloatArray, cz: FloatArr
         else:
             fallback[k] = True
     return WindowFits(u, w, val, failed, fallback, ms)
+
+
+@dataclass
+class SwitchFit:
+    """Solution of one free-start-time trial window (see :func:`switch_solver`)."""
+
+    u: float
+    w: float
+    tau: float  # start time relative to the current window's start
+    value: float
+    failed: bool
+    solve_ms: float
+
+
+def solve_switch(cur_start: FloatArray, cur_uw: FloatArray, t: FloatArray, cx: FloatArray,
+                 cz: FloatArray, abc: FloatArray, guess: FloatArray, tau_box: tuple[float, float],
+                 bounds: Bounds, plugin: NlpSolver = "sqpmethod") -> SwitchFit:
+    """Refine a trial window's start time ``tau`` within ``tau_box`` together with its controls.
+
+    ``t (m,)`` are plot times relative to the current start; ``guess = (u, w, tau)`` must be
+    feasible (it is the best grid candidate). A non-finite or infeasible solver point comes
+    back with ``value = inf`` and ``failed``; the caller keeps the better of this and the guess.
+    """
+    m = t.shape[0]
+    solver = switch_solver(m, plugin)
+    params = np.concatenate([cur_start, cur_uw, t, cx, cz, abc[:, 0], abc[:, 1], abc[:, 2]])
+    lbx = [bounds.u[0], bounds.w[0], tau_box[0]]
+    ubx = [bounds.u[1], bounds.w[1], tau_box[1]]
+    t0 = time.perf_counter()
+    sol = solver(x0=guess, p=params, lbx=lbx, ubx=ubx, lbg=bounds.v[0], ubg=bounds.v[1])
+    ms = (time.perf_counter() - t0) * 1e3
+    failed = solver.stats()["return_status"] not in CONVERGED
+    x = np.asarray(sol["x"]).ravel()
+    if not np.all(np.isfinite(x)):
+        return SwitchFit(*guess, np.inf, True, ms)
+    x = np.clip(x, lbx, ubx)
+    s = np.array(propagate(*cur_start, *cur_uw, x[2]))
+    v_end = s[3] + x[1] * (t[-1] - x[2])
+    if not (bounds.v[0] - 1e-9 <= s[3] and bounds.v[0] - 1e-9 <= v_end <= bounds.v[1] + 1e-9
+            and s[3] <= bounds.v[1] + 1e-9):
+        return SwitchFit(*guess, np.inf, True, ms)
+    value = float(criterion(s, np.asarray(x[0]), np.asarray(x[1]), t - x[2], cx, cz, abc))
+    return SwitchFit(float(x[0]), float(x[1]), float(x[2]), value, failed, ms)

@@ -10,7 +10,8 @@ from solver.inputs import FloatArray, Plots, Radar
 from solver.motion import propagate
 
 # (duration s, u m/s^2, w m/s^2): straight legs, a right turn of ~220 deg, speed changes,
-# a left turn of ~180 deg; 5057 s in all like the seed's real track.
+# a left turn of ~180 deg; 5057 s in all like the seed's real track. Control switches are at
+# least 40 s apart and turns never abut speed changes (see CLOSE_SWITCH_LEGS for that case).
 SEED_LIKE_LEGS: list[tuple[float, float, float]] = [
     (1100.0, 0.0, 0.0),
     (60.0, 0.0, -1.0),       # 220 -> 160 m/s
@@ -20,9 +21,16 @@ SEED_LIKE_LEGS: list[tuple[float, float, float]] = [
     (50.0, 0.0, 1.5),        # 160 -> 235 m/s
     (900.0, 0.0, 0.0),
     (235 * np.pi / 5.0, -5.0, 0.0),  # 180 deg left at 5 m/s^2
+    (300.0, 0.0, 0.0),
     (40.0, 0.0, -2.0),       # 235 -> 155 m/s
 ]
 SEED_LIKE_LEGS.append((5057.0 - sum(d for d, _, _ in SEED_LIKE_LEGS), 0.0, 0.0))
+CLOSE_SWITCH_LEGS: list[tuple[float, float, float]] = [
+    (600.0, 0.0, 0.0),
+    (235 * np.pi / 5.0, -5.0, 0.0),  # 180 deg left, then at once
+    (40.0, 0.0, -2.0),               # a 40-s deceleration: two switches inside one window
+    (600.0, 0.0, 0.0),
+]
 SEED_LIKE_START = (-60_000.0, -150_000.0, np.deg2rad(80.0), 220.0)  # x, z, heading, speed
 
 SEED_RADAR = Radar(range_error_m=500.0, azimuth_error_rad=np.deg2rad(1.5))
