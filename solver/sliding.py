@@ -83,7 +83,7 @@ class _Fitter:
                  config: ReconstructionConfig, diag: Diagnostics):
         self.t, self.cx, self.cz, self.abc = t, cx, cz, abc
         self.config, self.diag = config, diag
-        self.clamped = 0
+        self.flagged = 0
 
     def fit(self, start: FloatArray, t_start: FloatArray, first: np.ndarray, m: int,
             extra: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
@@ -93,8 +93,8 @@ class _Fitter:
         t_rel = self.t[idx] - t_start[:, None]
         cx, cz, abc = self.cx[idx], self.cz[idx], self.abc[idx]
         bounds = self.config.bounds
-        lbw, ubw, clamped = w_box(start[:, 3], t_rel[:, -1], bounds)
-        self.clamped += int(clamped.sum())
+        lbw, ubw, flagged = w_box(start[:, 3], t_rel[:, -1], bounds)
+        self.flagged += int(flagged.sum())
         guess, _ = initial_guess(start, t_rel, cx, cz, abc, bounds.u, lbw, ubw, extra)
         fits = solve_windows(start, t_rel, cx, cz, abc, guess, lbw, ubw, bounds,
                              self.config.nlp_solver)
@@ -197,9 +197,9 @@ def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start:
         cur_t, cur_s, cur_k, cur_uw, cur_val = nxt_t, nxt_s, nxt_k, nxt_uw, nxt_val
     segments.append(_segment(cur_t, t[n - 1], cur_s, cur_uw))
     diag.criterion_values.append(cur_val * value_scale)
-    if fitter.clamped:
-        diag.warnings.append(f"{fitter.clamped} window start(s) had a speed outside the bounds; "
-                             "their longitudinal acceleration was pinned")
+    if fitter.flagged:
+        diag.warnings.append(f"{fitter.flagged} window start(s) had a speed outside the bounds; "
+                             "their fits bring it back by the window's last plot")
     return segments
 
 

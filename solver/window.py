@@ -129,16 +129,18 @@ def w_box(v0: FloatArray, t_end: FloatArray, bounds: Bounds
           ) -> tuple[FloatArray, FloatArray, np.ndarray]:
     """Box on ``w`` with the speed bound folded in: ``v_min <= v0 + w T <= v_max``.
 
-    Returns ``(lbw, ubw, clamped)``. ``clamped`` marks starts whose speed is outside the bounds
-    (accepted states never are); for them the box shrinks to the single ``w`` (within
-    ``[w_min, w_max]``) that brings the speed nearest the bounds by ``T``.
+    Returns ``(lbw, ubw, flagged)``. ``flagged`` marks starts whose own speed is outside the
+    bounds (accepted states never are): the box then asks for the speed to be back in bounds by
+    ``T``, or, where ``[w_min, w_max]`` cannot achieve that, shrinks to the single ``w`` that
+    comes nearest.
     """
     (w_lo, w_hi), (v_lo, v_hi) = bounds.w, bounds.v
     lbw = np.maximum(w_lo, (v_lo - v0) / t_end)
     ubw = np.minimum(w_hi, (v_hi - v0) / t_end)
-    clamped = lbw > ubw
-    pin = np.where(v0 < v_lo, np.minimum(w_hi, lbw), np.maximum(w_lo, ubw))
-    return np.where(clamped, pin, lbw), np.where(clamped, pin, ubw), clamped
+    empty = lbw > ubw
+    pin = np.where(v0 < v_lo, w_hi, w_lo)
+    flagged = (v0 < v_lo) | (v0 > v_hi)
+    return np.where(empty, pin, lbw), np.where(empty, pin, ubw), flagged
 
 
 def criterion(start: FloatArray, u: FloatArray, w: FloatArray, t: FloatArray, cx: FloatArray,
