@@ -133,3 +133,29 @@ def test_imm_turn_probability_rises_in_a_turn():
     after = mu[t > 500].mean()
     assert during > 0.7 and before < 0.4 and after < 0.4, (before, during, after)
     assert during > before + 0.4
+
+
+def test_discrepancy_rule_recovers_the_model_lambda():
+    """On tracks from the quasi-optimal model itself, ``lam="auto"`` (innovation discrepancy)
+    lands near the true Lambda; the paper's filtered-residual functional picks a smaller one."""
+    from solver.estimation.quasi_optimal import discrepancy_lambda
+
+    assert discrepancy_lambda(np.array([1e-3, 1e-2, 1e-1]), np.array([1.5, 0.5, 0.2])) == \
+        pytest.approx(np.sqrt(1e-3 * 1e-2))
+    assert discrepancy_lambda(np.array([1e-3, 1e-2]), np.array([0.9, 0.5])) == 1e-3
+    assert discrepancy_lambda(np.array([1e-3, 1e-2]), np.array([3.0, 2.0])) == 1e-2
+    rng = np.random.default_rng(3)
+    t = np.arange(200) * T
+    lam, alpha, sm = 3e-3, 0.01, 2000.0
+    picked, picked_residual = [], []
+    for _ in range(4):
+        truth = track_polar(rng, t, *quasi_optimal(np.diff(t), lam, alpha, sm), sm)
+        plots = observe(rng, truth[:, 0], truth[:, 1], t)
+        est = run_filter("quasi_optimal", plots, RADAR, lam="auto", alpha=alpha, sigma_m=sm)
+        picked.append(np.sqrt(est.info["lambda_range"] * est.info["lambda_azimuth"]))
+        est = run_filter("quasi_optimal", plots, RADAR, lam="auto", alpha=alpha, sigma_m=sm,
+                         criterion="residual")
+        picked_residual.append(np.sqrt(est.info["lambda_range"] * est.info["lambda_azimuth"]))
+    g = np.exp(np.mean(np.log(picked)))
+    assert lam / 2 < g < lam * 2, picked
+    assert np.exp(np.mean(np.log(picked_residual))) < g

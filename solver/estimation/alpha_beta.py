@@ -24,8 +24,9 @@ from ..results import FilterEstimate
 from .common import SIGMA_V0, cartesian_output, estimate
 from .measurements import PolarPlots
 
-K_MAX = 6
-"""Default memory cap (plots): chosen on the dev benchmark (see the module README)."""
+K_MAX = 4
+"""Default memory cap (plots): best of {3, 4, 6, 8, 12, 20} on the dev trajectories for the
+seed001 and ssr profiles (3 is better at 19 s scans, 6+ lags in turns)."""
 
 
 def closed_form_gains(k: int | FloatArray, order: int = 2) -> FloatArray:

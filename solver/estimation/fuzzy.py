@@ -34,7 +34,10 @@ from .models import singer
 U_MAX = 3.0
 """Innovation universe ``[0, 3]`` sigma: beyond 3 sigma the innovation is "largest"."""
 N_TERMS, SHAPE, CROSSOVER = 3, "triangular", 0.5
-ALPHA, SIGMA_LOW, SIGMA_HIGH, SIGMA_M = 1 / 20, 0.2, 5.0, 2.0
+ALPHA, SIGMA_LOW, SIGMA_HIGH, SIGMA_M = 1 / 20, 0.3, 2.0, 1.0
+"""Singer ``alpha`` as the Singer filter; quiet / manoeuvring / nominal ``sigma_m`` (m/s^2): best
+of sigma_low in {0.1, 0.3}, sigma_high in {2, 5, 10}, sigma_m in {1, 3} on the dev trajectories;
+3 triangular terms crossing at 0.5 is the thesis' base case."""
 
 
 def _memberships(x: FloatArray, centres: FloatArray, shape: str, crossover: float) -> FloatArray:

@@ -6,8 +6,9 @@ plot (converted measurement or EKF). ``frame="polar"``: ground range and azimuth
 separate channels, as in seed 001's comparison (azimuth manoeuvre sigma ``sigma_m / d``).
 
 Defaults: ``alpha = 1/20 s^-1`` (manoeuvre time constant 20 s: Singer's "lazy turn" is 60 s,
-evasive 10-20 s; civil turns last 20-60 s) and ``sigma_m = 2 m/s^2``; both chosen on the dev
-benchmark (see benchmarks/results/filters_seed001.md).
+evasive 10-20 s) and ``sigma_m = 1 m/s^2``: the best pair of the sweep alpha in {1/60, 1/20,
+1/10}, sigma_m in {0.5, 1, 2, 4} on the dev trajectories for all three radar profiles
+(``python -m benchmarks.filters_seed001 --sweep``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from .measurements import PolarPlots
 from .models import singer, two_axes
 
 ALPHA = 1 / 20
-SIGMA_M = 2.0
+SIGMA_M = 1.0
 
 
 def run_singer(meas: PolarPlots, alpha: float = ALPHA, sigma_m: float = SIGMA_M,
