@@ -173,7 +173,9 @@ def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start:
         first = np.searchsorted(t, cand, side="right")
         x, z, phi, v = propagate(cur_s[0], cur_s[1], cur_s[2], cur_s[3], cur_uw[0], cur_uw[1],
                                  cand - cur_t)
-        keep = (first + m - 1 <= n - 1) & (v >= bounds.v[0]) & (v <= bounds.v[1])
+        slack = 1e-9 * bounds.v[1]  # rounding of v0 + w t at a bound
+        keep = (first + m - 1 <= n - 1) & (v >= bounds.v[0] - slack) & (v <= bounds.v[1] + slack)
+        keep[0] = True  # the window's first plot: m plots follow, speed between v0 and v(t_m)
         cand, first = cand[keep], first[keep]
         states = np.column_stack([x, z, phi, v])[keep]
         extra = np.broadcast_to(cur_uw, (len(cand), 1, 2))

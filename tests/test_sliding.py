@@ -147,12 +147,12 @@ def test_solver_failures_degrade_gracefully(monkeypatch, noisy_track):
 
     class Failing:
         def __call__(self, **kw):
-            return {"x": np.full(np.size(kw["x0"]), np.nan)}
+            return {"x": np.full(np.shape(kw["x0"]), np.nan)}
 
         def stats(self):
             return {"return_status": "Restoration_Failed", "success": False}
 
-    monkeypatch.setattr(window, "window_solver", lambda m, plugin: Failing())
+    monkeypatch.setattr(window, "window_batch", lambda m, plugin, n: Failing())
     monkeypatch.setattr(window, "switch_solver", lambda m, plugin: Failing())
     tr = noisy_track
     rec = reconstruct_sliding(tr.plots, SEED_RADAR, _config())

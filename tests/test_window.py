@@ -112,25 +112,39 @@ def test_point_transfer_lands_on_reachable_points():
     assert np.all((gu >= -7) & (gu <= 7) & (gw >= -2) & (gw <= 3))
 
 
-class _FailingSolver:
-    """Stands in for a CasADi solver that returns garbage and reports failure."""
+class _FailingBatch:
+    """Stands in for a mapped CasADi solver that returns garbage."""
 
     def __call__(self, **kwargs):
-        return {"x": np.full(np.size(kwargs["x0"]), np.nan)}
-
-    def stats(self):
-        return {"return_status": "Maximum_Iterations_Exceeded", "success": False}
+        return {"x": np.full(np.shape(kwargs["x0"]), np.nan)}
 
 
 def test_solver_failure_falls_back_to_the_guess(monkeypatch):
     start, t, cx, cz, abc, _, _ = _random_windows(5, 3, 300.0, seed=3)
     lbw, ubw, _ = w_box(start[:, 3], t[:, -1], BOUNDS)
     guess, gval = initial_guess(start, t, cx, cz, abc, BOUNDS.u, lbw, ubw)
-    monkeypatch.setattr(window, "window_solver", lambda m, plugin: _FailingSolver())
+    monkeypatch.setattr(window, "window_batch", lambda m, plugin, n: _FailingBatch())
     fits = solve_windows(start, t, cx, cz, abc, guess, lbw, ubw, BOUNDS)
     assert fits.failed.all() and fits.fallback.all()
     assert np.allclose(np.column_stack([fits.u, fits.w]), guess)
     assert np.allclose(fits.value, gval)
+
+
+def test_non_stationary_point_counts_as_failure(monkeypatch):
+    """A solver that stops early (here: returns its starting point) is caught by the
+    projected-gradient check even though its point is usable; the guess is kept."""
+
+    class Idle:
+        def __call__(self, **kwargs):
+            return {"x": np.asarray(kwargs["x0"])}
+
+    start, t, cx, cz, abc, _, _ = _random_windows(6, 3, 300.0, seed=4)
+    lbw, ubw, _ = w_box(start[:, 3], t[:, -1], BOUNDS)
+    guess, _ = initial_guess(start, t, cx, cz, abc, BOUNDS.u, lbw, ubw)
+    monkeypatch.setattr(window, "window_batch", lambda m, plugin, n: Idle())
+    fits = solve_windows(start, t, cx, cz, abc, guess, lbw, ubw, BOUNDS)
+    assert fits.failed.all()
+    assert np.allclose(np.column_stack([fits.u, fits.w]), guess)
 
 
 def test_switch_nlp_finds_the_switch_time():
