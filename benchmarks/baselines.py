@@ -37,13 +37,6 @@ EPOCH = datetime(2000, 1, 1)
 
 
 @dataclass(frozen=True)
-class CvTuning:
-    """White-acceleration spectral density of the constant-velocity model (m^2/s^3)."""
-
-    q: float = 30.0
-
-
-@dataclass(frozen=True)
 class ImmTuning:
     """IMM tuning: CV and CT acceleration densities (m^2/s^3), turn-rate random walk
     (rad^2/s^3), mean sojourn time in each mode (s)."""
@@ -54,11 +47,25 @@ class ImmTuning:
     sojourn_s: float = 120.0
 
 
+@dataclass(frozen=True)
+class Tuning:
+    """Frozen tuning of the baselines for one radar profile: white-acceleration densities
+    ``q`` (m^2/s^3) of the CV filter and of the CV smoother (tuned separately: the smoother
+    affords a stiffer model), and the IMM's."""
+
+    q_kf: float = 30.0
+    q_rts: float = 30.0
+    imm: ImmTuning = ImmTuning()
+
+
 # Frozen by `python -m benchmarks.tune` (dev set: the six ADS-B tracks; see the report).
-TUNED: dict[str, tuple[CvTuning, ImmTuning]] = {
-    "seed000": (CvTuning(30.0), ImmTuning()),
-    "seed001": (CvTuning(30.0), ImmTuning()),
-    "ssr": (CvTuning(30.0), ImmTuning()),
+TUNED: dict[str, Tuning] = {
+    "seed000": Tuning(q_kf=30, q_rts=30, imm=ImmTuning(q_cv=0.3, q_ct=30.0, q_omega=1e-05,
+                                                       sojourn_s=300.0)),
+    "seed001": Tuning(q_kf=30, q_rts=30, imm=ImmTuning(q_cv=0.3, q_ct=30.0, q_omega=1e-05,
+                                                       sojourn_s=300.0)),
+    "ssr": Tuning(q_kf=30, q_rts=10, imm=ImmTuning(q_cv=0.3, q_ct=30.0, q_omega=1e-05,
+                                                   sojourn_s=60.0)),
 }
 
 

@@ -50,14 +50,15 @@ def _baseline(fn: Callable[[Plots, Radar, str], StateSeries]):
 
 def _ss_cv(smooth: bool):
     def run(plots: Plots, radar: Radar, profile: str) -> StateSeries:
-        q = baselines.TUNED[profile][0].q if profile in baselines.TUNED else 30.0
+        tuning = baselines.TUNED.get(profile, baselines.Tuning())
+        q = tuning.q_rts if smooth else tuning.q_kf
         return baselines.stonesoup_cv(plots, radar, q=q, smooth=smooth)
     return run
 
 
 def _fp_imm(plots: Plots, radar: Radar, profile: str) -> StateSeries:
-    tuning = baselines.TUNED[profile][1] if profile in baselines.TUNED else None
-    return baselines.filterpy_imm(plots, radar, tuning)
+    return baselines.filterpy_imm(plots, radar, baselines.TUNED.get(profile,
+                                                                    baselines.Tuning()).imm)
 
 
 def _filter(name: str):
@@ -111,9 +112,11 @@ def registry() -> dict[str, Estimator]:
 
 DEFAULT_SET = (
     "raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "ss-cv-rts+alt", "filter-*",
-    "recon-refined-m3-R2", "recon-sliding-m3-R2", "recon-sliding-m4-R2", "recon-sliding-m5-R2",
-    "recon-sliding-m3-R1", "recon-refined-m3-R2+alt",
+    "recon-refined-m3-R2", "recon-sliding-m3-R2", "recon-refined-m3-R2+alt",
 )
+"""The full run's estimators: every baseline and filter, the reconstruction's default and the
+seed's method. The other windows and criteria (``recon-*``) cost a full reconstruction each; their
+comparison is the tuning table (``python -m benchmarks.tune recon``)."""
 QUICK_SET = ("raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "filter-*", "recon-refined-m3-R2",
              "recon-sliding-m3-R2")
 

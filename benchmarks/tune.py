@@ -1,0 +1,215 @@
+"""Grid searches on the dev set (the six ADS-B tracks) that fix the frozen settings.
+
+    python -m benchmarks.tune baselines     # q of the CV filter/smoother, IMM grid, per profile
+    python -m benchmarks.tune recon         # the reconstruction's window, trial step, criterion,
+                                            # solver (one factor at a time around the default)
+
+Tuning seeds (100, 101 by default) are disjoint from the benchmark's seeds (0, 1, ...), so the
+frozen values are not fitted to the very noise they are scored on; the tracks are the same (the
+dev set is all there is). The score is the pooled RMS horizontal position error. Results go to
+``results/tuning_<part>.json`` and, rendered, to ``results/tuning.md`` (which the report
+includes). The chosen baseline values are then copied by hand into ``baselines.TUNED``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from .baselines import ImmTuning, filterpy_imm, stonesoup_cv
+from .estimators import Estimate, Estimator, recon_config
+from .run import RESULTS_DIR, run_benchmark, summaries
+from .truth import SYNTHETIC, truth_names
+
+Q_GRID = (1.0, 3.0, 10.0, 30.0, 100.0, 300.0)
+IMM_GRID = {"q_cv": (0.3, 3.0), "q_ct": (10.0, 30.0, 100.0), "q_omega": (1e-6, 1e-5, 1e-4),
+            "sojourn_s": (60.0, 300.0)}
+RECON_DEFAULT = {"window_plots": 3, "trial_step_s": 5.0, "criterion": "R2",
+                 "nlp_solver": "sqpmethod"}
+RECON_AXES = {"window_plots": (3, 4, 5), "trial_step_s": (2.5, 5.0, 10.0, 20.0),
+              "criterion": ("R2", "R1"), "nlp_solver": ("sqpmethod", "ipopt")}
+# The refinement starts from the CV smoother by default, which makes it independent of the four
+# settings above; starting it from the sliding windows brings the window length back into play.
+REFINE_INIT_POINTS = ({"refine_init": "sliding", "window_plots": 3},
+                      {"refine_init": "sliding", "window_plots": 5})
+
+
+def dev_set() -> list[str]:
+    return [n for n in truth_names() if n != SYNTHETIC]
+
+
+def _cv(q: float, smooth: bool) -> Estimator:
+    name = f"{'ss-cv-rts' if smooth else 'ss-cv-kf'} q={q:g}"
+    return Estimator(name, "baseline",
+                     lambda p, r, _: Estimate(stonesoup_cv(p, r, q=q, smooth=smooth)))
+
+
+def _imm(t: ImmTuning) -> Estimator:
+    name = f"fp-imm {t.q_cv:g}/{t.q_ct:g}/{t.q_omega:g}/{t.sojourn_s:g}"
+    return Estimator(name, "baseline", lambda p, r, _: Estimate(filterpy_imm(p, r, t)))
+
+
+def _recon(settings: dict, method: str) -> Estimator:
+    from solver.config import RefineSettings
+
+    extra = {}
+    if "refine_init" in settings:
+        extra["refine"] = RefineSettings(init=settings["refine_init"])
+    cfg = recon_config(method, settings["window_plots"], settings["criterion"],
+                       trial_step_s=settings["trial_step_s"], nlp_solver=settings["nlp_solver"],
+                       **extra)
+
+    def run(plots, radar, _):
+        from solver.reconstruct import reconstruct
+        rec = reconstruct(plots, radar, cfg)
+        return Estimate(rec.at_plots, rec)
+
+    label = " ".join(f"{k}={v}" for k, v in settings.items())
+    return Estimator(f"{method} {label}", "recon", run)
+
+
+def tune_baselines(profiles: list[str], seeds: list[int]) -> dict:
+    """Pooled RMS position error of every grid point, per profile, and the best of each family."""
+    imm_points = [ImmTuning(*v) for v in itertools.product(*IMM_GRID.values())]
+    ests = ([_cv(q, False) for q in Q_GRID] + [_cv(q, True) for q in Q_GRID]
+            + [_imm(t) for t in imm_points])
+    res = run_benchmark(dev_set(), profiles, seeds, ests, figure_cases=())
+    overall, _ = summaries(res)
+    out: dict = {"seeds": seeds, "tracks": dev_set(), "q_grid": Q_GRID,
+                 "imm_grid": IMM_GRID, "profiles": {}}
+    for p in profiles:
+        scores = {n: m["rms_pos"] for n, m in overall[p].items()}
+        best = {}
+        for family, key in (("ss-cv-kf", "q_kf"), ("ss-cv-rts", "q_rts")):
+            cand = {q: scores[f"{family} q={q:g}"] for q in Q_GRID}
+            best[key] = min(cand, key=cand.get)
+        imm_scores = {i: scores[_imm(t).name] for i, t in enumerate(imm_points)}
+        best["imm"] = asdict(imm_points[min(imm_scores, key=imm_scores.get)])
+        out["profiles"][p] = {"scores": scores, "best": best}
+    return out
+
+
+def tune_recon(profiles: list[str], seeds: list[int], t_max: float | None,
+               method: str, only_init: bool = False) -> dict:
+    """One factor at a time around :data:`RECON_DEFAULT` for one method (``only_init``: just the
+    default and the refinement started from the sliding windows)."""
+    points = [dict(RECON_DEFAULT)]
+    if not only_init:
+        for axis, values in RECON_AXES.items():
+            points += [{**RECON_DEFAULT, axis: v} for v in values if v != RECON_DEFAULT[axis]]
+    if method == "refined":
+        points += [{**RECON_DEFAULT, **pt} for pt in REFINE_INIT_POINTS]
+    ests = [_recon(pt, method) for pt in points]
+    res = run_benchmark(dev_set(), profiles, seeds, ests, t_max=t_max, figure_cases=())
+    overall, _ = summaries(res)
+    rows = []
+    for pt, est in zip(points, ests, strict=True):
+        row = {"settings": pt}
+        for p in profiles:
+            m = overall.get(p, {}).get(est.name)
+            row[p] = None if m is None else {k: m[k] for k in
+                                             ("rms_pos", "rms_pos_man", "rms_speed",
+                                              "wall_s_per_track", "plots_per_s")}
+        rows.append(row)
+    failures = [f.__dict__ for f in res.failures]
+    return {"method": method, "seeds": seeds, "tracks": dev_set(), "t_max": t_max,
+            "default": RECON_DEFAULT,
+            "axes": RECON_AXES, "rows": rows, "failures": failures}
+
+
+def render(out_dir: Path) -> str:
+    """Markdown of the tuning results present in ``out_dir``."""
+    md = ["## Tuning on the dev set", ""]
+    base = out_dir / "tuning_baselines.json"
+    if base.exists():
+        b = json.loads(base.read_text())
+        md += [f"Baselines (`python -m benchmarks.tune baselines`): the six ADS-B tracks, seeds "
+               f"{b['seeds']}, pooled RMS position error (m). CV white-acceleration density "
+               f"`q` (m²/s³) over {b['q_grid']}; IMM over q_cv x q_ct x q_omega x sojourn = "
+               f"{' x '.join(str(list(v)) for v in b['imm_grid'].values())}.", "",
+               "| profile | " + " | ".join(f"q={q:g} KF / RTS" for q in b["q_grid"])
+               + " | chosen KF, RTS | best IMM (q_cv/q_ct/q_omega/sojourn) | its RMS |",
+               "|---|" + "---:|" * len(b["q_grid"]) + "---|---|---:|"]
+        for p, d in b["profiles"].items():
+            s = d["scores"]
+            cells = [f"{s[f'ss-cv-kf q={q:g}']:.0f} / {s[f'ss-cv-rts q={q:g}']:.0f}"
+                     for q in b["q_grid"]]
+            imm = d["best"]["imm"]
+            iname = (f"fp-imm {imm['q_cv']:g}/{imm['q_ct']:g}/{imm['q_omega']:g}/"
+                     f"{imm['sojourn_s']:g}")
+            md.append(f"| {p} | " + " | ".join(cells) + f" | {d['best']['q_kf']:g}, "
+                      f"{d['best']['q_rts']:g} | {iname.split(' ')[1]} | {s[iname]:.0f} |")
+        md.append("")
+    for method in ("sliding", "refined"):
+        rec = out_dir / f"tuning_recon_{method}.json"
+        if rec.exists():
+            md += _render_recon(json.loads(rec.read_text()))
+    return "\n".join(md)
+
+
+def _render_recon(r: dict) -> list[str]:
+    profiles = [k for k in r["rows"][0] if k != "settings"]
+    md = [f"Reconstruction (`python -m benchmarks.tune recon --method {r['method']}`): one "
+          f"factor at a time around {r['default']}; the six ADS-B tracks"
+           + (f" cut to {r['t_max']:.0f} s" if r["t_max"] else "")
+           + f", seeds {r['seeds']}. RMS position error (m) [manoeuvres] and plots/s.", "",
+           "| changed | " + " | ".join(profiles) + " |", "|---|" + "---|" * len(profiles)]
+    for row in r["rows"]:
+        changed = [f"{k}={v}" for k, v in row["settings"].items()
+                   if r["default"].get(k) != v]
+        cells = []
+        for p in profiles:
+            m = row[p]
+            cells.append("failed" if m is None else
+                         f"{m['rms_pos']:.0f} [{m['rms_pos_man']:.0f}], "
+                         f"{m['plots_per_s']:.0f}/s")
+        md.append(f"| {', '.join(changed) or '(default)'} | " + " | ".join(cells) + " |")
+    if r["failures"]:
+        md += ["", f"{len(r['failures'])} failed runs: "
+               + "; ".join(sorted({f['estimator'] + ': ' + f['error'].splitlines()[-1]
+                                   for f in r['failures']}))[:1500]]
+    md.append("")
+    return md
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.tune", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("part", choices=("baselines", "recon", "render"))
+    ap.add_argument("--profiles", nargs="+", default=["seed000", "seed001", "ssr"])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101])
+    ap.add_argument("--t-max", type=float, default=None)
+    ap.add_argument("--method", choices=("sliding", "refined"), default="refined")
+    ap.add_argument("--only-init", action="store_true",
+                    help="recon: only the default and the refinement's start variants")
+    ap.add_argument("--out", type=Path, default=RESULTS_DIR)
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.part == "baselines":
+        data = tune_baselines(args.profiles, args.seeds)
+        (args.out / "tuning_baselines.json").write_text(json.dumps(data, indent=1))
+        for p, d in data["profiles"].items():
+            b = d["best"]
+            print(f'    "{p}": Tuning(q_kf={b["q_kf"]:g}, q_rts={b["q_rts"]:g}, '
+                  f'imm={replace(ImmTuning(), **b["imm"])!r}),')
+    elif args.part == "recon":
+        data = tune_recon(args.profiles, args.seeds, args.t_max, args.method, args.only_init)
+        path = args.out / f"tuning_recon_{args.method}.json"
+        if args.only_init and path.exists():  # merge into the full table
+            old = json.loads(path.read_text())
+            known = [r["settings"] for r in old["rows"]]
+            old["rows"] += [r for r in data["rows"] if r["settings"] not in known]
+            old["failures"] += data["failures"]
+            data = old
+        path.write_text(json.dumps(data, indent=1))
+    (args.out / "tuning.md").write_text(render(args.out))
+    print(render(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
