@@ -13,6 +13,29 @@ NlpSolver = Literal["sqpmethod", "ipopt"]
 
 
 @dataclass(frozen=True)
+class RefineSettings:
+    """Tuning of the full-track NLP (``solver.refine``); defaults chosen on the benchmark dev set.
+
+    ``max_node_step_s``: longest interval between control nodes (gaps are subdivided);
+    ``switch_penalty_u`` / ``switch_penalty_w``: L1 weight per m/s^2 of control change, in
+    criterion (chi-square) units; ``huber_delta``: pseudo-Huber threshold in sigmas (None: plain
+    least squares); ``block_nodes`` / ``overlap_nodes``: block length and overlap for long tracks.
+    """
+
+    max_node_step_s: float = 10.0
+    switch_penalty_u: float = 4.0
+    switch_penalty_w: float = 8.0
+    quad_penalty_u: float = 0.0
+    quad_penalty_w: float = 0.0
+    level_penalty_u: float = 0.0
+    level_penalty_w: float = 0.0
+    huber_delta: float | None = 3.0
+    block_nodes: int = 512
+    overlap_nodes: int = 64
+    init: Literal["sliding", "smoother"] = "smoother"
+
+
+@dataclass(frozen=True)
 class ReconstructionConfig:
     """How to reconstruct.
 
@@ -30,6 +53,7 @@ class ReconstructionConfig:
     sample_step_s: float = 1.0
     method: Method = "refined"
     nlp_solver: NlpSolver = "sqpmethod"
+    refine: RefineSettings = field(default_factory=RefineSettings)
 
     def validate(self) -> None:
         """Raise :class:`InputError` for values no reconstruction can use."""

@@ -1,0 +1,379 @@
+"""Full-track refinement: one bounded piecewise-constant-control NLP over all plots.
+
+The sliding windows (spec section 6) look a few plots ahead and never revise what they
+accepted; a reconstruction sees the whole recording. This solves, by multiple shooting on a
+node grid (every plot time, plus extra nodes so no interval exceeds ``max_node_step_s``)::
+
+    min  sum_i rho(d_i^T M_i d_i) + sum_k lambda_u |u_k - u_{k-1}| + lambda_w |w_k - w_{k-1}|
+    s.t. s_{k+1} = F(s_k, u_k, w_k, t_{k+1} - t_k)   (closed-form motion, solver.motion)
+         u in [u_min, u_max],  w in [w_min, w_max],  v_k in [v_min, v_max]
+
+where ``s = (x, z, phi, v)``, ``d_i`` is plot i's position residual, ``M_i`` its statistical
+weight (one-sigma ellipse, :func:`solver.geometry.statistical_ellipses`), ``rho`` the
+pseudo-Huber loss ``2 delta^2 (sqrt(1 + q / delta^2) - 1)`` (``~q`` for small ``q``, linear in
+the residual beyond ``delta`` sigmas) and the L1 term keeps the controls piecewise constant with
+few switches. The absolute values are split ``Delta = Delta+ - Delta-`` with ``Delta+-  >= 0``,
+so the NLP has only bounds and the dynamics as constraints; IPOPT solves it with exact sparse
+second derivatives. Since ``v`` is linear inside an interval, bounds at the nodes bound it
+everywhere.
+
+Solvers are built once per block size of a fixed ladder and reused: a track is cut into
+overlapping blocks of at most ``block_nodes`` nodes, each padded to the next ladder size with
+zero-length, zero-weight intervals (``F(s, u, w, 0) = s``). A block after the first starts from
+the previous block's state at the middle of their overlap (its controls there enter the first
+L1 term), so the result is one continuous piecewise-constant-control trajectory.
+
+Uncertainty (Laplace approximation at the solution): the L1 prior on control changes is
+replaced by a Gaussian of the same variance (a Laplace density ``exp(-lambda |Delta| / 2)`` has
+variance ``8 / lambda^2``), the dynamics are linearised about the solution, and a
+Rauch-Tung-Striebel smoother over the nodes gives the marginal covariance of the Gauss-Newton
+posterior; a residual down-weighted by the robust loss enters with its IRLS weight.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from functools import cache
+
+import casadi as ca
+import numpy as np
+
+from .config import ReconstructionConfig, RefineSettings
+from .geometry import statistical_ellipses
+from .inputs import Bounds, FloatArray, Plots, Radar
+from .motion import motion_function, propagate
+from .results import Reconstruction, Segment, StateSeries
+from .estimation import run_filter
+from .trajectory import evaluate
+
+LADDER = (16, 32, 64, 128, 256, 512)
+NX = 6  # node variables: x, z, phi, v, u, w
+ND = 4  # L1 split: du+, du-, dw+, dw-
+
+
+@cache
+def _jacobian_function() -> ca.Function:
+    """``J(s6, dt) -> d s6(dt) / d s6``: the motion map's Jacobian with ``u, w`` in the state."""
+    s = ca.SX.sym("s", NX)
+    dt = ca.SX.sym("dt")
+    out = ca.vertcat(motion_function()(s[:4], s[4], s[5], dt), s[4], s[5])
+    return ca.Function("motion_jac", [s, dt], [ca.jacobian(out, s)])
+
+
+@cache
+def block_solver(n: int) -> ca.Function:
+    """IPOPT solver for a block of ``n`` nodes (built once per ladder size).
+
+    Variables per node ``[x, z, phi, v, u, w, du+, du-, dw+, dw-]``. Parameters per node
+    ``[dt_to_next, cx, cz, a, b, c, weight, lambda_u, lambda_w]`` plus ``[u_prev, w_prev, delta]``.
+    """
+    npar = 9
+    X = ca.MX.sym("X", NX + ND, n)
+    P = ca.MX.sym("P", npar, n)
+    extra = ca.MX.sym("E", 7)
+    s, u, w = X[:4, :], X[4, :], X[5, :]
+    dup, dum, dwp, dwm = X[6, :], X[7, :], X[8, :], X[9, :]
+    dt = P[0, :]
+    f = motion_function().map(n - 1)
+    nxt = f(s[:, : n - 1], u[: n - 1], w[: n - 1], dt[: n - 1])
+    g_dyn = s[:, 1:] - nxt
+    u_prev = ca.horzcat(extra[0], u[: n - 1])
+    w_prev = ca.horzcat(extra[1], w[: n - 1])
+    g_ctl = ca.vertcat(u - u_prev - dup + dum, w - w_prev - dwp + dwm)
+    dx, dz = s[0, :] - P[1, :], s[1, :] - P[2, :]
+    q = P[3, :] * dx * dx + 2 * P[4, :] * dx * dz + P[5, :] * dz * dz
+    delta = extra[2]
+    rho = 2 * delta**2 * (ca.sqrt(1 + q / delta**2) - 1)
+    data = ca.sum2(P[6, :] * rho)
+    pen = ca.sum2(P[7, :] * (dup + dum) + P[8, :] * (dwp + dwm))
+    pen += ca.sum2(extra[3] * (dup - dum) ** 2 + extra[4] * (dwp - dwm) ** 2)
+    eps = 1e-3
+    pen += ca.sum2(dt * (extra[5] * ca.sqrt(u * u + eps**2) + extra[6] * ca.sqrt(w * w + eps**2)))
+    nlp = {
+        "x": ca.vec(X),
+        "p": ca.vertcat(ca.vec(P), extra),
+        "f": data + pen,
+        "g": ca.vertcat(ca.vec(g_dyn), ca.vec(g_ctl)),
+    }
+    opts = {
+        "expand": True,
+        "print_time": False,
+        "error_on_fail": False,
+        "ipopt": {
+            "print_level": 0,
+            "sb": "yes",
+            "tol": 1e-8,
+            "acceptable_tol": 1e-6,
+            "max_iter": 300,
+            "mu_strategy": "adaptive",
+        },
+    }
+    return ca.nlpsol(f"refine_{n}", "ipopt", nlp, opts)
+
+
+def node_grid(t_plots: FloatArray, max_step: float) -> tuple[FloatArray, np.ndarray]:
+    """Node times (every plot time plus equal subdivisions of long gaps) and each plot's node."""
+    gaps = np.diff(t_plots)
+    parts = np.maximum(np.ceil(gaps / max_step - 1e-9).astype(int), 1)
+    starts = np.concatenate([[0], np.cumsum(parts)])
+    frac = np.arange(starts[-1]) - np.repeat(starts[:-1], parts)
+    t_nodes = np.repeat(t_plots[:-1], parts) + frac * np.repeat(gaps / parts, parts)
+    return np.append(t_nodes, t_plots[-1]), starts
+
+
+def _blocks(n: int, size: int, overlap: int) -> list[tuple[int, int, int]]:
+    """``(start, stop, keep_until)`` node ranges; block j keeps ``[start, keep_until]``."""
+    if n <= size:
+        return [(0, n, n - 1)]
+    out = []
+    start = 0
+    while True:
+        stop = min(start + size, n)
+        if stop == n:
+            out.append((start, n, n - 1))
+            return out
+        cut = stop - overlap // 2
+        out.append((start, stop, cut))
+        start = cut
+
+
+def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
+           initial: Reconstruction) -> Reconstruction:
+    """Refine ``initial`` (the sliding-window result) by the full-track NLP."""
+    t0 = time.perf_counter()
+    st: RefineSettings = config.refine
+    bounds = config.bounds
+    t_nodes, plot_node = node_grid(plots.t, st.max_node_step_s)
+    n = t_nodes.size
+    ell = statistical_ellipses(plots, radar)
+    meas = np.zeros((n, 6))
+    meas[plot_node, 0], meas[plot_node, 1] = ell.cx, ell.cz
+    meas[plot_node, 2:5] = ell.weights()
+    meas[plot_node, 5] = 1.0
+    if st.init == "smoother":
+        smooth = run_filter("cv_rts", plots, radar, q=30.0).states
+        guess = nodes_from_states(smooth, t_nodes, bounds)
+    else:
+        guess = nodes_from_segments(initial, t_nodes, bounds)
+    delta = st.huber_delta if st.huber_delta is not None else 1e6
+    diag = initial.diagnostics
+    diag.method = "refined"
+    sol = np.empty((n, NX))
+    prev: np.ndarray | None = None
+    failures, iters = 0, 0
+    for start, stop, keep in _blocks(n, st.block_nodes, st.overlap_nodes):
+        x_blk, ok, it = _solve_block(
+            t_nodes[start:stop], meas[start:stop], guess[start:stop], prev, bounds, st, delta)
+        failures += not ok
+        iters += it
+        sol[start: keep + 1] = x_blk[: keep + 1 - start]
+        prev = x_blk[keep - start]
+        guess[keep:stop] = x_blk[keep - start: stop - start]
+    diag.solver_failures += failures
+    diag.extra["refine_blocks"] = len(_blocks(n, st.block_nodes, st.overlap_nodes))
+    diag.extra["refine_nodes"] = n
+    diag.extra["refine_iterations"] = iters
+    if failures:
+        diag.warnings.append(f"refinement: IPOPT did not converge in {failures} block(s); "
+                             "the best iterate was kept")
+    segments = _segments(t_nodes, sol, bounds)
+    cov_nodes = _node_covariance(t_nodes, sol, meas, st, delta)
+    at_plots = _series(t_nodes, sol, cov_nodes, plots.t)
+    t_samples = initial.samples.t
+    samples = _series(t_nodes, sol, cov_nodes, t_samples)
+    crit = meas[:, 5] * _quad(sol, meas)
+    diag.criterion_values = [float(crit.sum())]
+    diag.extra["refine_ms"] = (time.perf_counter() - t0) * 1e3
+    diag.extra["switches"] = len(segments) - 1
+    return Reconstruction(segments, at_plots, samples, diag)
+
+
+def _quad(sol: np.ndarray, meas: np.ndarray) -> np.ndarray:
+    dx, dz = sol[:, 0] - meas[:, 0], sol[:, 1] - meas[:, 1]
+    return meas[:, 2] * dx * dx + 2 * meas[:, 3] * dx * dz + meas[:, 4] * dz * dz
+
+
+def nodes_from_segments(initial: Reconstruction, t_nodes: FloatArray,
+                        bounds: Bounds) -> np.ndarray:
+    """Node guess ``(x, z, phi, v, u, w)`` from the sliding-window segments."""
+    series = evaluate(initial.segments, t_nodes)
+    starts = np.array([s.t_start for s in initial.segments])
+    idx = np.clip(np.searchsorted(starts, t_nodes, side="right") - 1, 0, len(starts) - 1)
+    u = np.array([initial.segments[i].u for i in idx])
+    w = np.array([initial.segments[i].w for i in idx])
+    return _node_array(series, u, w, bounds)
+
+
+def nodes_from_states(states: StateSeries, t_nodes: FloatArray, bounds: Bounds) -> np.ndarray:
+    """Node guess from smoothed states at the plot times (e.g. a CV Kalman/RTS smoother):
+    states interpolated linearly to the nodes, ``u = v dphi/dt``, ``w = dv/dt``."""
+    cols = [np.interp(t_nodes, states.t, c) for c in (states.x, states.z, states.vx, states.vz)]
+    series = StateSeries(t_nodes, *cols)
+    phi = np.unwrap(series.heading)
+    v = series.speed
+    dt = np.maximum(np.diff(t_nodes), 1e-9)
+    u = np.append(v[:-1] * np.diff(phi) / dt, 0.0)
+    w = np.append(np.diff(v) / dt, 0.0)
+    return _node_array(series, u, w, bounds)
+
+
+def _node_array(series: StateSeries, u: FloatArray, w: FloatArray, bounds: Bounds) -> np.ndarray:
+    out = np.empty((series.t.size, NX))
+    out[:, 0], out[:, 1] = series.x, series.z
+    out[:, 2] = np.unwrap(series.heading)
+    out[:, 3] = np.clip(series.speed, *bounds.v)
+    out[:, 4] = np.clip(u, *bounds.u)
+    out[:, 5] = np.clip(w, *bounds.w)
+    return out
+
+
+def _ladder(n: int) -> int:
+    for size in LADDER:
+        if n <= size:
+            return size
+    raise ValueError(f"block of {n} nodes exceeds the largest ladder size {LADDER[-1]}")
+
+
+def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.ndarray | None,
+                 bounds: Bounds, st: RefineSettings, delta: float) -> tuple[np.ndarray, bool, int]:
+    """Solve one block; ``prev`` (the previous block's node state, or None) fixes the start."""
+    m = t.size
+    size = _ladder(m)
+    solver = block_solver(size)
+    par = np.zeros((9, size))
+    par[0, : m - 1] = np.diff(t)
+    par[1:7, :m] = meas.T
+    par[7, :] = st.switch_penalty_u
+    par[8, :] = st.switch_penalty_w
+    x0 = np.zeros((NX + ND, size))
+    x0[:NX, :m] = guess.T
+    x0[:NX, m:] = guess[-1][:, None]
+    du = np.diff(x0[4, :], prepend=x0[4, 0] if prev is None else prev[4])
+    dw = np.diff(x0[5, :], prepend=x0[5, 0] if prev is None else prev[5])
+    x0[6], x0[7], x0[8], x0[9] = np.maximum(du, 0), np.maximum(-du, 0), np.maximum(dw, 0), \
+        np.maximum(-dw, 0)
+    inf = np.inf
+    lo = np.array([-inf, -inf, -inf, bounds.v[0], bounds.u[0], bounds.w[0], 0, 0, 0, 0])
+    du_max, dw_max = bounds.u[1] - bounds.u[0], bounds.w[1] - bounds.w[0]
+    hi = np.array([inf, inf, inf, bounds.v[1], bounds.u[1], bounds.w[1],
+                   du_max, du_max, dw_max, dw_max])
+    lbx = np.tile(lo[:, None], (1, size))
+    ubx = np.tile(hi[:, None], (1, size))
+    if prev is None:
+        par[7:9, 0] = 0.0  # the first controls are free
+        extra = [x0[4, 0], x0[5, 0], delta, st.quad_penalty_u, st.quad_penalty_w,
+                 st.level_penalty_u, st.level_penalty_w]
+    else:
+        lbx[:4, 0] = ubx[:4, 0] = prev[:4]
+        x0[:4, 0] = prev[:4]
+        extra = [prev[4], prev[5], delta, st.quad_penalty_u, st.quad_penalty_w,
+                 st.level_penalty_u, st.level_penalty_w]
+    x0[:NX] = np.clip(x0[:NX], lbx[:NX], ubx[:NX])
+    res = solver(x0=x0.T.ravel(), p=np.concatenate([par.T.ravel(), extra]),
+                 lbx=lbx.T.ravel(), ubx=ubx.T.ravel(), lbg=0, ubg=0)
+    stats = solver.stats()
+    x = np.array(res["x"]).reshape(size, NX + ND)[:m, :NX]
+    ok = bool(stats["success"]) and bool(np.all(np.isfinite(x)))
+    if not np.all(np.isfinite(x)):
+        x = guess.copy()
+    return x, ok, int(stats.get("iter_count", 0))
+
+
+def _segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segment]:
+    """Merge node intervals whose controls agree (to 1e-6 of the bound range) into segments."""
+    n = t_nodes.size
+    ctl = sol[: n - 1, 4:6] if n > 1 else sol[:, 4:6]
+    tol = 1e-6 * np.array([bounds.u[1] - bounds.u[0], bounds.w[1] - bounds.w[0]])
+    change = np.any(np.abs(np.diff(ctl, axis=0)) > tol, axis=1)
+    starts = np.concatenate([[0], np.flatnonzero(change) + 1])
+    ends = np.append(starts[1:], n - 1)
+    segs = []
+    for a, b in zip(starts, ends, strict=True):
+        sel = ctl[a:b] if b > a else ctl[a: a + 1]
+        u, w = np.mean(sel, axis=0)
+        segs.append(Segment(float(t_nodes[a]), float(t_nodes[b]), float(sol[a, 0]),
+                            float(sol[a, 1]), float(np.mod(sol[a, 2], 2 * math.pi)),
+                            float(sol[a, 3]), float(u), float(w)))
+    return segs
+
+
+def _node_covariance(t_nodes: FloatArray, sol: np.ndarray, meas: np.ndarray,
+                     st: RefineSettings, delta: float) -> np.ndarray:
+    """Smoothed ``(n, 6, 6)`` covariance of ``(x, z, phi, v, u, w)`` at the nodes (Laplace)."""
+    n = t_nodes.size
+    dt = np.append(np.diff(t_nodes), 0.0)
+    jac = _jacobian_function().map(n)
+    A = np.array(jac(sol.T, dt)).reshape(NX, n, NX).transpose(1, 0, 2)
+    # Objective = sum q + lambda |Delta| = 2 * neg-log-posterior: q = chi^2 and the Laplace
+    # prior exp(-lambda |Delta| / 2) has variance 8 / lambda^2.
+    qvar = np.array([8 / st.switch_penalty_u**2, 8 / st.switch_penalty_w**2])
+    q = _quad(sol, meas)
+    irls = 1.0 / np.sqrt(1 + q / delta**2)  # rho'(q): weight of each residual at the solution
+    has = meas[:, 5] > 0
+    Rinv = np.zeros((n, 2, 2))
+    Rinv[:, 0, 0], Rinv[:, 0, 1], Rinv[:, 1, 0], Rinv[:, 1, 1] = (
+        meas[:, 2], meas[:, 3], meas[:, 3], meas[:, 4])
+    Rinv *= (irls * has)[:, None, None]
+    return _rts_information(A, Rinv, qvar)
+
+
+def _rts_information(A: np.ndarray, Rinv: np.ndarray, qvar: np.ndarray) -> np.ndarray:
+    """Marginal covariances of a linear-Gaussian chain, diffuse prior (information filter + RTS).
+
+    ``s_{k+1} = A_k s_k + [0, 0, 0, 0, e_u, e_w]``, ``e ~ N(0, diag(qvar))`` (a control change
+    at each node); position measurements with information ``Rinv_k`` at node k.
+    """
+    n = A.shape[0]
+    Q = np.zeros((NX, NX))
+    Q[4, 4], Q[5, 5] = qvar
+    Y = np.zeros((NX, NX))  # information of the diffuse prior
+    Pf = np.empty((n, NX, NX))
+    Pp = np.empty((n, NX, NX))
+    eye = np.eye(NX)
+    P = None
+    for k in range(n):
+        if k == 0:
+            Yk = Y.copy()
+        else:
+            Pk = A[k - 1] @ P @ A[k - 1].T + Q
+            Pp[k] = Pk
+            Yk = np.linalg.inv(Pk)
+        Yk[:2, :2] += Rinv[k]
+        if k == 0:
+            # diffuse start: make the unobserved directions weakly informed
+            Yk = Yk + np.diag([1e-12, 1e-12, 1e-6, 1e-8, 1e-4, 1e-4])
+        P = np.linalg.inv(Yk)
+        P = (P + P.T) / 2
+        Pf[k] = P
+    Ps = np.empty_like(Pf)
+    Ps[-1] = Pf[-1]
+    for k in range(n - 2, -1, -1):
+        G = Pf[k] @ A[k].T @ np.linalg.inv(Pp[k + 1])
+        Ps[k] = Pf[k] + G @ (Ps[k + 1] - Pp[k + 1]) @ G.T
+        Ps[k] = (Ps[k] + Ps[k].T) / 2
+    del eye
+    return Ps
+
+
+def _series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray,
+            t: FloatArray) -> StateSeries:
+    """States and ``(x, z, vx, vz)`` covariances at times ``t`` from the node solution.
+
+    Between nodes the control is constant, so the state at ``tau`` is a deterministic function
+    of the node state: ``P(tau) = A(tau) P_k A(tau)^T`` exactly for the linearised model.
+    """
+    k = np.clip(np.searchsorted(t_nodes, t, side="right") - 1, 0, t_nodes.size - 1)
+    tau = t - t_nodes[k]
+    s = sol[k]
+    x, z, phi, v = propagate(s[:, 0], s[:, 1], s[:, 2], s[:, 3], s[:, 4], s[:, 5], tau)
+    m = t.size
+    A = np.array(_jacobian_function().map(m)(s.T, tau)).reshape(NX, m, NX).transpose(1, 0, 2)
+    P = A @ cov_nodes[k] @ A.transpose(0, 2, 1)
+    T = np.zeros((m, 4, NX))
+    T[:, 0, 0] = T[:, 1, 1] = 1.0
+    c, sn = np.cos(phi), np.sin(phi)
+    T[:, 2, 2], T[:, 2, 3] = -v * sn, c
+    T[:, 3, 2], T[:, 3, 3] = v * c, sn
+    cov = T @ P @ T.transpose(0, 2, 1)
+    return StateSeries(t.copy(), x, z, v * c, v * sn, cov)
