@@ -57,3 +57,21 @@ def test_bad_configuration():
         FuzzyGain(3, "trapezoid")(np.array(1.0))
     with pytest.raises(ValueError):
         FuzzyGain(3, crossover=1.0)
+
+
+def test_steady_gain_doubling_matches_scipy_dare():
+    from scipy.linalg import solve_discrete_are
+
+    from solver.estimation.fuzzy import steady_gain
+    from solver.estimation.models import singer
+
+    steps = np.array([0.5, 4.8, 10.0, 19.0, 57.0])
+    for sigma in (0.01, 0.3, 5.0):
+        Phi, Q = singer(steps, 1 / 20, sigma)
+        for R in (50.0**2, 1000.0**2):
+            K = steady_gain(Phi, Q, np.full(steps.size, R))
+            for i in range(steps.size):
+                H = np.array([[1.0, 0.0, 0.0]])
+                P = solve_discrete_are(Phi[i].T, H.T, Q[i], np.array([[R]]))
+                ref = (P @ H.T / (H @ P @ H.T + R)).ravel()
+                np.testing.assert_allclose(K[i], ref, rtol=1e-7, atol=1e-12)

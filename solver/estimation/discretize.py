@@ -9,10 +9,13 @@
   ``Q = Gamma (qc / T) Gamma^T`` (a white sequence of variance ``qc / T`` held over the step).
 
 Steps are rounded to 1e-9 s and each distinct step is computed once (scans repeat the same
-``T``; a missed plot gives a multiple of it).
+``T``; a missed plot gives a multiple of it); :func:`van_loan` also keeps the last 256 distinct
+``(F, G, qc, steps)`` results, since a radar's scan period repeats from request to request.
 """
 
 from __future__ import annotations
+
+from functools import lru_cache
 
 import numpy as np
 from scipy.linalg import expm
@@ -33,6 +36,17 @@ def van_loan(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray
     n = F.shape[0]
     G = np.asarray(G, dtype=float).reshape(n, -1)
     steps, inverse = _unique_steps(dt)
+    Phi, Q = _van_loan_steps(np.ascontiguousarray(F, dtype=float).tobytes(), n,
+                             np.ascontiguousarray(G).tobytes(), float(qc), steps.tobytes())
+    return Phi[inverse], Q[inverse]
+
+
+@lru_cache(maxsize=256)
+def _van_loan_steps(F_bytes: bytes, n: int, G_bytes: bytes, qc: float, steps_bytes: bytes
+                    ) -> tuple[FloatArray, FloatArray]:
+    F = np.frombuffer(F_bytes).reshape(n, n)
+    G = np.frombuffer(G_bytes).reshape(n, -1)
+    steps = np.frombuffer(steps_bytes)
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -F
     M[:n, n:] = qc * (G @ G.T)
@@ -48,7 +62,8 @@ def van_loan(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray
         Q = Phi @ Q @ np.transpose(Phi, (0, 2, 1)) + Q
         Phi = Phi @ Phi
     Q = 0.5 * (Q + np.transpose(Q, (0, 2, 1)))
-    return Phi[inverse], Q[inverse]
+    Phi.flags.writeable = Q.flags.writeable = False  # shared by the cache
+    return Phi, Q
 
 
 def taylor(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray
