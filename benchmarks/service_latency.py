@@ -5,8 +5,7 @@ One run measures, interleaved so that machine load affects both alike:
 1. latency of one reconstruction called in process (``solver.reconstruct`` on the validated
    job) and of the same reconstruction as ``POST /v1/reconstructions`` to a real server
    (``python -m service`` on a free loopback port): median, p95, and their ratio;
-2. throughput with ``--clients`` concurrent clients (requests/s, errors), for each worker kind
-   in ``--executors`` (process pool vs thread pool: the choice in service/pool.py).
+2. throughput with ``--clients`` concurrent clients (requests/s, errors).
 
     .venv/bin/python -m benchmarks.service_latency            # defaults: 15 rounds, 8 clients
     .venv/bin/python -m benchmarks.service_latency --rounds 30 --per-client 4 --out r.json
@@ -45,11 +44,11 @@ def free_port() -> int:
 class Server:
     """``python -m service`` in a subprocess, ready (solvers warmed) on entry."""
 
-    def __init__(self, workers: int, executor: str):
+    def __init__(self, workers: int):
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.env = {**os.environ, "TRAJRECON_PORT": str(self.port),
-                    "TRAJRECON_WORKERS": str(workers), "TRAJRECON_EXECUTOR": executor,
+                    "TRAJRECON_WORKERS": str(workers),
                     "TRAJRECON_LOG_LEVEL": "WARNING", "TRAJRECON_ACCESS_LOG": "false"}
 
     def __enter__(self) -> Server:
@@ -83,7 +82,7 @@ def latency(rounds: int, workers: int) -> dict:
     job = to_job(ReconstructionRequest.model_validate(BODY), "sqpmethod", 10**6, 10**7)
     reconstruct(job.plots, job.radar, job.config)  # build and warm the in-process solvers
     local, http = [], []
-    with Server(workers, "process") as srv, httpx.Client(timeout=300) as client:
+    with Server(workers) as srv, httpx.Client(timeout=300) as client:
         assert client.post(srv.url + "/v1/reconstructions", json=BODY).status_code == 200
         for _ in tqdm(range(rounds), desc="latency (in-process + HTTP)"):
             t0 = time.perf_counter()
@@ -100,12 +99,12 @@ def latency(rounds: int, workers: int) -> dict:
     return out
 
 
-def throughput(clients: int, per_client: int, workers: int, executor: str) -> dict:
+def throughput(clients: int, per_client: int, workers: int) -> dict:
     """``clients`` threads, each posting ``per_client`` requests back to back."""
     codes: list[int] = []
     lock = threading.Lock()
-    with Server(workers, executor) as srv:
-        bar = tqdm(total=clients * per_client, desc=f"throughput ({executor})")
+    with Server(workers) as srv:
+        bar = tqdm(total=clients * per_client, desc="throughput")
 
         def client_loop() -> None:
             with httpx.Client(timeout=600) as c:
@@ -124,7 +123,7 @@ def throughput(clients: int, per_client: int, workers: int, executor: str) -> di
         wall = time.perf_counter() - t0
         bar.close()
     errors = sum(c != 200 for c in codes)
-    return {"executor": executor, "workers": workers, "clients": clients,
+    return {"workers": workers, "clients": clients,
             "requests": len(codes), "errors": errors, "wall_s": wall,
             "requests_per_s": len(codes) / wall}
 
@@ -135,13 +134,11 @@ def main() -> None:
     ap.add_argument("--clients", type=int, default=8)
     ap.add_argument("--per-client", type=int, default=2)
     ap.add_argument("--workers", type=int, default=len(os.sched_getaffinity(0)))
-    ap.add_argument("--executors", nargs="+", default=["process", "thread"])
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     result = {"cores": len(os.sched_getaffinity(0)), "load_avg_start": os.getloadavg(),
               "latency": latency(args.rounds, args.workers),
-              "throughput": [throughput(args.clients, args.per_client, args.workers, e)
-                             for e in args.executors]}
+              "throughput": throughput(args.clients, args.per_client, args.workers)}
     result["load_avg_end"] = os.getloadavg()
     lat = result["latency"]
     print(f"\nseed-like track, {lat['plots']} plots, {result['cores']} cores, load average "
@@ -152,10 +149,9 @@ def main() -> None:
               f"(n={s['n']})")
     print(f"  HTTP / in-process: median x{lat['overhead_ratio_median']:.3f}, "
           f"p95 x{lat['overhead_ratio_p95']:.3f}")
-    for t in result["throughput"]:
-        print(f"  {t['clients']} clients, {t['workers']} {t['executor']} workers: "
-              f"{t['requests_per_s']:.2f} req/s over {t['requests']} requests, "
-              f"{t['errors']} errors")
+    t = result["throughput"]
+    print(f"  {t['clients']} concurrent clients, {t['workers']} workers: "
+          f"{t['requests_per_s']:.2f} req/s over {t['requests']} requests, {t['errors']} errors")
     if args.out:
         args.out.write_text(json.dumps(result, indent=2) + "\n")
 

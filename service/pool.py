@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import multiprocessing
 import time
-from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
 from .convert import Job
@@ -20,13 +20,15 @@ class Busy(Exception):
 
 
 class SolverPool:
-    """``workers`` solver processes (or threads), each warmed once.
+    """``workers`` solver processes, each warmed once.
 
     At most ``solve_slots`` solves are handed to the pool at once; up to ``max_queued_solves``
     more requests wait for a slot; any further request is refused at once (:class:`Busy`).
-    Processes, not threads: a solve is a Python loop over small CasADi calls that holds the
-    GIL, so threads would serialise (see benchmarks/service_latency.py). Workers are started
-    with ``spawn``: forking a process that runs an event loop and threads is unsafe.
+    Processes, not threads: the solver caches its CasADi functions and solvers per process, and
+    two threads using them at once corrupt the heap (measured: a 2-thread pool aborted with
+    ``malloc(): unaligned tcache chunk detected`` during warm-up); processes also run the
+    Python parts of the solves in parallel. Workers start with ``spawn``: forking a process
+    that runs an event loop and threads is unsafe.
     """
 
     def __init__(self, settings: Settings, metrics: Metrics):
@@ -51,8 +53,6 @@ class SolverPool:
     def _new_executor(self) -> Executor:
         s = self.settings
         args = (list(s.warmup_window_plots), s.nlp_solver, s.warmup, s.worker_niceness)
-        if s.executor == "thread":
-            return ThreadPoolExecutor(s.workers, "solver", init_worker, args)
         ctx = multiprocessing.get_context("spawn")
         return ProcessPoolExecutor(s.workers, ctx, init_worker, args)
 
@@ -72,7 +72,7 @@ class SolverPool:
         self.state = "ready"
         self.metrics.ready.set(1)
         LOGGER.info("solvers ready", extra={"fields": {
-            "workers": self.settings.workers, "executor": self.settings.executor,
+            "workers": self.settings.workers,
             "warmup_ms": round((time.perf_counter() - start) * 1e3, 1)}})
 
     async def close(self) -> None:

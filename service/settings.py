@@ -28,9 +28,6 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="TCP port.")
     workers: int = Field(default_factory=_cores, ge=1,
                          description="Solver worker processes (default: the usable cores).")
-    executor: Literal["process", "thread"] = Field(
-        "process", description="Worker kind: processes (parallel solves) or threads (one "
-        "process; solves serialise on the GIL).")
     worker_niceness: int = Field(5, ge=0, le=19, description="CPU niceness added to worker "
                                  "processes, so the HTTP event loop keeps answering when "
                                  "solves saturate the cores.")

@@ -7,7 +7,6 @@ runs in parallel too and the event loop only moves bytes.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import time
 import traceback
@@ -67,7 +66,7 @@ def init_worker(window_sizes: list[int], nlp_solver: str, warm: bool, niceness: 
     A failure is kept and reported by :func:`ping` (an initializer that raises would only
     break the pool with no message)."""
     global _warm_up_error
-    if niceness and multiprocessing.parent_process() is not None:  # processes, not threads
+    if niceness:
         os.nice(niceness)
     if warm:
         try:

@@ -317,8 +317,7 @@ def test_settings_come_from_the_environment(monkeypatch):
 
 def test_full_queue_is_refused_at_once():
     """One slot, no queue: a second solve while the first runs raises Busy (-> 503)."""
-    settings = Settings(workers=1, max_concurrent_solves=1, max_queued_solves=0,
-                        executor="thread", warmup=False)
+    settings = Settings(workers=1, max_concurrent_solves=1, max_queued_solves=0, warmup=False)
     body = ReconstructionRequest.model_validate(batch(200.0))
     job = to_job(body, "sqpmethod", 500, 20_000)
 
@@ -349,3 +348,52 @@ def test_failed_warm_up_leaves_service_alive_but_not_ready():
         assert r.status_code == 503 and r.json()["status"] == "failed"
         assert "window.plots" in r.json()["detail"]
         assert c.get("/healthz").status_code == 200
+
+
+# ------------------------------------------------------ extreme values: 200 or 422, never 5xx
+
+
+def _plots_with(key: str, f) -> dict:
+    body = batch(200.0)
+    for i, p in enumerate(body["plots"]):
+        p[key] = f(i, p)
+    return body
+
+
+def _radar(**kw) -> dict:
+    body = batch(200.0)
+    body["radar"].update(kw)
+    return body
+
+
+_SOLVER_BUG = "solver: validated input crashes the solve or yields NaN (reported to the lead)"
+EXTREME = [
+    ("range 1 mm", _plots_with("range_m", lambda i, p: 1e-3 * (1 + i)), None),
+    ("range 1e9 m", _plots_with("range_m", lambda i, p: 1e9 + 1e3 * i), None),
+    ("plots 1 ns apart", _plots_with("t", lambda i, p: i * 1e-9), None),
+    ("all plots at one point", _plots_with("azimuth_deg", lambda i, p: 10.0), None),
+    ("azimuth 1e300 deg", _plots_with("azimuth_deg", lambda i, p: 1e300 * (1 + i)), None),
+    ("huge bounds", {**batch(200.0), "bounds": {"u": [-1e300, 1e300], "w": [-1e300, 1e300],
+                                                "v": [1e-300, 1e300]}}, None),
+    ("altitude just below range",
+     _plots_with("altitude_m", lambda i, p: p["range_m"] * (1 - 1e-15)), None),
+    ("range 1e300 m", _plots_with("range_m", lambda i, p: 1e300 * (1 + 1e-3 * i)), _SOLVER_BUG),
+    ("tiny bounds", {**batch(200.0), "bounds": {"u": [-1e-300, 1e-300], "w": [-1e-300, 1e-300],
+                                                "v": [1e-300, 2e-300]}}, _SOLVER_BUG),
+    ("radar errors 1e300", _radar(range_error_m=1e300, azimuth_error_deg=1e300), _SOLVER_BUG),
+    ("radar errors 1e-300", _radar(range_error_m=1e-300, azimuth_error_deg=1e-300,
+                                   range_sigma_m=None, azimuth_sigma_deg=None), _SOLVER_BUG),
+    ("h_max 1e300", _radar(max_altitude_m=1e300, max_elevation_deg=89.999999), _SOLVER_BUG),
+    ("trial step 1e-9 s", {**batch(200.0), "window": {"trial_step_s": 1e-9}}, _SOLVER_BUG),
+]
+
+
+@pytest.mark.parametrize(
+    ("case", "body"),
+    [pytest.param(c, b, marks=[pytest.mark.xfail(strict=True, reason=x)] if x else [])
+     for c, b, x in EXTREME],
+    ids=[c[0] for c in EXTREME])
+def test_extreme_values_get_200_or_422(client, case, body):
+    """Physically absurd values must be refused (422) or solved (200), never a 500."""
+    r = post(client, body)
+    assert r.status_code in (200, 422), (case, r.status_code, r.text[:300])
