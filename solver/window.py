@@ -158,6 +158,71 @@ def switch_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = HESSIA
     return _nlpsol(f"switch{m}", x, p, r, g, plugin, hessian)
 
 
+FREE_START_SCALE = np.array([1000.0, 1000.0, 1.0, 100.0])
+"""Scale of the free start's variables (km, km, rad, 100 m/s) for a well-conditioned NLP."""
+
+
+@cache
+def free_start_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = HESSIAN
+                      ) -> ca.Function:
+    """NLP of a first window whose start state is free: ``x = (dx0, dz0, dphi0, v0, u, w)``
+    scaled by :data:`FREE_START_SCALE`, the start being ``p[0:4] + scale * x[0:4]`` with
+    ``p[0:4] = (x_ref, z_ref, phi_ref, 0)``; then ``m`` plots as in :func:`pack_params` (times
+    relative to the start, the first plot at 0). Constraint ``g``: the speed at the last plot.
+    """
+    x = ca.SX.sym("sx", 6)
+    p = ca.SX.sym("p", n_params(m))
+    start = p[0:N_START] + ca.DM(FREE_START_SCALE) * x[0:4]
+    t = [p[N_START + i] for i in range(m)]
+    r = _residuals(start, x[4], x[5], t, p[N_START + m:], m)
+    g = start[3] + x[5] * t[-1]
+    return _nlpsol(f"free{m}", x, p, r, g, plugin, hessian)
+
+
+@dataclass
+class FreeStartFit:
+    """Solution of the free-start first window."""
+
+    start: FloatArray  # (x0, z0, phi0, v0)
+    u: float
+    w: float
+    value: float
+    failed: bool
+    solve_ms: float
+
+
+def solve_free_start(ref: FloatArray, uw: FloatArray, t: FloatArray, cx: FloatArray,
+                     cz: FloatArray, abc: FloatArray, bounds: Bounds,
+                     plugin: NlpSolver = "sqpmethod") -> FreeStartFit:
+    """Fit start state and controls to ``m`` plots (``t[0] = 0``: the start plot), from the
+    reference start ``ref`` and controls ``uw`` (the seed's rule and its window fit). A
+    non-finite or infeasible point comes back with ``value = inf`` and ``failed``."""
+    m = t.shape[0]
+    solver = free_start_solver(m, plugin)
+    p = pack_params(np.array([[ref[0], ref[1], ref[2], 0.0]]), t[None], cx[None], cz[None],
+                    abc[None])[0]
+    big = np.inf
+    lbx = [-big, -big, -big, bounds.v[0] / 100.0, bounds.u[0], bounds.w[0]]
+    ubx = [big, big, big, bounds.v[1] / 100.0, bounds.u[1], bounds.w[1]]
+    x0 = [0.0, 0.0, 0.0, ref[3] / 100.0, uw[0], uw[1]]
+    t0 = time.perf_counter()
+    sol = solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=bounds.v[0], ubg=bounds.v[1])
+    ms = (time.perf_counter() - t0) * 1e3
+    failed = solver.stats()["return_status"] not in CONVERGED
+    x = np.asarray(sol["x"]).ravel()
+    start = np.array([ref[0], ref[1], ref[2], 0.0]) + FREE_START_SCALE * x[:4]
+    u, w = float(np.clip(x[4], *bounds.u)), float(np.clip(x[5], *bounds.w))
+    v_end = start[3] + w * t[-1]
+    tol = 1e-9 * bounds.v[1]
+    feasible = (np.all(np.isfinite(x)) and bounds.v[0] - tol <= start[3] <= bounds.v[1] + tol
+                and bounds.v[0] - tol <= v_end <= bounds.v[1] + tol)
+    if not feasible:
+        return FreeStartFit(ref, float(uw[0]), float(uw[1]), np.inf, True, ms)
+    start[3] = np.clip(start[3], *bounds.v)
+    value = float(criterion(start, np.asarray(u), np.asarray(w), t, cx, cz, abc))
+    return FreeStartFit(start, u, w, value, failed, ms)
+
+
 def w_box(v0: FloatArray, t_end: FloatArray, bounds: Bounds
           ) -> tuple[FloatArray, FloatArray, np.ndarray]:
     """Box on ``w`` with the speed bound folded in: ``v_min <= v0 + w T <= v_max``.

@@ -92,6 +92,16 @@ def test_close_switches_are_bounded_not_exact():
     _check_bounds_and_continuity(rec, Bounds())
 
 
+def test_track_starting_in_a_turn():
+    """The seed's start (velocity along the chord of the first two plots) is off by hundreds of
+    metres when the track starts in a turn; the free-start first window fits it exactly."""
+    legs = [(120.0, 5.0, 0.0), (600.0, 0.0, 0.0), (100.0, -4.0, 0.5), (600.0, 0.0, 0.0)]
+    tr = make_track(legs=legs, start=(60_000.0, 40_000.0, 1.0, 200.0), drop_in_turns=False)
+    rec = reconstruct_sliding(tr.plots, SEED_RADAR, _config())
+    assert np.hypot(rec.at_plots.x - tr.x, rec.at_plots.z - tr.z).max() < 50.0
+    assert rec.diagnostics.extra["free_start_shift_m"] < 50.0
+
+
 def test_seed_rule_runs_and_respects_bounds(noisy_track):
     """The literal seed candidate set (no extension, no switch-time refinement) stays available
     through :func:`solver.sliding.slide`; it is coarser but must still be feasible."""
@@ -154,6 +164,7 @@ def test_solver_failures_degrade_gracefully(monkeypatch, noisy_track):
 
     monkeypatch.setattr(window, "window_batch", lambda m, plugin, n: Failing())
     monkeypatch.setattr(window, "switch_solver", lambda m, plugin: Failing())
+    monkeypatch.setattr(window, "free_start_solver", lambda m, plugin: Failing())
     tr = noisy_track
     rec = reconstruct_sliding(tr.plots, SEED_RADAR, _config())
     d = rec.diagnostics
