@@ -96,3 +96,13 @@ def test_500_plots_through_all_filters_is_fast():
     run_filters(FILTER_NAMES, plots, RADAR)
     elapsed = time.perf_counter() - t0
     assert elapsed < 2.0, f"{elapsed:.2f} s"  # ~0.4 s on the dev machine; headroom for CI
+
+
+@pytest.mark.parametrize("name", FILTER_NAMES)
+def test_degenerate_geometry_stays_finite(name):
+    """Microsecond steps, an hour-long gap, a plot next to the radar, a very distant one."""
+    t = np.array([0.0, 1e-6, 2e-6, 10.0, 3610.0, 3620.0, 3630.0])
+    r = np.array([50_000.0, 50_000.0, 50_001.0, 51_000.0, 30.0, 400_000.0, 400_100.0])
+    psi = np.array([0.1, 0.1, 0.1, 0.11, 3.0, 6.2, 6.2])
+    est = run_filter(name, Plots.from_arrays(t, r, psi), RADAR)
+    assert np.all(np.isfinite(est.states.states)) and np.all(np.isfinite(est.states.cov))
