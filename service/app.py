@@ -141,8 +141,7 @@ class Observe:
                     "request_id": rid, "method": method, "path": scope["path"], "route": path,
                     "status": status, "duration_ms": round(elapsed * 1e3, 2),
                     "client": (scope.get("client") or ("", 0))[0],
-                    "bytes_in": int(headers.get(b"content-length", b"0") or 0)
-                    if headers.get(b"content-length", b"0").isdigit() else None}})
+                    "content_length": headers.get(b"content-length", b"").decode("latin-1")}})
 
 
 # ------------------------------------------------------------------------------------- app

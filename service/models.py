@@ -102,8 +102,29 @@ class WindowIn(_In):
         "where the controls may switch.", examples=[5.0])
 
 
+_EXAMPLE_REQUEST = {
+    "radar": {"range_error_m": 500.0, "azimuth_error_deg": 1.5, "range_sigma_m": 166.7,
+              "azimuth_sigma_deg": 0.5, "max_altitude_m": 15000.0, "max_elevation_deg": 60.0},
+    "plots": [
+        {"t": 0.0, "range_m": 126151.5, "azimuth_deg": 161.6461},
+        {"t": 19.0, "range_m": 122434.3, "azimuth_deg": 160.9555},
+        {"t": 57.0, "range_m": 114945.9, "azimuth_deg": 159.5455},
+        {"t": 76.0, "range_m": 110638.8, "azimuth_deg": 159.3499},
+        {"t": 114.0, "range_m": 102904.2, "azimuth_deg": 157.4039},
+    ],
+    "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
+    "window": {"plots": 3, "trial_step_s": 5.0},
+    "criterion": "R2",
+    "method": "refined",
+    "filters": ["singer", "quasi_optimal"],
+    "sample_step_s": 1.0,
+}
+
+
 class ReconstructionRequest(_In):
     """A batch of plots of one aircraft from one radar, and how to reconstruct it."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [_EXAMPLE_REQUEST]})
 
     radar: RadarIn
     plots: list[PlotIn] = Field(
