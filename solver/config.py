@@ -29,6 +29,7 @@ class RefineSettings:
     quad_penalty_w: float = 0.0
     level_penalty_u: float = 0.0
     level_penalty_w: float = 0.0
+    level_smoothing: float = 0.05
     huber_delta: float | None = 3.0
     block_nodes: int = 512
     overlap_nodes: int = 64
