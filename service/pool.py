@@ -99,7 +99,7 @@ class SolverPool:
                 executor = self._executor
                 try:
                     return await asyncio.get_running_loop().run_in_executor(
-                        executor, solve, job, enqueued)
+                        executor, solve, job, enqueued, s.solve_time_limit_s)
                 except BrokenProcessPool:
                     self._replace(executor)
                     raise Busy("a solver worker died; the pool is restarting") from None

@@ -42,6 +42,9 @@ class Settings(BaseSettings):
     max_plots: int = Field(20_000, ge=1, description="Most plots accepted in one request.")
     max_samples: int = Field(100_000, ge=1, description="Most regular samples in one answer "
                              "(track duration / sample_step_s).")
+    solve_time_limit_s: float = Field(
+        300.0, ge=0, description="Longest one reconstruction may run in a worker (s); longer "
+        "ones are stopped and answered 422. 0 = no limit.")
     nlp_solver: Literal["sqpmethod", "ipopt"] = Field(
         "sqpmethod", description="CasADi plugin for the window NLPs.")
     warmup: bool = Field(True, description="Build and warm the CasADi solvers in every worker "

@@ -8,6 +8,8 @@ runs in parallel too and the event loop only moves bytes.
 from __future__ import annotations
 
 import os
+import signal
+import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -82,12 +84,31 @@ def ping() -> float:
     return time.time()
 
 
-def solve(job: Job, enqueued_at: float) -> Outcome:
-    """Reconstruct, run the requested filters, and serialise the validated response."""
+class _TimeLimit(BaseException):
+    """Raised in a worker by the interval timer of :func:`solve` (a ``BaseException``, like
+    ``KeyboardInterrupt``, so the solver's ``except Exception`` fallbacks cannot swallow it)."""
+
+
+def _time_limit(signum: int, frame: object) -> None:
+    raise _TimeLimit
+
+
+def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
+    """Reconstruct, run the requested filters, and serialise the validated response.
+
+    ``time_limit_s`` > 0 stops the work after that many seconds (a ``SIGALRM`` timer; pool
+    workers run tasks in their main thread, and each CasADi call inside lasts milliseconds)
+    and answers an input error naming the limit: some valid but absurd inputs (a track of
+    years with 5-s trial steps) would otherwise hold a worker for hours.
+    """
     from solver.estimation import run_filters
     from solver.reconstruct import reconstruct
 
     started = time.time()
+    timed = time_limit_s > 0 and threading.current_thread() is threading.main_thread()
+    if timed:
+        signal.signal(signal.SIGALRM, _time_limit)
+        signal.setitimer(signal.ITIMER_REAL, time_limit_s)
     try:
         rec = reconstruct(job.plots, job.radar, job.config)
         t0 = time.perf_counter()
@@ -100,5 +121,13 @@ def solve(job: Job, enqueued_at: float) -> Outcome:
         return Outcome(out.model_dump_json().encode(), rec.diagnostics.solver_failures)
     except InputError as e:
         return Outcome(None, error_loc=e.loc, error_message=e.message)
+    except _TimeLimit:
+        return Outcome(None, error_loc=("plots",), error_message=(
+            f"needs more than this service's solve time limit of {time_limit_s:g} s "
+            f"({len(job.plots)} plots over {float(job.plots.t[-1] - job.plots.t[0]):g} s); "
+            "split the track or raise window.trial_step_s"))
     except Exception as e:
         raise SolveError(f"{type(e).__name__}: {e}\n{traceback.format_exc()}") from None
+    finally:
+        if timed:
+            signal.setitimer(signal.ITIMER_REAL, 0)

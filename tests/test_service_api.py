@@ -337,6 +337,29 @@ def test_full_queue_is_refused_at_once():
     asyncio.run(scenario())
 
 
+def test_solve_time_limit_is_a_422_and_frees_the_worker():
+    settings = Settings(workers=1, warmup=False, solve_time_limit_s=0.05)
+    job = to_job(ReconstructionRequest.model_validate(batch(3000.0)), "sqpmethod", 500, 20_000)
+
+    async def scenario() -> None:
+        from service.metrics import Metrics
+
+        pool = SolverPool(settings, Metrics())
+        pool.start()
+        start = time.perf_counter()
+        out = await pool.run(job)
+        assert time.perf_counter() - start < 10
+        assert out.body is None and out.error_loc == ("plots",)
+        assert "solve time limit of 0.05 s" in out.error_message
+        pool.settings = Settings(workers=1, warmup=False, solve_time_limit_s=0)
+        small = to_job(ReconstructionRequest.model_validate(batch(100.0)), "sqpmethod", 500,
+                       20_000)
+        assert (await pool.run(small)).body is not None  # the same worker still serves
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
 def test_failed_warm_up_leaves_service_alive_but_not_ready():
     app = create_app(Settings(workers=1, warmup_window_plots=[1]))  # window of 1: invalid
     with TestClient(app) as c:
