@@ -76,10 +76,11 @@ def band(dof=4, runs=RUNS):
 
 CASES = {
     "singer": (lambda rng, t: track_cartesian(rng, t, "singer"), {"sigma_m": 0.05}),
-    "singer_ekf": (lambda rng, t: track_cartesian(rng, t, "singer"),
-                   {"sigma_m": 0.05, "measurement": "ekf"}),
+    "singer_converted": (lambda rng, t: track_cartesian(rng, t, "singer"),
+                         {"sigma_m": 0.05, "measurement": "converted"}),
     "cv_rts": (lambda rng, t: track_cartesian(rng, t, "cv"), {"q": 0.01}),
-    "cv_filter": (lambda rng, t: track_cartesian(rng, t, "cv"), {"q": 0.01, "smooth": False}),
+    "cv_filter": (lambda rng, t: track_cartesian(rng, t, "cv"), {"q": 0.01, "smooth": False,
+                                                                 "measurement": "converted"}),
     "alpha_beta": (track_straight, {}),
     # a CV track is the IMM's own model when both modes share the CV noise and the turn rate
     # cannot wander: this checks the mixing and moment matching, not the tuning
@@ -103,7 +104,7 @@ CASES = {
 @pytest.mark.parametrize("case", list(CASES))
 def test_nees_within_chi_square_band(case):
     make_truth, params = CASES[case]
-    name = {"singer_ekf": "singer", "singer_polar": "singer", "cv_filter": "cv_rts",
+    name = {"singer_converted": "singer", "singer_polar": "singer", "cv_filter": "cv_rts",
             "quasi_optimal_taylor": "quasi_optimal"}.get(case, case)
     lo, hi = band()
     m = mean_nees(name, make_truth, **params)

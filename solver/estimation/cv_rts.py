@@ -20,7 +20,7 @@ from .models import cv, two_axes
 Q_CV = 30.0
 
 
-def run_cv_rts(meas: PolarPlots, q: float = Q_CV, measurement: str = "converted",
+def run_cv_rts(meas: PolarPlots, q: float = Q_CV, measurement: str = "ekf",
                smooth: bool = True) -> FilterEstimate:
     Phi, Q = cv(np.diff(meas.t), q)
     Phi, Q = two_axes(Phi), two_axes(Q)

@@ -47,7 +47,7 @@ def _cv_noise(T: float, q: float) -> FloatArray:
 
 def run_imm(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT, q_omega: float = Q_OMEGA,
             tau_cv: float = TAU_CV, tau_ct: float = TAU_CT, omega_max: float = OMEGA_MAX,
-            measurement: str = "converted") -> FilterEstimate:
+            measurement: str = "ekf") -> FilterEstimate:
     n = len(meas)
     t = meas.t
     x0 = np.zeros(5)

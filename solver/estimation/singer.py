@@ -33,7 +33,7 @@ SIGMA_M = 1.0
 
 
 def run_singer(meas: PolarPlots, alpha: float = ALPHA, sigma_m: float = SIGMA_M,
-               measurement: str = "converted", frame: str = "cartesian") -> FilterEstimate:
+               measurement: str = "ekf", frame: str = "cartesian") -> FilterEstimate:
     dt = np.diff(meas.t)
     if frame == "cartesian":
         Phi, Q = singer(dt, alpha, sigma_m)
