@@ -19,7 +19,7 @@ positive definite by eigenvalue reflection (``convexify_strategy = eigen-reflect
 needs half the iterations of a Gauss-Newton Hessian ``2 J^T J`` of the weighted residuals
 (linear convergence on large-residual windows: 29 of 2885 solves hit the iteration limit) at
 the same CPU time; ``regularize`` convexification stalls (45% at the limit). IPOPT gives the
-same optima about ten times slower. Gauss-Newton (``hessian="gauss-newton"``) and ``ipopt``
+same optima about ten times slower. Gauss-Newton (:func:`use_hessian`) and ``ipopt``
 stay selectable.
 """
 
@@ -45,7 +45,7 @@ progress is possible at that point (its projected gradients measure like converg
 KKT_TOL = 1e-6
 """Relative projected-gradient tolerance of a converged window solve (converged solves measure
 below 1e-9, stalled ones above 1e-6)."""
-HESSIAN = "exact"
+HESSIAN = "exact"  # sqpmethod Hessian of newly built solvers; see use_hessian
 
 
 def n_params(m: int) -> int:
@@ -109,14 +109,14 @@ def _nlpsol(name: str, x: ca.SX, p: ca.SX, r: ca.SX, g: ca.SX, plugin: NlpSolver
 
 
 @cache
-def window_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = HESSIAN
+def window_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str | None = None
                   ) -> ca.Function:
     """The NLP solver of ``m``-plot windows: ``x = (u, w)``, ``p`` as :func:`pack_params`."""
     uw = ca.SX.sym("uw", 2)
     p = ca.SX.sym("p", n_params(m))
     t = [p[N_START + i] for i in range(m)]
     r = _residuals(p[0:N_START], uw[0], uw[1], t, p[N_START + m:], m)
-    return _nlpsol(f"window{m}", uw, p, r, ca.SX(0, 1), plugin, hessian)
+    return _nlpsol(f"window{m}", uw, p, r, ca.SX(0, 1), plugin, hessian or HESSIAN)
 
 
 @cache
@@ -126,19 +126,24 @@ def window_batch(m: int, plugin: NlpSolver, n: int) -> ca.Function:
 
 
 @cache
-def window_kkt(m: int, n: int) -> ca.Function:
-    """``(x, p, lbx, ubx) -> (|projected gradient|_inf, f)`` of ``n`` windows (columns)."""
+def _window_kkt(m: int) -> ca.Function:
     uw, p = ca.SX.sym("uw", 2), ca.SX.sym("p", n_params(m))
     lb, ub = ca.SX.sym("lb", 2), ca.SX.sym("ub", 2)
     t = [p[N_START + i] for i in range(m)]
     r = _residuals(p[0:N_START], uw[0], uw[1], t, p[N_START + m:], m)
     f = ca.dot(r, r)
     pg = uw - ca.fmin(ca.fmax(uw - ca.gradient(f, uw), lb), ub)
-    return ca.Function("kkt", [uw, p, lb, ub], [ca.norm_inf(pg), f]).map(n)
+    return ca.Function("kkt", [uw, p, lb, ub], [ca.norm_inf(pg), f])
 
 
 @cache
-def switch_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = HESSIAN
+def window_kkt(m: int, n: int) -> ca.Function:
+    """``(x, p, lbx, ubx) -> (|projected gradient|_inf, f)`` of ``n`` windows (columns)."""
+    return _window_kkt(m).map(n)
+
+
+@cache
+def switch_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str | None = None
                   ) -> ca.Function:
     """NLP of a trial window whose start time is free: ``x = (u, w, tau)``.
 
@@ -155,7 +160,18 @@ def switch_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = HESSIA
     t = [p[off + i] - tau for i in range(m)]
     r = _residuals(start, u, w, t, p[off + m:], m)
     g = start[3] + w * t[-1]
-    return _nlpsol(f"switch{m}", x, p, r, g, plugin, hessian)
+    return _nlpsol(f"switch{m}", x, p, r, g, plugin, hessian or HESSIAN)
+
+
+def use_hessian(hessian: str) -> None:
+    """Select the sqpmethod Hessian (``exact`` or ``gauss-newton``) for all window solvers from
+    now on (drops the cached solvers; for benchmarks and comparisons)."""
+    global HESSIAN
+    if hessian not in ("exact", "gauss-newton"):
+        raise ValueError(f"unknown Hessian {hessian!r}")
+    HESSIAN = hessian
+    for f in (window_solver, window_batch, switch_solver, free_start_solver):
+        f.cache_clear()
 
 
 FREE_START_SCALE = np.array([1000.0, 1000.0, 1.0, 100.0])
@@ -163,7 +179,7 @@ FREE_START_SCALE = np.array([1000.0, 1000.0, 1.0, 100.0])
 
 
 @cache
-def free_start_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = HESSIAN
+def free_start_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str | None = None
                       ) -> ca.Function:
     """NLP of a first window whose start state is free: ``x = (dx0, dz0, dphi0, v0, u, w)``
     scaled by :data:`FREE_START_SCALE`, the start being ``p[0:4] + scale * x[0:4]`` with
@@ -176,7 +192,7 @@ def free_start_solver(m: int, plugin: NlpSolver = "sqpmethod", hessian: str = HE
     t = [p[N_START + i] for i in range(m)]
     r = _residuals(start, x[4], x[5], t, p[N_START + m:], m)
     g = start[3] + x[5] * t[-1]
-    return _nlpsol(f"free{m}", x, p, r, g, plugin, hessian)
+    return _nlpsol(f"free{m}", x, p, r, g, plugin, hessian or HESSIAN)
 
 
 @dataclass

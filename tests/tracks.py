@@ -35,6 +35,9 @@ SEED_LIKE_START = (-60_000.0, -150_000.0, np.deg2rad(80.0), 220.0)  # x, z, head
 
 SEED_RADAR = Radar(range_error_m=500.0, azimuth_error_rad=np.deg2rad(1.5))
 """The seed's a priori errors (eps_r = 500 m, eps_psi = 1.5 deg), no altitude correction."""
+SEED_RADAR_ALT = Radar(range_error_m=500.0, azimuth_error_rad=np.deg2rad(1.5),
+                       max_altitude_m=15_000.0, max_elevation_rad=np.deg2rad(60.0))
+"""The seed's radar with its unknown-altitude correction (h_max = 15 km, alpha_max = 60 deg)."""
 
 
 @dataclass
@@ -68,9 +71,10 @@ def truth(legs, start, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArra
 
 def make_track(legs=None, start=SEED_LIKE_START, scan_s: float = 19.0,
                sigma_r: float = 0.0, sigma_psi: float = 0.0, drop_in_turns: bool = True,
-               seed: int = 0) -> Track:
+               seed: int = 0, altitude_m: float = 0.0) -> Track:
     """Plots every ``scan_s`` over the legs; in turns (|u| > 0) every second plot is missing when
-    ``drop_in_turns``; Gaussian range/azimuth noise with the given sigmas (altitude 0)."""
+    ``drop_in_turns``; slant ranges at the given constant altitude; Gaussian range/azimuth noise
+    with the given sigmas."""
     legs = SEED_LIKE_LEGS if legs is None else legs
     total = sum(d for d, _, _ in legs)
     t = np.arange(0.0, total + 1e-9, scan_s)
@@ -82,7 +86,7 @@ def make_track(legs=None, start=SEED_LIKE_START, scan_s: float = 19.0,
         t = t[~drop]
     x, z, phi, v = truth(legs, start, t)
     rng = np.random.default_rng(seed)
-    r = np.hypot(x, z) + sigma_r * rng.standard_normal(t.size)
+    r = np.sqrt(x * x + z * z + altitude_m**2) + sigma_r * rng.standard_normal(t.size)
     psi = np.arctan2(z, x) + sigma_psi * rng.standard_normal(t.size)
     plots = Plots.from_arrays(t, r, psi)
     return Track(t, x, z, phi, v, edges[1:-1], plots)
