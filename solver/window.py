@@ -344,13 +344,15 @@ def solve_switch(cur_start: FloatArray, cur_uw: FloatArray, t: FloatArray, cx: F
     ms = (time.perf_counter() - t0) * 1e3
     failed = solver.stats()["return_status"] not in CONVERGED
     x = np.asarray(sol["x"]).ravel()
-    if not np.all(np.isfinite(x)):
-        return SwitchFit(*guess, np.inf, True, ms)
-    x = np.clip(x, lbx, ubx)
-    s = np.array(propagate(*cur_start, *cur_uw, x[2]))
-    v_end = s[3] + x[1] * (t[-1] - x[2])
-    if not (bounds.v[0] - 1e-9 <= s[3] and bounds.v[0] - 1e-9 <= v_end <= bounds.v[1] + 1e-9
-            and s[3] <= bounds.v[1] + 1e-9):
-        return SwitchFit(*guess, np.inf, True, ms)
-    value = float(criterion(s, np.asarray(x[0]), np.asarray(x[1]), t - x[2], cx, cz, abc))
-    return SwitchFit(float(x[0]), float(x[1]), float(x[2]), value, failed, ms)
+    value = float(sol["f"])
+    clipped = np.clip(x, lbx, ubx)
+    # speeds at the switch and at the last plot: v is linear in time on both pieces
+    v_tau = cur_start[3] + cur_uw[1] * clipped[2]
+    v_end = v_tau + clipped[1] * (t[-1] - clipped[2])
+    tol = 1e-9 * bounds.v[1]
+    usable = (np.all(np.isfinite(x)) and np.isfinite(value)
+              and np.all(np.abs(clipped - x) < 1e-6)
+              and bounds.v[0] - tol <= min(v_tau, v_end) and max(v_tau, v_end) <= bounds.v[1] + tol)
+    if not usable:
+        return SwitchFit(*map(float, guess), np.inf, True, ms)
+    return SwitchFit(float(clipped[0]), float(clipped[1]), float(clipped[2]), value, failed, ms)

@@ -157,7 +157,7 @@ def test_solver_failures_degrade_gracefully(monkeypatch, noisy_track):
 
     class Failing:
         def __call__(self, **kw):
-            return {"x": np.full(np.shape(kw["x0"]), np.nan)}
+            return {"x": np.full(np.shape(kw["x0"]), np.nan), "f": np.nan}
 
         def stats(self):
             return {"return_status": "Restoration_Failed", "success": False}
