@@ -13,9 +13,10 @@ def reconstruct(plots: Plots, radar: Radar,
                 config: ReconstructionConfig | None = None) -> Reconstruction:
     """Reconstruct one aircraft's trajectory from its plots.
 
-    The sliding constant-control windows (spec section 6) give a segmentation and a first
-    trajectory; with ``config.method == "refined"`` (default) one bounded full-track NLP then
-    uses every plot before and after each point.
+    ``config.method == "sliding"``: the seed's sliding constant-control windows (spec section
+    6). ``"refined"`` (default): one bounded full-track NLP that uses every plot before and
+    after each point (``solver.refine``); tracks of fewer than 3 plots always take the sliding
+    path, which defines their behaviour.
     """
     from .refine import refine
     from .sliding import reconstruct_sliding
@@ -25,8 +26,11 @@ def reconstruct(plots: Plots, radar: Radar,
     plots.validate()
     config.validate()
     start = time.perf_counter()
-    result = reconstruct_sliding(plots, radar, config)
     if config.method == "refined" and len(plots) >= 3:
-        result = refine(plots, radar, config, result)
+        initial = (reconstruct_sliding(plots, radar, config)
+                   if config.refine.init == "sliding" else None)
+        result = refine(plots, radar, config, initial)
+    else:
+        result = reconstruct_sliding(plots, radar, config)
     result.diagnostics.elapsed_ms = (time.perf_counter() - start) * 1e3
     return result
