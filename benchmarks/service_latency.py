@@ -14,6 +14,7 @@ One run measures, interleaved so that machine load affects both alike:
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import socket
@@ -108,7 +109,9 @@ def http_layer_ms(job: Job) -> dict[str, float]:
     t0 = time.perf_counter()
     to_job(ReconstructionRequest.model_validate_json(raw), "sqpmethod", 10**6, 10**7)
     t1 = time.perf_counter()
+    gc.disable()  # as in service/workers.py
     body = ReconstructionResponse.model_validate(response_dict(rec, {})).model_dump_json()
+    gc.enable()
     t2 = time.perf_counter()
     return {"request_ms": (t1 - t0) * 1e3, "response_ms": (t2 - t1) * 1e3,
             "response_bytes": len(body)}
