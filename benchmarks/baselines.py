@@ -60,11 +60,11 @@ class Tuning:
 
 # Frozen by `python -m benchmarks.tune` (dev set: the six ADS-B tracks; see the report).
 TUNED: dict[str, Tuning] = {
-    "seed000": Tuning(q_kf=30, q_rts=30, imm=ImmTuning(q_cv=0.3, q_ct=30.0, q_omega=1e-05,
+    "seed000": Tuning(q_kf=30, q_rts=30, imm=ImmTuning(q_cv=0.3, q_ct=30.0, q_omega=1e-06,
                                                        sojourn_s=300.0)),
-    "seed001": Tuning(q_kf=30, q_rts=30, imm=ImmTuning(q_cv=0.3, q_ct=30.0, q_omega=1e-05,
+    "seed001": Tuning(q_kf=30, q_rts=30, imm=ImmTuning(q_cv=0.3, q_ct=100.0, q_omega=1e-05,
                                                        sojourn_s=300.0)),
-    "ssr": Tuning(q_kf=30, q_rts=10, imm=ImmTuning(q_cv=0.3, q_ct=30.0, q_omega=1e-05,
+    "ssr": Tuning(q_kf=30, q_rts=10, imm=ImmTuning(q_cv=0.3, q_ct=10.0, q_omega=1e-05,
                                                    sojourn_s=60.0)),
 }
 

@@ -68,7 +68,7 @@ def trajectory(track: SimulatedTrack, estimates: dict[str, Estimate], path: Path
     for ax, zoom in zip(axes, (False, True), strict=True):
         sel = (track.plots.t >= t0) & (track.plots.t <= t1) if zoom else slice(None)
         tsel = (tt >= t0) & (tt <= t1) if zoom else slice(None)
-        ax.plot(dense.z[tsel] / 1e3, dense.x[tsel] / 1e3, "k-", lw=1.2, label="truth (ADS-B)")
+        ax.plot(dense.z[tsel] / 1e3, dense.x[tsel] / 1e3, "k-", lw=1.2, label="truth")
         ax.plot(pz[sel] / 1e3, px[sel] / 1e3, ".", color="0.5", ms=3, label="plots")
         if zoom:
             ell = uncertainty_ellipses(track.plots, radar)

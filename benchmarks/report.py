@@ -13,6 +13,7 @@ from .profiles import PROFILES
 from .run import BenchResult, summaries
 
 TUNING_MD = "tuning.md"  # written by `python -m benchmarks.tune`, included when present
+TUNING_NOTES = "tuning_notes.md"  # the choices drawn from it (hand-written), included too
 ISSUE6_REFERENCE = {  # sanity figures quoted in issue 6 (RMS horizontal position, m)
     "raw": {"seed000": 782},
     "ss-cv-rts": {"seed000": 443, "seed001": 398, "ssr": 79},
@@ -162,9 +163,9 @@ def write_outputs(res: BenchResult, settings: dict, env: dict[str, str], out: Pa
     if fig_names:
         md += ["", "## Figures", ""]
         md += [f"![{title}](figures/{name})\n\n*{title}*\n" for name, title in fig_names]
-    tuning = out / TUNING_MD
-    if tuning.exists():
-        md += ["", tuning.read_text().strip()]
+    for extra in (TUNING_MD, TUNING_NOTES):
+        if (out / extra).exists():
+            md += ["", (out / extra).read_text().strip()]
     report = out / "report.md"
     report.write_text("\n".join(md) + "\n")
     return report
