@@ -109,7 +109,8 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
     timed = time_limit_s > 0 and threading.current_thread() is threading.main_thread()
     if timed:
         signal.signal(signal.SIGALRM, _time_limit)
-        signal.setitimer(signal.ITIMER_REAL, time_limit_s)
+        # re-fires every 0.1 s: CasADi's interrupt check inside a solve may consume one alarm
+        signal.setitimer(signal.ITIMER_REAL, time_limit_s, 0.1)
     try:
         rec = reconstruct(job.plots, job.radar, job.config)
         t0 = time.perf_counter()

