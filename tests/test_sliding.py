@@ -103,7 +103,7 @@ def test_track_starting_in_a_turn():
 
 
 def test_seed_rule_runs_and_respects_bounds(noisy_track):
-    """The literal seed candidate set (no extension, no switch-time refinement) stays available
+    """The literal seed rule (no switch-time refinement, no free start) stays available
     through :func:`solver.sliding.slide`; it is coarser but must still be feasible."""
     from solver.results import Diagnostics
     from solver.sliding import criterion_data, initial_state, slide
