@@ -227,8 +227,8 @@ SWEEPS: dict[str, dict[str, list[Any]]] = {
     "quasi_optimal": {"lam": [3e-4, 1e-3, 3e-3, 1e-2, 1e-1], "alpha": [0.003, 0.01, 0.05],
                       "sigma_m": [300.0, 1000.0, 2000.0, 4000.0, 10000.0]},
     "fuzzy": {"sigma_low": [0.1, 0.3], "sigma_high": [2.0, 5.0, 10.0], "sigma_m": [1.0, 3.0]},
-    "fuzzy ": {"n_terms": [3, 5, 7], "shape": ["triangular", "gaussian"],
-               "crossover": [0.3, 0.5, 0.7]},
+    "fuzzy (knowledge base)": {"n_terms": [3, 5, 7], "shape": ["triangular", "gaussian"],
+                               "crossover": [0.3, 0.5, 0.7]},
 }
 
 
@@ -238,7 +238,7 @@ def sweep(seeds: int) -> dict[str, Any]:
             for p, prof in PROFILES.items()}
     out: dict[str, Any] = {}
     for key, grid in SWEEPS.items():
-        name = key.strip()
+        name = key.split(" (")[0]
         rows = []
         for values in itertools.product(*grid.values()):
             params = dict(zip(grid, values, strict=True))
@@ -282,6 +282,19 @@ def markdown(res: dict[str, Any]) -> str:
                      f"| {fmt(r['z_m'])} | {fmt(r['pos_m'])} | {fmt(r['speed_ms'], 1)} "
                      f"| {fmt(r['cover95'], 3)} | {fmt(r['ms_per_run'], 1)} |")
         L.append("")
+    if res.get("seed001_other"):
+        keys = ["singer, per coordinate (paper)", "singer, Cartesian (default)",
+                "quasi_optimal, Taylor (paper)", "quasi_optimal, exact (default)",
+                "quasi_optimal, exact, auto Lambda", "imm", "cv_rts (smoothed)"]
+        runs = next(iter(res["seed001_other"].values()))["runs"]
+        L += ["### The same on the other dev trajectories", "",
+              f"{runs} runs each; range / total position RMS (m).", "",
+              "| trajectory | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+        for tname, s in res["seed001_other"].items():
+            L.append(f"| {tname} | " + " | ".join(
+                f"{s['rows'][k]['range_m']:.0f} / {s['rows'][k]['pos_m']:.0f}" for k in keys)
+                + " |")
+        L.append("")
     if "dev" in res:
         d = res["dev"]
         L += ["## 2. Every filter on the dev trajectories", "",
@@ -322,7 +335,7 @@ def markdown(res: dict[str, Any]) -> str:
               f"RMS position m / speed m/s on the dev trajectories, {res['sweep_seeds']} seeds.",
               ""]
         for key, rows in res["sweep"].items():
-            L += [f"### `{key.strip()}`", "", "| params | " + " | ".join(PROFILES) + " |",
+            L += [f"### `{key}`", "", "| params | " + " | ".join(PROFILES) + " |",
                   "|---|" + "---|" * len(PROFILES)]
             for r in rows:
                 p = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
@@ -337,6 +350,8 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--truth", default="calibration__vienna")
     ap.add_argument("--runs", type=int, default=120, help="Monte Carlo runs of section 1")
+    ap.add_argument("--other-runs", type=int, default=20,
+                    help="runs of section 1 on each other dev trajectory (0: skip)")
     ap.add_argument("--dev-seeds", type=int, default=5)
     ap.add_argument("--recon-seeds", type=int, default=1)
     ap.add_argument("--mode-seeds", type=int, default=2)
@@ -344,7 +359,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--sweep-seeds", type=int, default=2)
     ap.add_argument("--only", choices=["seed001", "dev", "measurement", "sweep"])
     ap.add_argument("--out", type=Path, default=RESULTS / "filters_seed001")
+    ap.add_argument("--report-only", action="store_true",
+                    help="rewrite the markdown from the existing JSON")
     args = ap.parse_args(argv)
+    if args.report_only:
+        res = json.loads(args.out.with_suffix(".json").read_text())
+        args.out.with_suffix(".md").write_text(markdown(res))
+        return
     t0 = time.time()
     res: dict[str, Any] = {"command": "python -m benchmarks.filters_seed001 " +
                            " ".join(sys.argv[1:] if argv is None else argv),
@@ -352,6 +373,12 @@ def main(argv: list[str] | None = None) -> None:
     if args.only in (None, "seed001"):
         log(f"section 1: seed 001 on {args.truth}, {args.runs} runs")
         res["seed001"] = seed001(args.truth, args.runs)
+        if args.other_runs:
+            res["seed001_other"] = {}
+            for name in truth_names():
+                if name != args.truth and not name.startswith("synthetic"):
+                    log(f"section 1b: seed 001 on {name}, {args.other_runs} runs")
+                    res["seed001_other"][name] = seed001(name, args.other_runs)
     if args.only in (None, "dev"):
         log(f"section 2: dev trajectories, {args.dev_seeds} seeds")
         res["dev"] = dev(args.dev_seeds, args.recon_seeds)
