@@ -106,3 +106,12 @@ def test_degenerate_geometry_stays_finite(name):
     psi = np.array([0.1, 0.1, 0.1, 0.11, 3.0, 6.2, 6.2])
     est = run_filter(name, Plots.from_arrays(t, r, psi), RADAR)
     assert np.all(np.isfinite(est.states.states)) and np.all(np.isfinite(est.states.cov))
+
+
+@pytest.mark.parametrize("radar", [Radar(1e-300, 1e-300), Radar(1e300, 1.0), Radar(1e-3, 1e-9)])
+def test_absurd_radar_sigmas_never_give_non_finite_output(radar):
+    plots, _, _ = straight(20)
+    for name in FILTER_NAMES:
+        est = run_filter(name, plots, radar)
+        assert np.all(np.isfinite(est.states.states)), name
+        assert np.all(np.isfinite(est.states.cov)), name

@@ -38,13 +38,16 @@ _RUNNERS: dict[str, Callable[..., FilterEstimate]] = {
 
 
 def _fallback(name: str, meas: PolarPlots, reason: str) -> FilterEstimate:
-    """Plot points with their converted covariance and an unknown velocity."""
+    """Plot points with their converted covariance and an unknown velocity; variances beyond
+    the float range (absurd radar sigmas) are capped at 1e300."""
     n = len(meas)
     s = np.zeros((n, 4))
     s[:, :2] = meas.points()
     P = np.zeros((n, 4, 4))
-    P[:, :2, :2] = meas.converted_cov()
+    with np.errstate(all="ignore"):
+        P[:, :2, :2] = meas.converted_cov()
     P[:, 2, 2] = P[:, 3, 3] = SIGMA_V0**2
+    P = np.clip(np.nan_to_num(P, nan=0.0, posinf=1e300, neginf=-1e300), -1e300, 1e300)
     return estimate(name, meas.t, s, P, warning=reason)
 
 
