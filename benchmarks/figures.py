@@ -138,25 +138,30 @@ def controls(track: SimulatedTrack, estimates: dict[str, Estimate], path: Path) 
     plt.close(fig)
 
 
-def error_history(track: SimulatedTrack, estimates: dict[str, Estimate], path: Path) -> None:
-    """Horizontal position error against time; manoeuvres (|turn rate| > 1 deg/s) shaded."""
+def error_history(track: SimulatedTrack, estimates: dict[str, Estimate], path: Path,
+                  span_s: float = 120.0) -> None:
+    """Running RMS (over ``span_s``) of the horizontal position error against time;
+    manoeuvres (|turn rate| > 1 deg/s) shaded."""
     fig, ax = plt.subplots(figsize=(10, 3.8))
     t = track.truth.t
     man = track.manoeuvre.astype(float)
     ax.fill_between(t, 0, 1, where=man > 0, transform=ax.get_xaxis_transform(),
                     color="0.9", step="mid", label="manoeuvre")
+    k = max(1, round(span_s / track.profile.scan_s))
+    kernel = np.ones(k)
+    count = np.convolve(np.ones(t.size), kernel, mode="same")  # fewer plots near the ends
     names = ["raw", *_shown(estimates)] if "raw" in estimates else _shown(estimates)
     for name in names:
         st = estimates[name].states
-        err = np.hypot(st.x - track.truth.x, st.z - track.truth.z)
-        ax.plot(st.t, err, "-", lw=0.8 if name != "raw" else 0.5,
-                color=COLOURS.get(name, "0.6"), label=name)
-    ax.set_yscale("log")
+        err2 = (st.x - track.truth.x) ** 2 + (st.z - track.truth.z) ** 2
+        ax.plot(st.t, np.sqrt(np.convolve(err2, kernel, mode="same") / count), "-",
+                lw=1.0 if name != "raw" else 0.7, color=COLOURS.get(name, "0.6"), label=name)
     ax.set_xlabel("t (s)")
-    ax.set_ylabel("position error (m)")
+    ax.set_ylabel(f"position error, running RMS over {span_s:.0f} s (m)")
+    ax.set_ylim(bottom=0)
     ax.set_title(f"error: {track.truth_name}, {track.profile.name}, seed {track.seed}")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, ncol=3, loc="upper right")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=4, loc="upper right")
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
