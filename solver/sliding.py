@@ -12,7 +12,7 @@ Two refinements of the seed's rule, measured in benchmarks/seed_track.py (``seed
 both off):
 
 - the best grid candidate of every trial plot set is refined by an NLP that frees its start
-  time together with its controls (:func:`solver.window.solve_switch`), anywhere between the
+  time together with its controls (:func:`solver.window.solve_switches`), anywhere between the
   plot before that set and its first plot (for the set after the window's last plot this reaches
   past that plot: the current controls carried on into the gap). This places control switches
   exactly: noise-free seed-like track, m = 3, worst error 561 m -> 0.2 m. The price of the
@@ -53,7 +53,7 @@ from .inputs import FloatArray, Plots, Radar
 from .motion import propagate
 from .results import Diagnostics, Reconstruction, Segment, StateSeries
 from .trajectory import evaluate, sample_times
-from .window import SwitchFit, criterion, solve_free_start, solve_switch, solve_windows, w_box
+from .window import SwitchFits, criterion, solve_free_start, solve_switches, solve_windows, w_box
 
 MIN_BASELINE_S = 1.0  # shortest time between the two plots that set the initial velocity
 FREE_START_PLOTS = 6  # fewest plots (start plot included) the free-start first window fits
@@ -121,30 +121,36 @@ class _Fitter:
         d.nlp_solve_ms.extend(fits.solve_ms.tolist())
         return np.column_stack([fits.u, fits.w]), fits.value
 
-    def fit_switch(self, cur_t: float, cur_s: FloatArray, cur_uw: FloatArray, c: float,
-                   uw: FloatArray, first: int, m: int) -> SwitchFit | None:
-        """Optimise the start time of the trial window at ``c`` (plots ``first ..``) between
-        the plot before it and (just before) its first plot, where the current trajectory's
-        speed is in bounds. ``None`` when that interval is too short to matter."""
+    def fit_switches(self, cur_t: float, cur_s: FloatArray, cur_uw: FloatArray,
+                     cand: FloatArray, first: np.ndarray, uw: FloatArray, val: FloatArray,
+                     m: int) -> tuple[SwitchFits, np.ndarray] | None:
+        """Free the start time of the best grid candidate of every trial plot set: within the
+        plot before the set and (just before) its first plot, where the current trajectory's
+        speed is in bounds. Returns the fits and the first plot of each one's set, or ``None``
+        when no interval is long enough to matter."""
         v_lo, v_hi = self.config.bounds.v
-        lo, hi = self.t[first - 1] - cur_t, self.t[first] - cur_t - SWITCH_GAP_S
         v0, w0 = cur_s[3], cur_uw[1]
-        if w0 > 0:
-            hi = min(hi, (v_hi - v0) / w0)
-        elif w0 < 0:
-            hi = min(hi, (v_lo - v0) / w0)
-        tau = c - cur_t
-        if hi - lo < SWITCH_GAP_S or not lo <= tau <= hi:
+        v_limit = np.inf if w0 == 0 else ((v_hi if w0 > 0 else v_lo) - v0) / w0
+        sets = np.unique(first)
+        best = np.array([g[np.argmin(val[g])] for g in (np.flatnonzero(first == f)
+                                                        for f in sets)])
+        lo = self.t[sets - 1] - cur_t
+        hi = np.minimum(self.t[sets] - cur_t - SWITCH_GAP_S, v_limit)
+        tau = cand[best] - cur_t
+        ok = (hi - lo >= SWITCH_GAP_S) & (lo <= tau) & (tau <= hi)
+        if not ok.any():
             return None
-        idx = slice(first, first + m)
-        fit = solve_switch(cur_s, cur_uw, self.t[idx] - cur_t, self.cx[idx], self.cz[idx],
-                           self.abc[idx], np.array([uw[0], uw[1], tau]), (lo, hi),
-                           self.config.bounds, self.config.nlp_solver)
+        sets, best, lo, hi, tau = sets[ok], best[ok], lo[ok], hi[ok], tau[ok]
+        idx = sets[:, None] + np.arange(m)
+        fits = solve_switches(cur_s, cur_uw, self.t[idx] - cur_t, self.cx[idx], self.cz[idx],
+                              self.abc[idx], np.column_stack([uw[best], tau]),
+                              np.column_stack([lo, hi]), self.config.bounds,
+                              self.config.nlp_solver)
         d = self.diag
-        d.windows_solved += 1
-        d.solver_failures += int(fit.failed)
-        d.nlp_solve_ms.append(fit.solve_ms)
-        return fit
+        d.windows_solved += len(sets)
+        d.solver_failures += int(fits.failed.sum())
+        d.nlp_solve_ms.extend(fits.solve_ms.tolist())
+        return fits, sets
 
     def fit_free_start(self, start: FloatArray, uw: FloatArray, value: float, m: int
                        ) -> tuple[FloatArray, FloatArray, float]:
@@ -218,15 +224,14 @@ def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start:
         nxt_t, nxt_s, nxt_uw, nxt_val = float(cand[b]), states[b], uw[b], float(val[b])
         nxt_k = int(first[b])
         if not seed_rule:
-            # refine the best candidate of every plot interval (trial plot set)
-            for f in np.unique(first):
-                g = np.flatnonzero(first == f)
-                i = int(g[np.argmin(val[g])])
-                fit = fitter.fit_switch(cur_t, cur_s, cur_uw, float(cand[i]), uw[i], int(f), m)
-                if fit is not None and fit.value < nxt_val:
-                    nxt_t = cur_t + fit.tau
-                    nxt_s = np.array(propagate(*cur_s, *cur_uw, fit.tau))
-                    nxt_uw, nxt_val, nxt_k = np.array([fit.u, fit.w]), fit.value, int(f)
+            refined = fitter.fit_switches(cur_t, cur_s, cur_uw, cand, first, uw, val, m)
+            if refined is not None and refined[0].value.min() < nxt_val:
+                fits, sets = refined
+                j = int(np.argmin(fits.value))
+                nxt_t = cur_t + fits.tau[j]
+                nxt_s = np.array(propagate(*cur_s, *cur_uw, fits.tau[j]))
+                nxt_uw, nxt_val = np.array([fits.u[j], fits.w[j]]), float(fits.value[j])
+                nxt_k = int(sets[j])
         segments.append(_segment(cur_t, nxt_t, cur_s, cur_uw))
         diag.criterion_values.append(cur_val * value_scale)
         cur_t, cur_s, cur_k, cur_uw, cur_val = nxt_t, nxt_s, nxt_k, nxt_uw, nxt_val

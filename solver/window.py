@@ -170,7 +170,7 @@ def use_hessian(hessian: str) -> None:
     if hessian not in ("exact", "gauss-newton"):
         raise ValueError(f"unknown Hessian {hessian!r}")
     HESSIAN = hessian
-    for f in (window_solver, window_batch, switch_solver, free_start_solver):
+    for f in (window_solver, window_batch, switch_solver, switch_batch, free_start_solver):
         f.cache_clear()
 
 
@@ -314,45 +314,55 @@ def solve_windows(start: FloatArray, t: FloatArray, cx: FloatArray, cz: FloatArr
 
 
 @dataclass
-class SwitchFit:
-    """Solution of one free-start-time trial window (see :func:`switch_solver`)."""
+class SwitchFits:
+    """Solutions of ``k`` free-start-time trial windows (see :func:`switch_solver`)."""
 
-    u: float
-    w: float
-    tau: float  # start time relative to the current window's start
-    value: float
-    failed: bool
-    solve_ms: float
+    u: FloatArray
+    w: FloatArray
+    tau: FloatArray  # start times relative to the current window's start
+    value: FloatArray  # inf where the solver's point is unusable
+    failed: np.ndarray
+    solve_ms: FloatArray
 
 
-def solve_switch(cur_start: FloatArray, cur_uw: FloatArray, t: FloatArray, cx: FloatArray,
-                 cz: FloatArray, abc: FloatArray, guess: FloatArray, tau_box: tuple[float, float],
-                 bounds: Bounds, plugin: NlpSolver = "sqpmethod") -> SwitchFit:
-    """Refine a trial window's start time ``tau`` within ``tau_box`` together with its controls.
+@cache
+def switch_batch(m: int, plugin: NlpSolver, k: int) -> ca.Function:
+    """:func:`switch_solver` mapped over ``k`` trial windows."""
+    return switch_solver(m, plugin).map(k)
 
-    ``t (m,)`` are plot times relative to the current start; ``guess = (u, w, tau)`` must be
-    feasible (it is the best grid candidate). A non-finite or infeasible solver point comes
-    back with ``value = inf`` and ``failed``; the caller keeps the better of this and the guess.
+
+def solve_switches(cur_start: FloatArray, cur_uw: FloatArray, t: FloatArray, cx: FloatArray,
+                   cz: FloatArray, abc: FloatArray, guess: FloatArray, tau_box: FloatArray,
+                   bounds: Bounds, plugin: NlpSolver = "sqpmethod") -> SwitchFits:
+    """Refine ``k`` trial windows' start times ``tau`` (within ``tau_box (k, 2)``) together with
+    their controls, in one mapped call.
+
+    ``t (k, m)`` are plot times relative to the current start; ``guess (k, 3) = (u, w, tau)``
+    are feasible grid candidates. A solve is ``failed`` (and its value ``inf``) when its point is
+    non-finite, outside the box beyond rounding or breaks the speed bounds; any other point is
+    usable, converged or not, since the caller only ever takes it when it beats a converged grid
+    candidate.
     """
-    m = t.shape[0]
-    solver = switch_solver(m, plugin)
-    params = np.concatenate([cur_start, cur_uw, t, cx, cz, abc[:, 0], abc[:, 1], abc[:, 2]])
-    lbx = [bounds.u[0], bounds.w[0], tau_box[0]]
-    ubx = [bounds.u[1], bounds.w[1], tau_box[1]]
+    k, m = t.shape
+    params = np.hstack([np.broadcast_to(cur_start, (k, N_START)), np.broadcast_to(cur_uw, (k, 2)),
+                        t, cx, cz, abc[..., 0], abc[..., 1], abc[..., 2]])
+    lb = np.column_stack([np.full(k, bounds.u[0]), np.full(k, bounds.w[0]), tau_box[:, 0]])
+    ub = np.column_stack([np.full(k, bounds.u[1]), np.full(k, bounds.w[1]), tau_box[:, 1]])
     t0 = time.perf_counter()
-    sol = solver(x0=guess, p=params, lbx=lbx, ubx=ubx, lbg=bounds.v[0], ubg=bounds.v[1])
-    ms = (time.perf_counter() - t0) * 1e3
-    failed = solver.stats()["return_status"] not in CONVERGED
-    x = np.asarray(sol["x"]).ravel()
-    value = float(sol["f"])
-    clipped = np.clip(x, lbx, ubx)
+    sol = switch_batch(m, plugin, k)(x0=guess.T, p=params.T, lbx=lb.T, ubx=ub.T,
+                                     lbg=bounds.v[0], ubg=bounds.v[1])
+    ms = np.full(k, (time.perf_counter() - t0) * 1e3 / k)
+    x = np.asarray(sol["x"]).T
+    value = np.asarray(sol["f"]).ravel()
+    clipped = np.clip(np.nan_to_num(x, nan=np.inf), lb, ub)
     # speeds at the switch and at the last plot: v is linear in time on both pieces
-    v_tau = cur_start[3] + cur_uw[1] * clipped[2]
-    v_end = v_tau + clipped[1] * (t[-1] - clipped[2])
+    v_tau = cur_start[3] + cur_uw[1] * clipped[:, 2]
+    v_end = v_tau + clipped[:, 1] * (t[:, -1] - clipped[:, 2])
     tol = 1e-9 * bounds.v[1]
-    usable = (np.all(np.isfinite(x)) and np.isfinite(value)
-              and np.all(np.abs(clipped - x) < 1e-6)
-              and bounds.v[0] - tol <= min(v_tau, v_end) and max(v_tau, v_end) <= bounds.v[1] + tol)
-    if not usable:
-        return SwitchFit(*map(float, guess), np.inf, True, ms)
-    return SwitchFit(float(clipped[0]), float(clipped[1]), float(clipped[2]), value, failed, ms)
+    usable = (np.all(np.abs(clipped - x) < 1e-6, axis=1) & np.isfinite(value)
+              & (np.minimum(v_tau, v_end) >= bounds.v[0] - tol)
+              & (np.maximum(v_tau, v_end) <= bounds.v[1] + tol))
+    return SwitchFits(clipped[:, 0], clipped[:, 1], clipped[:, 2],
+                      np.where(usable, value, np.inf), ~usable, ms)
+
+

@@ -163,7 +163,7 @@ def test_solver_failures_degrade_gracefully(monkeypatch, noisy_track):
             return {"return_status": "Restoration_Failed", "success": False}
 
     monkeypatch.setattr(window, "window_batch", lambda m, plugin, n: Failing())
-    monkeypatch.setattr(window, "switch_solver", lambda m, plugin: Failing())
+    monkeypatch.setattr(window, "switch_batch", lambda m, plugin, k: Failing())
     monkeypatch.setattr(window, "free_start_solver", lambda m, plugin: Failing())
     tr = noisy_track
     rec = reconstruct_sliding(tr.plots, SEED_RADAR, _config())

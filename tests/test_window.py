@@ -10,7 +10,7 @@ from solver.geometry import weight_entries
 from solver.guess import initial_guess, point_transfer
 from solver.inputs import Bounds
 from solver.motion import propagate
-from solver.window import criterion, solve_free_start, solve_switch, solve_windows, w_box
+from solver.window import criterion, solve_free_start, solve_switches, solve_windows, w_box
 
 BOUNDS = Bounds()
 
@@ -157,12 +157,12 @@ def test_switch_nlp_finds_the_switch_time():
     t = np.array([38.0, 57.0, 76.0])  # relative to the current start
     x, z, _, _ = propagate(*s, 4.0, -0.5, t - switch)
     abc = weight_entries(np.arctan2(z, x), np.full(3, 1500.0), np.full(3, 500.0))
-    fit = solve_switch(cur, cur_uw, t, x, z, abc, np.array([3.0, 0.0, 19.0]), (19.0, 37.999),
-                       BOUNDS)
-    assert not fit.failed
-    assert fit.tau == pytest.approx(switch, abs=1e-4)
-    assert fit.u == pytest.approx(4.0, abs=1e-4) and fit.w == pytest.approx(-0.5, abs=1e-4)
-    assert fit.value < 1e-12
+    fits = solve_switches(cur, cur_uw, t[None], x[None], z[None], abc[None],
+                          np.array([[3.0, 0.0, 19.0]]), np.array([[19.0, 37.999]]), BOUNDS)
+    assert not fits.failed[0]
+    assert fits.tau[0] == pytest.approx(switch, abs=1e-4)
+    assert fits.u[0] == pytest.approx(4.0, abs=1e-4) and fits.w[0] == pytest.approx(-0.5, abs=1e-4)
+    assert fits.value[0] < 1e-12
 
 
 def test_free_start_nlp_recovers_the_start_state():
