@@ -136,8 +136,8 @@ def timing(reps: int) -> list[str]:
             f"median {np.median(d.nlp_solve_ms):.3f} ms/solve, failures {d.solver_failures}")
     window.use_hessian("exact")
     lines += ["", "`median ms/NLP solve`: the trial windows of one step are solved in one mapped "
-              "call, whose time is split evenly over them; switch-time and free-start solves "
-              "are single calls."]
+              "call, whose time is split evenly over them, and so are the switch-time "
+              "refinements of a step; the free-start solve is a single call."]
     return lines
 
 

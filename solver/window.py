@@ -6,20 +6,25 @@ Objective: the criterion ``sum a dx^2 + 2 b dx dz + c dz^2`` (R1 is ``a = c = 1,
 The speed bound ``v_min <= v0 + w T <= v_max`` (``T`` the last plot time) is linear in ``w``, so
 it is folded into the box on ``w`` at call time (:func:`w_box`): the NLP has box constraints only.
 
-One solver per ``(m, plugin)``, built once (SX graph, ``functools.cache``); windows differ only
-in the parameter vector and the bounds. All trial windows of a step are solved in one call of
-the solver mapped over them (``Function.map``), which halves the per-solve cost against one
-Python call per window. Convergence is then judged independently of the solver's status, by the
-first-order condition of the box-constrained problem: the projected gradient
-``|x - clip(x - grad f, lbx, ubx)|_inf <= KKT_TOL (1 + f)``.
+Three NLPs, each built once per ``(m, plugin)`` (SX graph, ``functools.cache``) and fed the data
+as parameters, never rebuilt per window: the window (:func:`window_solver`), the trial window
+with a free start time (:func:`switch_solver`) and the first window with a free start state
+(:func:`free_start_solver`). All trial windows of a step are solved in one call of the solver
+mapped over them (``Function.map``; measured 0.10 vs 0.15 ms CPU per solve against one Python
+call each), and so are the switch-time refinements of a step. Convergence of a window solve is
+judged independently of the solver's status, by the first-order condition of the
+box-constrained problem: the projected gradient ``|x - clip(x - grad f, lbx, ubx)|_inf <=
+KKT_TOL (1 + f)``.
 
 Default plugin: ``sqpmethod`` with the ``qrqp`` active-set QP and the exact Hessian, made
 positive definite by eigenvalue reflection (``convexify_strategy = eigen-reflect``; the 2x2 and
-3x3 Hessians make that cheap). Measured on the seed-like track (benchmarks/seed_track.py) it
-needs half the iterations of a Gauss-Newton Hessian ``2 J^T J`` of the weighted residuals
-(linear convergence on large-residual windows: 29 of 2885 solves hit the iteration limit) at
-the same CPU time; ``regularize`` convexification stalls (45% at the limit). IPOPT gives the
-same optima about ten times slower. Gauss-Newton (:func:`use_hessian`) and ``ipopt``
+3x3 Hessians make that cheap). Measured on the seed-like track (benchmarks/seed_track.py and
+its results file): half the SQP iterations of a Gauss-Newton Hessian ``2 J^T J`` of the
+weighted residuals (11.3k vs 22.8k; Gauss-Newton converges linearly on large-residual windows
+and some solves stall at the iteration limit) for the same CPU time per track; ``regularize``
+convexification stalls (45% of solves at the limit). IPOPT gives the
+same optima about twenty times slower (per-call overhead of an interior-point method on a
+2-variable problem). Gauss-Newton (:func:`use_hessian`) and ``ipopt``
 stay selectable.
 """
 
@@ -39,7 +44,7 @@ from .motion import propagate, propagate_ca
 N_START = 4  # x0, z0, phi0, v0
 CONVERGED = frozenset({"Solve_Succeeded", "Solve_Succeeded_To_Acceptable_Level",
                        "Search_Direction_Becomes_Too_Small"})
-"""Return statuses of a single (switch) solve taken as converged. sqpmethod stops with
+"""Return statuses of a single (free-start) solve taken as converged. sqpmethod stops with
 ``Search_Direction_Becomes_Too_Small`` when its step is below ``min_step_size``: no further
 progress is possible at that point (its projected gradients measure like converged ones)."""
 KKT_TOL = 1e-6
