@@ -163,9 +163,13 @@ def write_outputs(res: BenchResult, settings: dict, env: dict[str, str], out: Pa
     if fig_names:
         md += ["", "## Figures", ""]
         md += [f"![{title}](figures/{name})\n\n*{title}*\n" for name, title in fig_names]
+    from .run import RESULTS_DIR
+
     for extra in (TUNING_MD, TUNING_NOTES):
-        if (out / extra).exists():
-            md += ["", (out / extra).read_text().strip()]
+        for folder in dict.fromkeys((out, RESULTS_DIR)):
+            if (folder / extra).exists():
+                md += ["", (folder / extra).read_text().strip()]
+                break
     report = out / "report.md"
     report.write_text("\n".join(md) + "\n")
     return report

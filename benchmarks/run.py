@@ -172,7 +172,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--estimators", nargs="+", default=None,
                     help="names or glob patterns (default: the standard set)")
     ap.add_argument("--t-max", type=float, default=None, help="cut tracks to this many seconds")
-    ap.add_argument("--out", type=Path, default=RESULTS_DIR)
+    ap.add_argument("--out", type=Path, default=None,
+                    help="output directory (default benchmarks/results, quick: results/quick)")
     ap.add_argument("--no-figures", action="store_true")
     ap.add_argument("--no-progress", action="store_true")
     return ap.parse_args(argv)
@@ -201,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
                 "profiles": profiles, "truths": truths, "seeds": seeds,
                 "estimators": [e.name for e in estimators], "t_max": t_max,
                 "quick": args.quick}
-    report = write_outputs(res, settings, environment(), args.out, figures=not args.no_figures)
+    out = args.out or (RESULTS_DIR / "quick" if args.quick else RESULTS_DIR)
+    report = write_outputs(res, settings, environment(), out, figures=not args.no_figures)
     print(f"wrote {report} ({res.elapsed_s:.0f} s, {len(res.failures)} failures)")
     return 0
 
