@@ -69,22 +69,23 @@ class Radar:
 
     def validate(self) -> None:
         """Raise :class:`InputError` for non-finite, negative or zero accuracies."""
-        checks: list[tuple[str, float | None, bool]] = [
-            ("range_error_m", self.range_error_m, True),
-            ("azimuth_error_rad", self.azimuth_error_rad, True),
-            ("range_sigma_m", self.range_sigma_m, True),
-            ("azimuth_sigma_rad", self.azimuth_sigma_rad, True),
-            ("max_altitude_m", self.max_altitude_m, False),
-            ("max_elevation_rad", self.max_elevation_rad, False),
+        # smallest accuracy a radar can claim: 1 mm in range, 1 nrad in azimuth
+        checks: list[tuple[str, float | None, float]] = [
+            ("range_error_m", self.range_error_m, 1e-3),
+            ("azimuth_error_rad", self.azimuth_error_rad, 1e-9),
+            ("range_sigma_m", self.range_sigma_m, 1e-3),
+            ("azimuth_sigma_rad", self.azimuth_sigma_rad, 1e-9),
+            ("max_altitude_m", self.max_altitude_m, 0.0),
+            ("max_elevation_rad", self.max_elevation_rad, 0.0),
         ]
-        for name, value, positive in checks:
+        for name, value, least in checks:
             if value is None:
                 continue
             if not np.isfinite(value):
                 raise InputError(("radar", name), "must be a finite number")
-            if value < 0 or (positive and value == 0):
-                raise InputError(("radar", name), "must be positive" if positive else
-                                 "must not be negative")
+            if value < least or (least == 0 and value < 0):
+                raise InputError(("radar", name), f"must be positive (at least {least:g})"
+                                 if least > 0 else "must not be negative")
         if self.max_elevation_rad >= np.pi / 2:
             raise InputError(("radar", "max_elevation_rad"), "must be below 90 degrees")
 
@@ -110,8 +111,13 @@ class Bounds:
             raise InputError(("bounds", "u"), "must contain 0 (straight flight)")
         if not self.w[0] <= 0 <= self.w[1]:
             raise InputError(("bounds", "w"), "must contain 0 (constant speed)")
-        if self.v[0] <= 0:
-            raise InputError(("bounds", "v"), "lower speed bound must be positive")
+        if self.v[0] < 1.0:
+            raise InputError(("bounds", "v"), "lower speed bound must be at least 1 m/s "
+                             "(the model turns by u / v)")
+        for name in ("u", "w"):
+            lo, hi = getattr(self, name)
+            if hi - lo < 1e-6:
+                raise InputError(("bounds", name), "must span at least 1e-6 m/s^2")
 
 
 @dataclass(frozen=True)
@@ -178,7 +184,7 @@ class Plots:
         if bad.size:
             i = int(bad[0]) + 1
             raise InputError(("plots", i, "t"), f"is not after plots[{i - 1}].t "
-                             f"({self.t[i]!r} <= {self.t[i - 1]!r})")
+                             f"({float(self.t[i]):g} <= {float(self.t[i - 1]):g})")
 
 
 ArrayLike = FloatArray | list[float] | tuple[float, ...]

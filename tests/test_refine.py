@@ -1,0 +1,190 @@
+"""Full-track refinement (solver.refine): noise-free recovery, switch count, block seams,
+robustness to a wild plot, and calibration of the returned covariance."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from tracks import SEED_RADAR, make_track, truth
+
+from solver.config import ReconstructionConfig, RefineSettings
+from solver.inputs import Plots, Radar
+from solver.reconstruct import reconstruct
+from solver.refine import node_grid, refine
+
+# Switches on the 10-s scan grid, so the node grid can represent the truth exactly: straight
+# legs, a deceleration, a right turn of about 210 deg, an acceleration, a left turn of about
+# 185 deg. 8 switches.
+SCAN = 10.0
+LEGS = [
+    (300.0, 0.0, 0.0),
+    (40.0, 0.0, -1.5),   # 190 -> 130 m/s
+    (200.0, 0.0, 0.0),
+    (80.0, 6.0, 0.0),    # ~211 deg right at 130 m/s
+    (200.0, 0.0, 0.0),
+    (40.0, 0.0, 1.0),    # 130 -> 170 m/s
+    (200.0, 0.0, 0.0),
+    (110.0, -5.0, 0.0),  # ~185 deg left at 170 m/s
+    (300.0, 0.0, 0.0),
+]
+START = (40_000.0, -60_000.0, np.deg2rad(30.0), 190.0)
+TRUE_SWITCHES = len(LEGS) - 1
+
+
+def _plots(t, radar_sigma_r=0.0, radar_sigma_psi=0.0, seed=0, altitude=None):
+    x, z, phi, v = truth(LEGS, START, t)
+    rng = np.random.default_rng(seed)
+    h = 0.0 if altitude is None else altitude
+    r = np.sqrt(x * x + z * z + h * h) + radar_sigma_r * rng.standard_normal(t.size)
+    psi = np.arctan2(z, x) + radar_sigma_psi * rng.standard_normal(t.size)
+    alt = None if altitude is None else np.full(t.size, altitude)
+    return Plots.from_arrays(t, r, psi, alt), (x, z, phi, v)
+
+
+def _scan_times(drop_in_turns: bool = True) -> np.ndarray:
+    total = sum(d for d, _, _ in LEGS)
+    t = np.arange(0.0, total + 1e-9, SCAN)
+    if drop_in_turns:  # every second plot missing in the turns
+        edges = np.cumsum([0.0] + [d for d, _, _ in LEGS])
+        k = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, len(LEGS) - 1)
+        turning = np.array([LEGS[i][1] != 0 for i in k])
+        t = t[~(turning & (np.cumsum(turning) % 2 == 0))]
+    return t
+
+
+def test_node_grid_keeps_plot_times_and_bounds_steps():
+    t = np.array([0.0, 4.0, 30.0, 31.0, 55.0])
+    nodes, idx = node_grid(t, 10.0)
+    np.testing.assert_array_equal(nodes[idx], t)
+    assert np.all(np.diff(nodes) <= 10.0 + 1e-12)
+    assert np.all(np.diff(nodes) > 0)
+
+
+def test_noise_free_truth_recovered_with_its_switch_count():
+    """Exact plots (weights from 1-m sigmas): positions within 5 m at every plot and sample,
+    and the L1 penalty picks the sparse control history: switch count within +-2."""
+    t = _scan_times()
+    plots, (x, z, _, v) = _plots(t)
+    radar = Radar(range_error_m=3.0, azimuth_error_rad=3e-5)  # sigma 1 m, 1e-5 rad
+    cfg = ReconstructionConfig(refine=RefineSettings(max_node_step_s=SCAN))
+    rec = reconstruct(plots, radar, cfg)
+    err = np.hypot(rec.at_plots.x - x, rec.at_plots.z - z)
+    assert err.max() < 5.0, err.max()
+    xs, zs, _, _ = truth(LEGS, START, rec.samples.t)
+    assert np.hypot(rec.samples.x - xs, rec.samples.z - zs).max() < 5.0
+    switches = len(rec.segments) - 1
+    assert abs(switches - TRUE_SWITCHES) <= 2, [(s.t_start, s.u, s.w) for s in rec.segments]
+    bounds = cfg.bounds
+    for seg in rec.segments:
+        assert bounds.u[0] - 1e-6 <= seg.u <= bounds.u[1] + 1e-6
+        assert bounds.w[0] - 1e-6 <= seg.w <= bounds.w[1] + 1e-6
+    assert np.all(rec.samples.speed >= bounds.v[0] - 1e-6)
+    assert np.all(rec.samples.speed <= bounds.v[1] + 1e-6)
+    assert np.abs(rec.at_plots.speed - v).max() < 1.0
+
+
+def _noisy(seed: int = 1, drop: bool = True):
+    radar = Radar(range_error_m=500.0, azimuth_error_rad=np.deg2rad(1.5))
+    plots, tr = _plots(_scan_times(drop), radar.sigma_r, radar.sigma_psi, seed)
+    return plots, radar, tr
+
+
+def test_blocked_and_unblocked_solutions_agree():
+    """The seed-like 5057-s track (1065 nodes) in blocks of 512 nodes whose cuts leave 256 nodes
+    of look-ahead agrees with the one-block solution to 1 m everywhere."""
+    radar = SEED_RADAR
+    plots = make_track(sigma_r=radar.sigma_r, sigma_psi=radar.sigma_psi, seed=3).plots
+    base = RefineSettings(max_node_step_s=5.0)
+    one = refine(plots, radar, ReconstructionConfig(refine=base))
+    assert one.diagnostics.extra["refine_blocks"] == 1
+    cut = dataclasses.replace(base, block_nodes=512, overlap_nodes=512)
+    many = refine(plots, radar, ReconstructionConfig(refine=cut))
+    assert many.diagnostics.extra["refine_blocks"] >= 4
+    diff = np.hypot(many.samples.x - one.samples.x, many.samples.z - one.samples.z)
+    assert diff.max() < 1.0, diff.max()
+    # one continuous piecewise-constant-control trajectory: the segments chain exactly
+    for a, b in zip(many.segments, many.segments[1:], strict=False):
+        assert a.t_end == pytest.approx(b.t_start)
+
+
+def test_wild_plot_moves_track_less_than_200_m():
+    plots, radar, _ = _noisy(seed=2)
+    clean = reconstruct(plots, radar)
+    i = len(plots) // 2
+    rng = plots.range_m.copy()
+    rng[i] += 20_000.0
+    wild = Plots.from_arrays(plots.t, rng, plots.azimuth_rad)
+    rec = reconstruct(wild, radar)
+    moved = np.hypot(rec.samples.x - clean.samples.x, rec.samples.z - clean.samples.z)
+    assert moved.max() < 200.0, moved.max()
+
+
+def test_covariance_calibrated_on_the_models_own_noise():
+    """Share of truth positions inside the 95 % ellipse between 90 % and 98 % (8 noise seeds)."""
+    inside, total = 0, 0
+    for seed in range(8):
+        plots, radar, (x, z, _, _) = _noisy(seed=10 + seed)
+        rec = reconstruct(plots, radar)
+        d = np.stack([rec.at_plots.x - x, rec.at_plots.z - z], axis=1)
+        cov = rec.at_plots.cov[:, :2, :2]
+        m2 = np.einsum("ni,nij,nj->n", d, np.linalg.inv(cov), d)
+        inside += int(np.sum(m2 <= 5.991))  # chi-square 2 dof, 95 %
+        total += d.shape[0]
+    share = inside / total
+    assert 0.90 <= share <= 0.98, share
+
+
+def test_refined_beats_raw_plots_and_sliding():
+    plots, radar, (x, z, _, _) = _noisy(seed=5)
+    px, pz = plots.range_m * np.cos(plots.azimuth_rad), plots.range_m * np.sin(plots.azimuth_rad)
+    raw = np.sqrt(np.mean((px - x) ** 2 + (pz - z) ** 2))
+    refined = reconstruct(plots, radar)
+    rms = np.sqrt(np.mean((refined.at_plots.x - x) ** 2 + (refined.at_plots.z - z) ** 2))
+    assert rms < 0.6 * raw
+    assert refined.diagnostics.method == "refined"
+    assert refined.at_plots.cov is not None and refined.samples.cov is not None
+    assert np.all(np.linalg.eigvalsh(refined.samples.cov) > 0)
+
+
+def test_known_altitude_is_used():
+    """Plots at 9 km altitude: with altitude_m the ground range is exact; without it the slant
+    range puts the track h^2 / 2r further out."""
+    t = _scan_times(False)[:80]
+    plots, (x, z, _, _) = _plots(t, altitude=9000.0)
+    radar = Radar(range_error_m=3.0, azimuth_error_rad=3e-5)  # exact plots, 1-m sigmas
+    with_alt = reconstruct(plots, radar)
+    err = np.hypot(with_alt.at_plots.x - x, with_alt.at_plots.z - z)
+    assert err.max() < 5.0
+    blind = reconstruct(dataclasses.replace(plots, altitude_m=None), radar)
+    err_blind = np.hypot(blind.at_plots.x - x, blind.at_plots.z - z)
+    assert err_blind.mean() > 100.0
+
+
+def test_solver_failure_is_reported_not_raised(monkeypatch):
+    """If IPOPT fails in a block, the last iterate is kept and the failure is reported."""
+    import solver.refine as refine_module
+
+    real = refine_module.block_solver
+
+    def crippled(n):
+        solver = real(n)
+
+        class OneIteration:
+            def __call__(self, **kw):
+                return solver(**kw)
+
+            def stats(self):
+                st = dict(solver.stats())
+                st["success"] = False
+                return st
+
+        return OneIteration()
+
+    monkeypatch.setattr(refine_module, "block_solver", crippled)
+    plots, radar, _ = _noisy(seed=7)
+    rec = refine_module.refine(plots, radar, ReconstructionConfig())
+    assert rec.diagnostics.solver_failures >= 1
+    assert any("did not converge" in w for w in rec.diagnostics.warnings)
+    assert np.all(np.isfinite(rec.at_plots.x))
