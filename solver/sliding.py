@@ -21,7 +21,7 @@ both off):
   the first ``max(m + 1, 6)`` plots, start plot included, and kept when it lowers the criterion
   there: the seed's start (first plot, chord velocity) plants the first plot's noise, and its
   chord heading is wrong when the track starts in a turn (578 m -> 0 noise-free on such a
-  track); noisy RMS 678 -> 670 m.
+  track); noisy RMS 678 -> 671 m.
 
 Defined behaviours:
 
