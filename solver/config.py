@@ -30,8 +30,8 @@ class RefineSettings:
     ``sliding``). ``covariance_scale``: multiplies the prior variance of a control change in the
     Laplace covariance (``8 / lambda^2``): 0.005 calibrates tracks that truly have piecewise-
     constant controls (95.7 %) but covers only 84-88 % of the real dev tracks; 0.07 gives about
-    97 % and 93 % (95 % ellipses). ``switch_threshold``: control changes above it (m/s^2) are kept as
-    switches by the polish solve, the rest held at zero (0: no polish);
+    97 % and 93 % (95 % ellipses). ``switch_threshold``: control changes above it (m/s^2) are
+    kept as switches by the polish solve, the rest held at zero (0: no polish);
     ``polish_penalty_scale`` scales the L1 weights in that solve.
     """
 
