@@ -215,7 +215,7 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
         diag.warnings.append(f"refinement: IPOPT did not converge in {failures} of "
                              f"{len(blocks)} block(s); the last iterate was kept")
     segments = _segments(t_nodes, sol, bounds)
-    cov_nodes = _node_covariance(t_nodes, sol, meas, st, delta)
+    cov_nodes = _node_covariance(t_nodes, sol, meas, st, delta, bounds)
     at_plots = _series(t_nodes, sol, cov_nodes, plots.t)
     samples = _series(t_nodes, sol, cov_nodes,
                       sample_times(plots.t[0], plots.t[-1], config.sample_step_s))
@@ -369,7 +369,7 @@ def _segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segm
 
 
 def _node_covariance(t_nodes: FloatArray, sol: np.ndarray, meas: np.ndarray,
-                     st: RefineSettings, delta: float) -> np.ndarray:
+                     st: RefineSettings, delta: float, bounds: Bounds) -> np.ndarray:
     """Smoothed ``(n, 6, 6)`` covariance of ``(x, z, phi, v, u, w)`` at the nodes (Laplace)."""
     n = t_nodes.size
     dt = np.append(np.diff(t_nodes), 0.0)
@@ -384,44 +384,46 @@ def _node_covariance(t_nodes: FloatArray, sol: np.ndarray, meas: np.ndarray,
     Rinv[:, 0, 0], Rinv[:, 0, 1], Rinv[:, 1, 0], Rinv[:, 1, 1] = (
         meas[:, M_A], meas[:, M_B], meas[:, M_B], meas[:, M_C])
     Rinv *= (irls * meas[:, M_W])[:, None, None]
-    return _rts_information(A, Rinv, qvar)
+    # weak prior, uniform within the bounds for heading and the controls
+    span = np.array([bounds.v[1] - bounds.v[0], bounds.u[1] - bounds.u[0],
+                     bounds.w[1] - bounds.w[0]])
+    prior = np.concatenate([[1e12, 1e12, np.pi**2 / 3], span**2 / 12])
+    return _rts_covariance(A, Rinv, qvar, prior)
 
 
-def _rts_information(A: np.ndarray, Rinv: np.ndarray, qvar: np.ndarray) -> np.ndarray:
-    """Marginal covariances of a linear-Gaussian chain, diffuse prior (information filter + RTS).
+def _rts_covariance(A: np.ndarray, Rinv: np.ndarray, qvar: np.ndarray,
+                    prior_var: np.ndarray) -> np.ndarray:
+    """Smoothed covariances of a linear-Gaussian chain (Kalman filter, Joseph form, then RTS).
 
     ``s_{k+1} = A_k s_k + [0, 0, 0, 0, e_u, e_w]``, ``e ~ N(0, diag(qvar))`` (a control change
-    at each node); position measurements with information ``Rinv_k`` at node k.
+    at each node); position measurements with information ``Rinv_k`` at node k (zero: none);
+    prior ``N(s_0, diag(prior_var))``.
     """
     n = A.shape[0]
     Q = np.zeros((NX, NX))
     Q[4, 4], Q[5, 5] = qvar
-    Y = np.zeros((NX, NX))  # information of the diffuse prior
+    H = np.zeros((2, NX))
+    H[0, 0] = H[1, 1] = 1.0
+    eye = np.eye(NX)
     Pf = np.empty((n, NX, NX))
     Pp = np.empty((n, NX, NX))
-    eye = np.eye(NX)
-    P = None
+    P = np.diag(prior_var)
     for k in range(n):
-        if k == 0:
-            Yk = Y.copy()
-        else:
-            Pk = A[k - 1] @ P @ A[k - 1].T + Q
-            Pp[k] = Pk
-            Yk = np.linalg.inv(Pk)
-        Yk[:2, :2] += Rinv[k]
-        if k == 0:
-            # diffuse start: make the unobserved directions weakly informed
-            Yk = Yk + np.diag([1e-12, 1e-12, 1e-6, 1e-8, 1e-4, 1e-4])
-        P = np.linalg.inv(Yk)
-        P = (P + P.T) / 2
+        if k:
+            P = A[k - 1] @ P @ A[k - 1].T + Q
+        Pp[k] = P
+        if Rinv[k].any():
+            R = np.linalg.inv(Rinv[k])
+            K = np.linalg.solve(H @ P @ H.T + R, H @ P).T
+            IKH = eye - K @ H
+            P = IKH @ P @ IKH.T + K @ R @ K.T
         Pf[k] = P
     Ps = np.empty_like(Pf)
     Ps[-1] = Pf[-1]
     for k in range(n - 2, -1, -1):
-        G = Pf[k] @ A[k].T @ np.linalg.inv(Pp[k + 1])
+        G = np.linalg.solve(Pp[k + 1], A[k] @ Pf[k]).T
         Ps[k] = Pf[k] + G @ (Ps[k + 1] - Pp[k + 1]) @ G.T
         Ps[k] = (Ps[k] + Ps[k].T) / 2
-    del eye
     return Ps
 
 
