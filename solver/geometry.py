@@ -85,15 +85,24 @@ def uncertainty_ellipses(plots: Plots, radar: Radar) -> Ellipses:
         known = ~np.isnan(plots.altitude_m)
         d = ground_range(plots)
         centre = np.where(known, d, centre)
-        B = np.where(known, eps_r * r / d, B)
+        B = np.where(known, ground_range_error(eps_r, r, d), B)
     A = np.maximum(eps_psi * centre, 1e-3)
     return Ellipses(centre * np.cos(psi), centre * np.sin(psi), psi, A, np.maximum(B, 1e-3))
 
 
 def statistical_ellipses(plots: Plots, radar: Radar) -> Ellipses:
     """One-sigma ellipses for statistical weighting: centre at the plot point (ground range if the
-    altitude is known), ``B = sigma_r r / d`` along the ray, ``A = sigma_psi d`` across it."""
+    altitude is known), ``B = sigma_r r / d`` along the ray (see :func:`ground_range_error`),
+    ``A = sigma_psi d`` across it (at least 1 m)."""
     d = ground_range(plots)
     psi = plots.azimuth_rad
-    B = radar.sigma_r * plots.range_m / d
-    return Ellipses(d * np.cos(psi), d * np.sin(psi), psi, radar.sigma_psi * d, B)
+    B = ground_range_error(radar.sigma_r, plots.range_m, d)
+    A = np.maximum(radar.sigma_psi * d, 1.0)
+    return Ellipses(d * np.cos(psi), d * np.sin(psi), psi, A, B)
+
+
+def ground_range_error(e_r: float | FloatArray, r: FloatArray, d: FloatArray) -> FloatArray:
+    """Ground-range error of a slant-range error ``e_r`` at slant range ``r``, ground range
+    ``d``: ``e_r r / d`` to first order, which diverges overhead (``d -> 0``); there the
+    second-order value ``sqrt(2 r e_r)`` (from ``d^2 = r^2 - h^2``) bounds it."""
+    return e_r * r / np.maximum(d, np.sqrt(2 * r * e_r))

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+MAX_RANGE_M = 1e7  # 10 000 km: beyond any radar's horizon
 
 
 class InputError(ValueError):
@@ -173,6 +174,10 @@ class Plots:
         bad = np.flatnonzero(self.range_m <= 0)
         if bad.size:
             raise InputError(("plots", int(bad[0]), "range_m"), "must be positive")
+        bad = np.flatnonzero(self.range_m > MAX_RANGE_M)
+        if bad.size:
+            raise InputError(("plots", int(bad[0]), "range_m"),
+                             f"must be below {MAX_RANGE_M:g} m (no radar sees further)")
         if self.altitude_m is not None:
             alt = self.altitude_m
             bad = np.flatnonzero(np.isinf(alt) | (alt < 0) | (alt >= self.range_m))

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import logging
 import time
+
+import numpy as np
 
 from .config import ReconstructionConfig
 from .inputs import Plots, Radar
 from .results import Reconstruction
+
+log = logging.getLogger(__name__)
 
 
 def reconstruct(plots: Plots, radar: Radar,
@@ -26,11 +31,21 @@ def reconstruct(plots: Plots, radar: Radar,
     plots.validate()
     config.validate()
     start = time.perf_counter()
+    result = None
     if config.method == "refined" and len(plots) >= 3:
         initial = (reconstruct_sliding(plots, radar, config)
                    if config.refine.init == "sliding" else None)
-        result = refine(plots, radar, config, initial)
-    else:
+        try:
+            result = refine(plots, radar, config, initial)
+        except (ArithmeticError, ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            # degrade to the seed's method rather than fail the request
+            log.warning("refinement failed (%s); falling back to the sliding windows", exc)
+            result = reconstruct_sliding(plots, radar, config)
+            result.diagnostics.solver_failures += 1
+            result.diagnostics.fallbacks += 1
+            result.diagnostics.warnings.append(
+                f"refinement failed ({type(exc).__name__}: {exc}); sliding-window result")
+    if result is None:
         result = reconstruct_sliding(plots, radar, config)
     result.diagnostics.elapsed_ms = (time.perf_counter() - start) * 1e3
     return result

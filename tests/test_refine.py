@@ -188,3 +188,39 @@ def test_solver_failure_is_reported_not_raised(monkeypatch):
     assert rec.diagnostics.solver_failures >= 1
     assert any("did not converge" in w for w in rec.diagnostics.warnings)
     assert np.all(np.isfinite(rec.at_plots.x))
+
+
+def test_refinement_exception_falls_back_to_sliding(monkeypatch):
+    """A refinement that raises degrades to the sliding-window result, flagged."""
+    import solver.refine as refine_module
+
+    def broken(*args, **kwargs):
+        raise np.linalg.LinAlgError("singular matrix")
+
+    monkeypatch.setattr(refine_module, "refine", broken)
+    plots, radar, _ = _noisy(seed=8)
+    rec = reconstruct(plots, radar)
+    assert rec.diagnostics.method == "sliding"
+    assert rec.diagnostics.fallbacks >= 1 and rec.diagnostics.solver_failures >= 1
+    assert any("refinement failed" in w for w in rec.diagnostics.warnings)
+    assert len(rec.at_plots) == len(plots)
+
+
+def test_plots_overhead_keep_finite_weights():
+    """Altitude a hair below the slant range (aircraft over the radar): the ground-range sigma
+    is bounded by its second-order value, so the refinement stays finite."""
+    from solver.geometry import ground_range_error, statistical_ellipses
+
+    r = np.array([10_000.0, 10_000.0])
+    d = np.array([0.0, 5_000.0])
+    e = ground_range_error(50.0, r, d)
+    assert e[0] == pytest.approx(50.0 * 10_000.0 / np.sqrt(2 * 10_000.0 * 50.0))
+    assert e[1] == pytest.approx(100.0)
+    t = _scan_times(False)[:30]
+    plots, _ = _plots(t, altitude=9000.0)
+    overhead = Plots.from_arrays(plots.t, plots.range_m, plots.azimuth_rad,
+                                 plots.range_m * (1 - 1e-15))
+    radar = Radar(range_error_m=150.0, azimuth_error_rad=np.deg2rad(0.24))
+    assert np.all(np.isfinite(statistical_ellipses(overhead, radar).weights()))
+    rec = reconstruct(overhead, radar)
+    assert np.all(np.isfinite(rec.samples.states)) and np.all(np.isfinite(rec.samples.cov))
