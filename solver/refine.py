@@ -71,7 +71,7 @@ NEXTRA = 6  # per block: u_prev, w_prev, huber delta, level_u, level_w, level sm
 
 
 @cache
-def block_solver(n: int) -> ca.Function:
+def block_solver(n: int, warm: bool = False) -> ca.Function:
     """IPOPT solver for a block of ``n`` nodes (built once per ladder size).
 
     Variables per node ``[x, z, phi, v, u, w, du+, du-, dw+, dw-]``; parameters ``NPAR`` per
@@ -115,7 +115,10 @@ def block_solver(n: int) -> ca.Function:
             "mu_strategy": "adaptive",
         },
     }
-    return ca.nlpsol(f"refine_{n}", "ipopt", nlp, opts)
+    if warm:  # the polish solve starts at the first solve's primal-dual solution
+        opts["ipopt"].update({"warm_start_init_point": "yes", "warm_start_bound_push": 1e-6,
+                              "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-5})
+    return ca.nlpsol(f"refine_{n}{'_warm' if warm else ''}", "ipopt", nlp, opts)
 
 
 def node_grid(t_plots: FloatArray, max_step: float) -> tuple[FloatArray, np.ndarray]:
@@ -172,15 +175,17 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
     diag.method = "refined"
     blocks = _blocks(n, st.block_nodes, st.overlap_nodes)
 
+    duals: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(blocks)
+
     def solve_blocks(start_guess: np.ndarray, meas: np.ndarray,
                      fixed: np.ndarray | None) -> tuple[np.ndarray, int, int]:
         out = np.empty((n, NX))
         prev: np.ndarray | None = None
         fails = its = 0
-        for start, stop, keep in blocks:
-            x_blk, ok, it = _solve_block(
+        for j, (start, stop, keep) in enumerate(blocks):
+            x_blk, ok, it, duals[j] = _solve_block(
                 t_nodes[start:stop], meas[start:stop], start_guess[start:stop], prev, bounds, st,
-                delta, None if fixed is None else fixed[:, start:stop])
+                delta, None if fixed is None else fixed[:, start:stop], duals[j])
             fails += not ok
             its += it
             out[start: keep + 1] = x_blk[: keep + 1 - start]
@@ -296,15 +301,18 @@ def _ladder(n: int) -> int:
 
 def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.ndarray | None,
                  bounds: Bounds, st: RefineSettings, delta: float,
-                 fixed: np.ndarray | None = None) -> tuple[np.ndarray, bool, int]:
+                 fixed: np.ndarray | None = None,
+                 duals: tuple[np.ndarray, np.ndarray] | None = None,
+                 ) -> tuple[np.ndarray, bool, int, tuple[np.ndarray, np.ndarray] | None]:
     """Solve one block; ``prev`` (the previous block's node state, or None) fixes the start;
-    ``fixed`` (``(2, m)`` bool) marks control changes held at exactly zero (polish step).
+    ``fixed`` (``(2, m)`` bool) marks control changes held at exactly zero (polish step);
+    ``duals`` (bound and constraint multipliers of an earlier solve) warm-start IPOPT.
 
-    Returns the node states ``(m, 6)``, success, and IPOPT's iteration count.
+    Returns the node states ``(m, 6)``, success, IPOPT's iteration count, and the multipliers.
     """
     m = t.size
     size = _ladder(m)
-    solver = block_solver(size)
+    solver = block_solver(size, warm=duals is not None)
     par = np.zeros((NPAR, size))
     par[0, : m - 1] = np.diff(t)
     par[1:7, :m] = meas.T
@@ -340,14 +348,17 @@ def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.nd
     x0 = np.clip(x0, lbx, ubx)
     extra = [first[0], first[1], delta, st.level_penalty_u, st.level_penalty_w,
              st.level_smoothing]
-    res = solver(x0=x0.T.ravel(), p=np.concatenate([par.T.ravel(), extra]),
-                 lbx=lbx.T.ravel(), ubx=ubx.T.ravel(), lbg=0, ubg=0)
+    args = {"x0": x0.T.ravel(), "p": np.concatenate([par.T.ravel(), extra]),
+            "lbx": lbx.T.ravel(), "ubx": ubx.T.ravel(), "lbg": 0, "ubg": 0}
+    if duals is not None:
+        args["lam_x0"], args["lam_g0"] = duals
+    res = solver(**args)
     stats = solver.stats()
     x = np.array(res["x"]).reshape(size, NX + ND)[:m, :NX]
     ok = bool(stats["success"]) and bool(np.all(np.isfinite(x)))
     if not np.all(np.isfinite(x)):
-        x = guess.copy()
-    return x, ok, int(stats.get("iter_count", 0))
+        return guess.copy(), False, int(stats.get("iter_count", 0)), None
+    return x, ok, int(stats.get("iter_count", 0)), (np.array(res["lam_x"]), np.array(res["lam_g"]))
 
 
 def _segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segment]:

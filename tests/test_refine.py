@@ -168,8 +168,8 @@ def test_solver_failure_is_reported_not_raised(monkeypatch):
 
     real = refine_module.block_solver
 
-    def crippled(n):
-        solver = real(n)
+    def crippled(n, warm=False):
+        solver = real(n, warm)
 
         class OneIteration:
             def __call__(self, **kw):
