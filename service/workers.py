@@ -49,13 +49,18 @@ def synthetic_track(n: int) -> tuple[Plots, Radar]:
 
 
 def warm_up(window_sizes: list[int], nlp_solver: str) -> None:
-    """Build and run every solver a request may need, once per window size."""
+    """Build and run every solver a request may need: the refinement's block solvers of every
+    size, and the sliding windows' NLPs once per window size."""
     from solver.reconstruct import reconstruct
+    from solver.refine import build_solvers
 
+    build_solvers()
     for m in window_sizes:
         plots, radar = synthetic_track(max(2 * m + 2, 8))
-        config = ReconstructionConfig(window_plots=m, nlp_solver=nlp_solver)  # type: ignore[arg-type]
-        reconstruct(plots, radar, config)
+        for method in ("sliding", "refined"):
+            config = ReconstructionConfig(window_plots=m, nlp_solver=nlp_solver,  # type: ignore[arg-type]
+                                          method=method)
+            reconstruct(plots, radar, config)
 
 
 _warm_up_error: str | None = None
@@ -127,7 +132,10 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
         return Outcome(out, rec.diagnostics.solver_failures)
     except InputError as e:
         return Outcome(None, error_loc=e.loc, error_message=e.message)
-    except _TimeLimit:
+    except (_TimeLimit, KeyboardInterrupt):
+        # the alarm may reach us through CasADi, which reports it as a KeyboardInterrupt
+        if not timed:
+            raise
         return Outcome(None, error_loc=("plots",), error_message=(
             f"needs more than this service's solve time limit of {time_limit_s:g} s "
             f"({len(job.plots)} plots over {float(job.plots.t[-1] - job.plots.t[0]):g} s); "

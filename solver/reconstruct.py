@@ -38,6 +38,10 @@ def reconstruct(plots: Plots, radar: Radar,
         try:
             result = refine(plots, radar, config, initial)
         except (ArithmeticError, ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            if "KeyboardInterrupt" in str(exc):
+                # CasADi reports a signal handler's exception (Ctrl-C, a time limit) this way:
+                # an interruption, not a numerical failure
+                raise KeyboardInterrupt(str(exc)) from exc
             # degrade to the seed's method rather than fail the request
             log.warning("refinement failed (%s); falling back to the sliding windows", exc)
             result = reconstruct_sliding(plots, radar, config)

@@ -121,6 +121,13 @@ def block_solver(n: int, warm: bool = False) -> ca.Function:
     return ca.nlpsol(f"refine_{n}{'_warm' if warm else ''}", "ipopt", nlp, opts)
 
 
+def build_solvers() -> None:
+    """Build every block solver of the ladder (about 2 s in all), e.g. before serving."""
+    for n in LADDER:
+        block_solver(n)
+        block_solver(n, warm=True)
+
+
 def node_grid(t_plots: FloatArray, max_step: float) -> tuple[FloatArray, np.ndarray]:
     """Node times (every plot time plus equal subdivisions of long gaps) and each plot's node."""
     gaps = np.diff(t_plots)
@@ -354,6 +361,8 @@ def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.nd
         args["lam_x0"], args["lam_g0"] = duals
     res = solver(**args)
     stats = solver.stats()
+    if stats.get("return_status") == "User_Requested_Stop":
+        raise KeyboardInterrupt("IPOPT stopped by a signal")
     x = np.array(res["x"]).reshape(size, NX + ND)[:m, :NX]
     ok = bool(stats["success"]) and bool(np.all(np.isfinite(x)))
     if not np.all(np.isfinite(x)):
