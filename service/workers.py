@@ -95,7 +95,12 @@ class _TimeLimit(BaseException):
     ``KeyboardInterrupt``, so the solver's ``except Exception`` fallbacks cannot swallow it)."""
 
 
+_expired = False  # set by the timer: CasADi may swallow the exception raised inside a solve
+
+
 def _time_limit(signum: int, frame: object) -> None:
+    global _expired
+    _expired = True
     raise _TimeLimit
 
 
@@ -110,8 +115,10 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
     from solver.estimation import run_filters
     from solver.reconstruct import reconstruct
 
+    global _expired
     started = time.time()
     timed = time_limit_s > 0 and threading.current_thread() is threading.main_thread()
+    _expired = False
     if timed:
         signal.signal(signal.SIGALRM, _time_limit)
         # re-fires every 0.1 s: CasADi's interrupt check inside a solve may consume one alarm
@@ -121,6 +128,8 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
         t0 = time.perf_counter()
         estimates = run_filters(list(job.filters), job.plots, job.radar) if job.filters else {}
         filters_ms = (time.perf_counter() - t0) * 1e3
+        if _expired:  # the limit fired inside a solve, where CasADi swallowed the exception
+            raise _TimeLimit
         gc.disable()  # ~1e5 small objects: cyclic GC passes would triple this step's time
         try:
             body = response_dict(rec, estimates)
