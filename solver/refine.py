@@ -5,6 +5,7 @@ accepted; a reconstruction sees the whole recording. This solves, by multiple sh
 node grid (every plot time, plus extra nodes so no interval exceeds ``max_node_step_s``)::
 
     min  sum_i rho(d_i^T M_i d_i) + sum_k lambda_u |u_k - u_{k-1}| + lambda_w |w_k - w_{k-1}|
+                                  + sum_k dt_k (mu_u |u_k| + mu_w |w_k|)
     s.t. s_{k+1} = F(s_k, u_k, w_k, t_{k+1} - t_k)   (closed-form motion, solver.motion)
          u in [u_min, u_max],  w in [w_min, w_max],  v_k in [v_min, v_max]
 
@@ -12,10 +13,14 @@ where ``s = (x, z, phi, v)``, ``d_i`` is plot i's position residual, ``M_i`` its
 weight (one-sigma ellipse, :func:`solver.geometry.statistical_ellipses`), ``rho`` the
 pseudo-Huber loss ``2 delta^2 (sqrt(1 + q / delta^2) - 1)`` (``~q`` for small ``q``, linear in
 the residual beyond ``delta`` sigmas) and the L1 term keeps the controls piecewise constant with
-few switches. The absolute values are split ``Delta = Delta+ - Delta-`` with ``Delta+-  >= 0``,
-so the NLP has only bounds and the dynamics as constraints; IPOPT solves it with exact sparse
-second derivatives. Since ``v`` is linear inside an interval, bounds at the nodes bound it
-everywhere.
+few switches; the level term (smoothed near 0) says aircraft fly mostly straight at constant
+speed. The changes are split ``Delta = Delta+ - Delta-`` with ``Delta+-  >= 0``, so the NLP has
+only bounds and the dynamics as constraints; IPOPT solves it with exact sparse second
+derivatives. Since ``v`` is linear inside an interval, bounds at the nodes bound it everywhere.
+
+A second, warm-started solve then holds every control change the first one did not select
+(``<= switch_threshold``) at exactly zero, so the segments describe the trajectory exactly, and
+gives no weight to plots further than ``outlier_gate`` sigmas from the first solution.
 
 Solvers are built once per block size of a fixed ladder and reused: a track is cut into
 overlapping blocks of at most ``block_nodes`` nodes, each padded to the next ladder size with
