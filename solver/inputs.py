@@ -51,10 +51,11 @@ class Radar:
 
     range_error_m: float
     azimuth_error_rad: float
-    range_sigma_m: float | None = None
-    azimuth_sigma_rad: float | None = None
-    max_altitude_m: float = 0.0
-    max_elevation_rad: float = 0.0
+    # keyword-only: positionally a sigma and an altitude are too easy to swap
+    range_sigma_m: float | None = field(default=None, kw_only=True)
+    azimuth_sigma_rad: float | None = field(default=None, kw_only=True)
+    max_altitude_m: float = field(default=0.0, kw_only=True)
+    max_elevation_rad: float = field(default=0.0, kw_only=True)
 
     @property
     def sigma_r(self) -> float:

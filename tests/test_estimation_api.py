@@ -8,7 +8,7 @@ import pytest
 from solver import FilterEstimate, Plots, Radar
 from solver.estimation import FILTER_NAMES, run_filter, run_filters
 
-RADAR = Radar(1200.0, 0.03, 400.0, 0.01)
+RADAR = Radar(1200.0, 0.03, range_sigma_m=400.0, azimuth_sigma_rad=0.01)
 
 
 def straight(n, dt=10.0, seed=0, irregular=False, altitude=None):
@@ -65,7 +65,8 @@ def test_azimuth_crossing_north_is_continuous():
     rng = np.random.default_rng(2)
     plots = Plots.from_arrays(t, np.hypot(x, z) + rng.normal(0, 50, n),
                               np.arctan2(z, x) + rng.normal(0, 0.001, n))
-    for est in run_filters(FILTER_NAMES, plots, Radar(150, 0.003, 50, 0.001)).values():
+    radar = Radar(150, 0.003, range_sigma_m=50, azimuth_sigma_rad=0.001)
+    for est in run_filters(FILTER_NAMES, plots, radar).values():
         assert np.max(np.hypot(est.states.x - x, est.states.z - z)[5:]) < 1000, est.name
 
 

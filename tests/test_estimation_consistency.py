@@ -11,7 +11,7 @@ from solver.estimation.models import cv, quasi_optimal, singer
 
 RUNS, N, T = 40, 40, 5.0
 SIGMA_R, SIGMA_PSI = 60.0, 0.002
-RADAR = Radar(3 * SIGMA_R, 3 * SIGMA_PSI, SIGMA_R, SIGMA_PSI)
+RADAR = Radar(3 * SIGMA_R, 3 * SIGMA_PSI, range_sigma_m=SIGMA_R, azimuth_sigma_rad=SIGMA_PSI)
 START = np.array([60_000.0, 25_000.0, -150.0, 80.0])  # x, z, vx, vz
 
 
