@@ -23,6 +23,7 @@ from pathlib import Path
 
 import httpx
 import yaml
+from procs import stop
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "docker" / "Dockerfile"
@@ -139,11 +140,7 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
         assert r.status_code == 200, r.text
         assert len(r.json()["trajectory"]["at_plots"]) == 8
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop(proc)
 
 
 def test_compose_builds_this_dockerfile():
