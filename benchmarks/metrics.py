@@ -33,17 +33,18 @@ class RunErrors:
     inside95: FloatArray
     wall_s: float
     n_plots: int
+    cpu_s: float = float("nan")
 
 
 def errors(est: StateSeries, truth: StateSeries, manoeuvre: FloatArray,
-           wall_s: float = float("nan")) -> RunErrors:
+           wall_s: float = float("nan"), cpu_s: float = float("nan")) -> RunErrors:
     """Errors of ``est`` against ``truth`` (same times, same order)."""
     if len(est) != len(truth) or not np.allclose(est.t, truth.t, rtol=0, atol=1e-6):
         raise ValueError(f"estimate has {len(est)} states at other times than the "
                          f"{len(truth)} truth states")
     dx, dz = est.x - truth.x, est.z - truth.z
     return RunErrors(np.hypot(dx, dz), est.speed - truth.speed, np.asarray(manoeuvre, bool),
-                     inside_ellipse95(est.cov, dx, dz), wall_s, len(truth))
+                     inside_ellipse95(est.cov, dx, dz), wall_s, len(truth), cpu_s)
 
 
 def inside_ellipse95(cov: FloatArray | None, dx: FloatArray, dz: FloatArray) -> FloatArray:
@@ -80,6 +81,7 @@ def summarize(runs: Sequence[RunErrors]) -> dict[str, float]:
     man = np.concatenate([r.manoeuvre for r in runs])
     inside = np.concatenate([r.inside95 for r in runs])
     wall = np.array([r.wall_s for r in runs])
+    cpu = np.array([r.cpu_s for r in runs])
     n = np.array([r.n_plots for r in runs])
     covered = inside[np.isfinite(inside)]
     return {
@@ -92,6 +94,7 @@ def summarize(runs: Sequence[RunErrors]) -> dict[str, float]:
         "coverage95": float(covered.mean()) if covered.size else float("nan"),
         "wall_s_per_track": float(np.mean(wall)),
         "plots_per_s": float(n.sum() / wall.sum()) if wall.sum() > 0 else float("nan"),
+        "plots_per_cpu_s": float(n.sum() / cpu.sum()) if cpu.sum() > 0 else float("nan"),
         "n_runs": len(runs),
         "n_plots": int(n.sum()),
         "n_manoeuvre_plots": int(man.sum()),

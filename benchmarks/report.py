@@ -49,8 +49,8 @@ def headline_table(overall: dict[str, dict[str, dict]], best: dict[str, tuple[st
     lines = [
         "| estimator | RMS pos (m) | / best baseline | p95 pos (m) | RMS speed (m/s) "
         "| RMS pos, manoeuvres (m) | p95 pos, man. (m) | RMS speed, man. (m/s) "
-        "| 95 % ellipse coverage | ms / track | plots / s |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| 95 % ellipse coverage | ms / track | plots / s | plots / CPU-s |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for name, m in rows:
         cov = m["coverage95"]
@@ -59,7 +59,8 @@ def headline_table(overall: dict[str, dict[str, dict]], best: dict[str, tuple[st
             f"| {name} | {_f(m['rms_pos'])} | {_f(m['rms_pos'] / b, 2)} | {_f(m['p95_pos'])} "
             f"| {_f(m['rms_speed'], 1)} | {_f(m['rms_pos_man'])} | {_f(m['p95_pos_man'])} "
             f"| {_f(m['rms_speed_man'], 1)} | {cov_s} "
-            f"| {_f(1e3 * m['wall_s_per_track'], 1)} | {_f(m['plots_per_s'])} |")
+            f"| {_f(1e3 * m['wall_s_per_track'], 1)} | {_f(m['plots_per_s'])} "
+            f"| {_f(m.get('plots_per_cpu_s', float('nan')))} |")
     return "\n".join(lines)
 
 
@@ -141,6 +142,13 @@ def write_outputs(res: BenchResult, settings: dict, env: dict[str, str], out: Pa
             m = overall[p].get(n)
             cells.append(f"{_f(m['rms_pos'])} m ({_f(m['rms_pos'] / bv, 2)}x)" if m else "-")
         md.append(f"| {p} | {bn} | {_f(bv)} | " + " | ".join(cells) + " |")
+    md += ["", "Speed per core (plots per CPU-second, all threads counted) against the Stone "
+           "Soup CV smoother of the same run:", "",
+           "| profile | ss-cv-rts | recon-refined-m3-R2 | ratio |", "|---|---:|---:|---:|"]
+    for p in profiles:
+        ref, rec = (overall[p].get(n, {}).get("plots_per_cpu_s", float("nan"))
+                    for n in ("ss-cv-rts", "recon-refined-m3-R2"))
+        md.append(f"| {p} | {_f(ref)} | {_f(rec)} | {_f(rec / ref, 2)}x |")
     for p in profiles:
         md += ["", f"## Profile `{p}`", "", headline_table(overall, best, p), "",
                "RMS position error (m) per track:", "",

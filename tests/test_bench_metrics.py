@@ -18,7 +18,7 @@ def test_errors_and_summary_by_hand():
     truth = _series([0, 1, 2, 3], [0, 0, 0, 0], [0, 0, 0, 0], [100, 100, 100, 100], [0, 0, 0, 0])
     est = _series([0, 1, 2, 3], [3, 0, 0, 6], [4, 0, 5, 8], [100, 84, 96, 100], [0, 63, 0, 0])
     man = np.array([False, True, True, False])
-    e = errors(est, truth, man, wall_s=0.5)
+    e = errors(est, truth, man, wall_s=0.5, cpu_s=0.25)
     np.testing.assert_allclose(e.pos, [5, 0, 5, 10])
     np.testing.assert_allclose(e.speed, [0, 5, -4, 0], atol=1e-12)  # |(84, 63)| = 105
     s = summarize([e])
@@ -26,6 +26,7 @@ def test_errors_and_summary_by_hand():
     assert s["rms_pos_man"] == pytest.approx(np.sqrt(25 / 2))
     assert s["p95_pos"] == pytest.approx(5 + 0.85 * 5)  # sorted 0 5 5 10, rank 2.85
     assert s["plots_per_s"] == pytest.approx(8.0)
+    assert s["plots_per_cpu_s"] == pytest.approx(16.0)
     assert np.isnan(s["coverage95"])
 
 
