@@ -60,7 +60,7 @@ def headline_table(overall: dict[str, dict[str, dict]], best: dict[str, tuple[st
             f"| {_f(m['rms_speed'], 1)} | {_f(m['rms_pos_man'])} | {_f(m['p95_pos_man'])} "
             f"| {_f(m['rms_speed_man'], 1)} | {cov_s} "
             f"| {_f(1e3 * m['wall_s_per_track'], 1)} | {_f(m['plots_per_s'])} "
-            f"| {_f(m.get('plots_per_cpu_s', float('nan')))} |")
+            f"| {_f(m['plots_per_cpu_s'])} |")
     return "\n".join(lines)
 
 
