@@ -15,6 +15,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from solver import compiled
 from solver.inputs import InputError, format_loc
 
 from . import __version__
@@ -156,7 +157,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         setup_logging(settings.log_level)
-        LOGGER.info("starting", extra={"fields": settings.model_dump()})
+        LOGGER.info("starting", extra={"fields": {
+            **settings.model_dump(),
+            "c_compiler": compiled.compiler() or "none: the motion model is interpreted"}})
         pool.start()
         yield
         await pool.close()

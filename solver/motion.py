@@ -27,6 +27,8 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from . import compiled
+
 FloatArray = NDArray[np.float64]
 
 _A_SERIES = 1e-4  # |w t / v0| below this: g by its series (error < 1e-20)
@@ -117,8 +119,9 @@ def propagate_ca(state: ca.SX | ca.MX, u, w, t):
 
 @cache
 def motion_function() -> ca.Function:
-    """``F(state[4], u, w, t) -> state[4]``, built once (SX graph)."""
+    """``F(state[4], u, w, t) -> state[4]``, built once; compiled when a C compiler is at hand
+    (:mod:`solver.compiled`)."""
     s = ca.SX.sym("s", 4)
     u, w, t = ca.SX.sym("u"), ca.SX.sym("w"), ca.SX.sym("t")
-    return ca.Function("motion", [s, u, w, t], [propagate_ca(s, u, w, t)],
-                       ["state", "u", "w", "t"], ["state_t"])
+    return compiled.function("motion", [s, u, w, t], [propagate_ca(s, u, w, t)],
+                             ["state", "u", "w", "t"], ["state_t"])

@@ -44,6 +44,7 @@ from functools import cache
 import casadi as ca
 import numpy as np
 
+from . import compiled
 from .config import ReconstructionConfig, RefineSettings
 from .estimation import run_filter
 from .geometry import statistical_ellipses
@@ -67,7 +68,7 @@ def _jacobian_function() -> ca.Function:
     s = ca.SX.sym("s", NX)
     dt = ca.SX.sym("dt")
     out = ca.vertcat(motion_function()(s[:4], s[4], s[5], dt), s[4], s[5])
-    return ca.Function("motion_jac", [s, dt], [ca.jacobian(out, s)])
+    return compiled.function("motion_jac", [s, dt], [ca.jacobian(out, s)], ["s", "dt"], ["jac"])
 
 
 NPAR = 9  # per node: dt to the next node, centre (cx, cz), R2 entries (a, b, c), plot weight,

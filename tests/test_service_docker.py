@@ -3,7 +3,8 @@
 The replay reads the Dockerfile itself (so it cannot drift from it): ENV, WORKDIR, COPY and
 the RUN commands run in a fresh virtual environment under a temporary root; then the CMD
 serves on a free port and the HEALTHCHECK command must pass. Only user management (``useradd``)
-is skipped. The fresh venv sees the dependencies already in this venv through a ``.pth`` line
+and the system packages (``apt-get``: the C compiler, which this machine has) are
+skipped. The fresh venv sees the dependencies already in this venv through a ``.pth`` line
 plus uvicorn's console script (the slow part of a real build, downloading wheels, is not what can
 break here); the project itself is built and installed by the Dockerfile's own ``pip install``.
 """
@@ -58,6 +59,9 @@ def test_dockerfile_has_what_the_image_needs():
     assert steps["USER"] not in ("root", "0")
     assert "/healthz" in steps["HEALTHCHECK"]
     assert json.loads(steps["CMD"])[:2] == ["uvicorn", "service.app:app"]
+    runs = [args for word, args in instructions(DOCKERFILE.read_text()) if word == "RUN"]
+    assert any("install" in r and " gcc " in r and "libc6-dev" in r for r in runs), \
+        "the image needs a C compiler to compile the motion model"
 
 
 def _free_port() -> int:
@@ -104,8 +108,8 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
         elif word == "RUN":
             for command in args.split("&&"):
                 command = command.strip()
-                if command.startswith("useradd "):
-                    continue  # needs root; the image runs as that user
+                if command.startswith(("useradd ", "apt-get ", "rm -rf /var/lib/apt")):
+                    continue  # root and the system's packages: users and the C compiler
                 r = subprocess.run(["bash", "-c", command], cwd=workdir, env=env,
                                    capture_output=True, text=True, timeout=300)
                 assert r.returncode == 0, f"RUN {command}\n{r.stdout}\n{r.stderr}"

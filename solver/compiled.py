@@ -1,0 +1,67 @@
+"""CasADi functions compiled to machine code when a C compiler is at hand.
+
+CasADi evaluates an SX function in its virtual machine. Compiled from CasADi's generated C by the
+system compiler (``jit`` with the ``shell`` plugin; every derivative CasADi derives from the
+function is compiled the same way), the motion map's first and second derivatives run about 6x
+faster, and a refinement about 1.5x faster (measured on a 1458-plot track: 1.36 s -> 0.90 s,
+identical iterates). Compiling takes about 0.1 s per function, once per process.
+
+The compiler is ``$CC`` or ``cc``; ``TRAJRECON_COMPILE=0`` (or no compiler, or a compiler that
+fails) keeps the virtual machine, with the same results.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from functools import cache
+
+import casadi as ca
+
+LOG = logging.getLogger(__name__)
+_COMPILED: set[str] = set()
+
+
+@cache
+def compiler() -> str | None:
+    """Path of the C compiler to use, or None (disabled or not found)."""
+    if os.environ.get("TRAJRECON_COMPILE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    return shutil.which(os.environ.get("CC") or "cc")
+
+
+def jit_options(cc: str) -> dict:
+    """Options of :class:`casadi.Function` compiling it with ``cc`` into the temporary directory
+    (not the working directory, which may be read-only; files are removed once loaded)."""
+    return {"jit": True, "compiler": "shell",
+            "jit_options": {"compiler": cc, "linker": cc, "flags": ["-O1"],
+                            "directory": tempfile.gettempdir(), "verbose": False}}
+
+
+def function(name: str, inputs: Sequence[ca.SX], outputs: Sequence[ca.SX],
+             input_names: Sequence[str], output_names: Sequence[str]) -> ca.Function:
+    """An SX :class:`casadi.Function`, compiled if :func:`compiler` gives a working compiler.
+
+    The compiled function and its first derivatives are built (hence compiled) here, so a
+    broken toolchain is found now and logged, not inside a solver later.
+    """
+    args = (name, list(inputs), list(outputs), list(input_names), list(output_names))
+    cc = compiler()
+    if cc is not None:
+        try:
+            f = ca.Function(*args, jit_options(cc))
+            f.forward(1)
+            f.reverse(1)
+            _COMPILED.add(name)
+            return f
+        except Exception as e:  # CasADi reports compiler and loader errors as RuntimeError
+            LOG.warning("compiling %s with %s failed, interpreting it instead: %s", name, cc, e)
+    return ca.Function(*args)
+
+
+def is_compiled(name: str) -> bool:
+    """Whether the function ``name`` built by :func:`function` runs compiled code."""
+    return name in _COMPILED

@@ -1,0 +1,124 @@
+"""Compiled CasADi functions (solver.compiled): same numbers as the virtual machine, and a clean
+fallback when compiling is off or impossible."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from solver import compiled
+from solver.motion import motion_function, propagate_ca
+
+ROOT = Path(__file__).resolve().parents[1]
+needs_cc = pytest.mark.skipif(compiled.compiler() is None, reason="no C compiler")
+
+
+def _motion_pair(tmp_name: str) -> tuple[ca.Function, ca.Function]:
+    s = ca.SX.sym("s", 4)
+    u, w, t = ca.SX.sym("u"), ca.SX.sym("w"), ca.SX.sym("t")
+    args = ([s, u, w, t], [propagate_ca(s, u, w, t)], ["state", "u", "w", "t"], ["state_t"])
+    return compiled.function(tmp_name, *args), ca.Function("vm", *args)
+
+
+@pytest.fixture
+def fresh_compiler(monkeypatch):
+    """Re-read the compiler choice from the (monkeypatched) environment."""
+    compiled.compiler.cache_clear()
+    yield monkeypatch
+    compiled.compiler.cache_clear()
+
+
+@needs_cc
+def test_compiled_motion_and_derivatives_equal_the_virtual_machine():
+    fc, fv = _motion_pair("motion_cmp")
+    assert compiled.is_compiled("motion_cmp")
+    rng = np.random.default_rng(3)
+    n = 400
+    state = np.vstack([rng.normal(0, 5e4, n), rng.normal(0, 5e4, n), rng.uniform(-4, 4, n),
+                       rng.uniform(60, 300, n)])
+    u, w, t = rng.uniform(-30, 30, n), rng.uniform(-5, 5, n), rng.uniform(0, 20, n)
+    u[::4] = 0.0  # degenerate branches: straight, constant speed, both, zero time
+    w[::3] = 0.0
+    t[::7] = 0.0
+    nominal = [state, u[None], w[None], t[None]]
+    for derive in (lambda f: f, lambda f: f.jacobian(), lambda f: f.reverse(1),
+                   lambda f: f.reverse(1).forward(1)):
+        a, b = derive(fc), derive(fv)
+        # the first four inputs of every derivative are the nominal ones; seeds are random
+        ins = nominal + [rng.normal(size=(a.size1_in(i), a.size2_in(i) * n))
+                         for i in range(4, a.n_in())]
+        out_a, out_b = a.map(n).call(ins), b.map(n).call(ins)
+        for xa, xb in zip(out_a, out_b, strict=True):
+            xa, xb = np.array(xa), np.array(xb)
+            assert np.all(np.isfinite(xb))
+            np.testing.assert_allclose(xa, xb, rtol=1e-12, atol=1e-12 * (1 + np.abs(xb).max()))
+
+
+def test_compile_off_keeps_the_virtual_machine(fresh_compiler):
+    fresh_compiler.setenv("TRAJRECON_COMPILE", "0")
+    assert compiled.compiler() is None
+    f, g = _motion_pair("motion_off")
+    assert not compiled.is_compiled("motion_off")
+    np.testing.assert_array_equal(np.array(f([1e4, 2e4, 0.3, 150], 2.0, 0.5, 8.0)),
+                                  np.array(g([1e4, 2e4, 0.3, 150], 2.0, 0.5, 8.0)))
+
+
+def test_broken_compiler_falls_back_with_a_warning(fresh_compiler, tmp_path, caplog):
+    cc = tmp_path / "cc"
+    cc.write_text("#!/bin/sh\necho 'cc: out of order' >&2\nexit 1\n")
+    cc.chmod(0o755)
+    fresh_compiler.setenv("CC", str(cc))
+    fresh_compiler.delenv("TRAJRECON_COMPILE", raising=False)
+    assert compiled.compiler() == str(cc)
+    with caplog.at_level(logging.WARNING, logger="solver.compiled"):
+        f, g = _motion_pair("motion_broken")
+    assert not compiled.is_compiled("motion_broken")
+    assert "interpreting it instead" in caplog.text
+    np.testing.assert_array_equal(np.array(f([1e4, 2e4, 0.3, 150], 2.0, 0.5, 8.0)),
+                                  np.array(g([1e4, 2e4, 0.3, 150], 2.0, 0.5, 8.0)))
+
+
+_REFINE = """
+import json, numpy as np
+from solver import compiled
+from solver.config import ReconstructionConfig
+from solver.reconstruct import reconstruct
+from service.workers import synthetic_track
+plots, radar = synthetic_track(120)
+rng = np.random.default_rng(0)
+plots = type(plots).from_arrays(plots.t, plots.range_m + rng.normal(0, 150, plots.t.size),
+                                plots.azimuth_rad + rng.normal(0, 0.003, plots.t.size))
+rec = reconstruct(plots, radar, ReconstructionConfig())
+print(json.dumps({"compiled": compiled.is_compiled("motion"), "x": rec.at_plots.x.tolist(),
+                  "z": rec.at_plots.z.tolist(),
+                  "iterations": rec.diagnostics.extra["refine_iterations"]}))
+"""
+
+
+def _refine_in_subprocess(compile_flag: str) -> dict:
+    env = {**os.environ, "TRAJRECON_COMPILE": compile_flag, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-c", _REFINE], env=env, cwd=ROOT, capture_output=True,
+                       text=True, timeout=300, check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+@needs_cc
+def test_refinement_is_the_same_compiled_or_interpreted():
+    on, off = _refine_in_subprocess("1"), _refine_in_subprocess("0")
+    assert on["compiled"] and not off["compiled"]
+    assert on["iterations"] == off["iterations"]
+    np.testing.assert_allclose(on["x"], off["x"], atol=1e-6)
+    np.testing.assert_allclose(on["z"], off["z"], atol=1e-6)
+
+
+def test_the_motion_model_in_use_is_compiled_when_a_compiler_exists():
+    motion_function()
+    assert compiled.is_compiled("motion") == (compiled.compiler() is not None)
