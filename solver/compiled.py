@@ -13,6 +13,7 @@ fails) keeps the virtual machine, with the same results.
 from __future__ import annotations
 
 import logging
+import multiprocessing.util
 import os
 import shutil
 import tempfile
@@ -33,12 +34,26 @@ def compiler() -> str | None:
     return shutil.which(os.environ.get("CC") or "cc")
 
 
+@cache
+def directory() -> str:
+    """This process's directory for the generated C, removed when the process exits.
+
+    CasADi deletes a function's source only when the function is destroyed, which a cached
+    function never is in a pool worker (multiprocessing ends it with ``os._exit``): measured,
+    every such process left its sources in the temporary directory. A multiprocessing finalizer
+    runs at the exit of the main process and of every multiprocessing child alike.
+    """
+    path = tempfile.mkdtemp(prefix="trajrecon-jit-")
+    multiprocessing.util.Finalize(None, shutil.rmtree, args=(path, True), exitpriority=0)
+    return path
+
+
 def jit_options(cc: str) -> dict:
-    """Options of :class:`casadi.Function` compiling it with ``cc`` into the temporary directory
-    (not the working directory, which may be read-only; files are removed once loaded)."""
-    return {"jit": True, "compiler": "shell",
-            "jit_options": {"compiler": cc, "linker": cc, "flags": ["-O1"],
-                            "directory": tempfile.gettempdir(), "verbose": False}}
+    """Options of :class:`casadi.Function` compiling it with ``cc`` in :func:`directory` (not the
+    working directory, which may be read-only)."""
+    return {"jit": True, "compiler": "shell", "jit_cleanup": False,
+            "jit_options": {"compiler": cc, "linker": cc, "flags": ["-O1"], "cleanup": False,
+                            "directory": directory(), "verbose": False}}
 
 
 def function(name: str, inputs: Sequence[ca.SX], outputs: Sequence[ca.SX],

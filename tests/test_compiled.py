@@ -122,3 +122,41 @@ def test_refinement_is_the_same_compiled_or_interpreted():
 def test_the_motion_model_in_use_is_compiled_when_a_compiler_exists():
     motion_function()
     assert compiled.is_compiled("motion") == (compiled.compiler() is not None)
+
+
+_POOL = """
+import os
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
+
+
+def work():
+    from solver import compiled
+    from solver.motion import motion_function
+    motion_function()
+    d = compiled.directory()
+    assert os.listdir(d)  # the generated C is there while the process lives
+    return d
+
+
+if __name__ == "__main__":
+    with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as ex:
+        child = ex.submit(work).result()
+    print(child, os.path.exists(child))
+    print(work())
+"""
+
+
+@needs_cc
+def test_generated_sources_are_removed_when_processes_exit(tmp_path):
+    """Pool workers end by ``os._exit`` (no destructors, no atexit): their directory must still
+    go, and so must the main process's."""
+    script = tmp_path / "pool.py"
+    script.write_text(_POOL)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, str(script)], env=env, cwd=tmp_path, capture_output=True,
+                       text=True, timeout=300, check=True)
+    (child, child_exists), (main,) = (line.split() for line in r.stdout.strip().splitlines())
+    assert child_exists == "False", child
+    assert not Path(main).exists(), main
+    assert "trajrecon-jit-" in main and "Failed to remove" not in r.stderr
