@@ -33,7 +33,10 @@ class RefineSettings:
     constant controls (95.7 %) but covers only 84-88 % of the real dev tracks; 0.07 gives about
     97 % and 93 % (95 % ellipses). ``switch_threshold``: control changes above it (m/s^2) are
     kept as switches by the polish solve, the rest held at zero (0: no polish);
-    ``polish_penalty_scale`` scales the L1 weights in that solve.
+    ``polish_penalty_scale`` scales the L1 weights in that solve. ``ipopt_tol``: IPOPT's
+    convergence tolerance (chi-square units; against 1e-6, 1e-5 moves the dev tracks by at most
+    0.6 m with 7 % fewer iterations, while 1e-4 moves a block seam by 2.7 m:
+    ``python -m benchmarks.refine_profile``).
     """
 
     max_node_step_s: float = 20.0
@@ -50,6 +53,7 @@ class RefineSettings:
     covariance_scale: float = 0.07
     switch_threshold: float = 0.01
     polish_penalty_scale: float = 1.0
+    ipopt_tol: float = 1e-5
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 import time
 from functools import cache
+from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -77,8 +78,9 @@ NEXTRA = 6  # per block: u_prev, w_prev, huber delta, level_u, level_w, level sm
 
 
 @cache
-def block_solver(n: int, warm: bool = False) -> ca.Function:
-    """IPOPT solver for a block of ``n`` nodes (built once per ladder size).
+def block_solver(n: int, warm: bool = False, tol: float = RefineSettings.ipopt_tol
+                 ) -> ca.Function:
+    """IPOPT solver for a block of ``n`` nodes (built once per ladder size and tolerance).
 
     Variables per node ``[x, z, phi, v, u, w, du+, du-, dw+, dw-]``; parameters ``NPAR`` per
     node and ``NEXTRA`` per block. Exact sparse Hessian: a Gauss-Newton one (without the
@@ -115,11 +117,8 @@ def block_solver(n: int, warm: bool = False) -> ca.Function:
         "ipopt": {
             "print_level": 0,
             "sb": "yes",
-            # chi-square units. Against 1e-6 on the 18 dev tracks (3 profiles, seed 100): the
-            # same positions to 0.6 m (95 % to 0.04 m), 7 % fewer iterations. 1e-4 saves 10-30 %
-            # but moves a block seam by 2.7 m (tests/test_refine.py: < 1 m; 0.2 m here).
-            "tol": 1e-5,
-            "acceptable_tol": 1e-5,
+            "tol": tol,  # chi-square units (RefineSettings.ipopt_tol)
+            "acceptable_tol": tol,
             "max_iter": 300,
             "mu_strategy": "adaptive",
         },
@@ -193,19 +192,25 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
 
     duals: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(blocks)
 
+    clock = {"ipopt": 0.0, "model": 0.0}  # s inside IPOPT calls / in its model evaluations
+
     def solve_blocks(start_guess: np.ndarray, meas: np.ndarray,
                      fixed: np.ndarray | None) -> tuple[np.ndarray, int, int]:
         out = np.empty((n, NX))
         prev: np.ndarray | None = None
         fails = its = 0
         for j, (start, stop, keep) in enumerate(blocks):
-            x_blk, ok, it, duals[j] = _solve_block(
+            t_call = time.perf_counter()
+            blk = _solve_block(
                 t_nodes[start:stop], meas[start:stop], start_guess[start:stop], prev, bounds, st,
                 delta, None if fixed is None else fixed[:, start:stop], duals[j])
-            fails += not ok
-            its += it
-            out[start: keep + 1] = x_blk[: keep + 1 - start]
-            prev = x_blk[keep - start]
+            clock["ipopt"] += time.perf_counter() - t_call
+            clock["model"] += blk.model_s
+            duals[j] = blk.duals
+            fails += not blk.ok
+            its += blk.iterations
+            out[start: keep + 1] = blk.x[: keep + 1 - start]
+            prev = blk.x[keep - start]
         return out, fails, its
 
     sol, failures, iters = solve_blocks(guess, meas, None)
@@ -243,6 +248,8 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
     crit = meas[:, M_W] * _quad(sol, meas)
     diag.criterion_values = [float(crit.sum())]
     diag.extra["refine_ms"] = (time.perf_counter() - t0) * 1e3
+    diag.extra["refine_ipopt_ms"] = clock["ipopt"] * 1e3
+    diag.extra["refine_model_ms"] = clock["model"] * 1e3
     diag.extra["switches"] = len(segments) - 1
     return Reconstruction(segments, at_plots, samples, diag)
 
@@ -315,20 +322,28 @@ def _ladder(n: int) -> int:
     raise ValueError(f"block of {n} nodes exceeds the largest ladder size {LADDER[-1]}")
 
 
+class BlockResult(NamedTuple):
+    """One block's solve: node states ``(m, 6)``, success, IPOPT iterations, the multipliers
+    (to warm-start the next solve), and the seconds IPOPT spent evaluating the model."""
+
+    x: np.ndarray
+    ok: bool
+    iterations: int
+    duals: tuple[np.ndarray, np.ndarray] | None
+    model_s: float
+
+
 def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.ndarray | None,
                  bounds: Bounds, st: RefineSettings, delta: float,
                  fixed: np.ndarray | None = None,
-                 duals: tuple[np.ndarray, np.ndarray] | None = None,
-                 ) -> tuple[np.ndarray, bool, int, tuple[np.ndarray, np.ndarray] | None]:
+                 duals: tuple[np.ndarray, np.ndarray] | None = None) -> BlockResult:
     """Solve one block; ``prev`` (the previous block's node state, or None) fixes the start;
     ``fixed`` (``(2, m)`` bool) marks control changes held at exactly zero (polish step);
     ``duals`` (bound and constraint multipliers of an earlier solve) warm-start IPOPT.
-
-    Returns the node states ``(m, 6)``, success, IPOPT's iteration count, and the multipliers.
     """
     m = t.size
     size = _ladder(m)
-    solver = block_solver(size, warm=duals is not None)
+    solver = block_solver(size, duals is not None, st.ipopt_tol)
     par = np.zeros((NPAR, size))
     par[0, : m - 1] = np.diff(t)
     par[1:7, :m] = meas.T
@@ -373,10 +388,12 @@ def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.nd
     if stats.get("return_status") == "User_Requested_Stop":
         raise KeyboardInterrupt("IPOPT stopped by a signal")
     x = np.array(res["x"]).reshape(size, NX + ND)[:m, :NX]
-    ok = bool(stats["success"]) and bool(np.all(np.isfinite(x)))
+    its = int(stats.get("iter_count", 0))
+    model_s = sum(v for k, v in stats.items() if k.startswith("t_wall_nlp_"))
     if not np.all(np.isfinite(x)):
-        return guess.copy(), False, int(stats.get("iter_count", 0)), None
-    return x, ok, int(stats.get("iter_count", 0)), (np.array(res["lam_x"]), np.array(res["lam_g"]))
+        return BlockResult(guess.copy(), False, its, None, model_s)
+    return BlockResult(x, bool(stats["success"]), its,
+                       (np.array(res["lam_x"]), np.array(res["lam_g"])), model_s)
 
 
 def _segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segment]:

@@ -146,6 +146,8 @@ def test_refined_beats_raw_plots_and_sliding():
     assert refined.diagnostics.method == "refined"
     assert refined.at_plots.cov is not None and refined.samples.cov is not None
     assert np.all(np.linalg.eigvalsh(refined.samples.cov) > 0)
+    ex = refined.diagnostics.extra  # where the time went, for operators and benchmarks
+    assert 0 < ex["refine_model_ms"] < ex["refine_ipopt_ms"] < ex["refine_ms"]
 
 
 def test_known_altitude_is_used():
@@ -168,8 +170,8 @@ def test_solver_failure_is_reported_not_raised(monkeypatch):
 
     real = refine_module.block_solver
 
-    def crippled(n, warm=False):
-        solver = real(n, warm)
+    def crippled(n, warm=False, tol=1e-5):
+        solver = real(n, warm, tol)
 
         class OneIteration:
             def __call__(self, **kw):
