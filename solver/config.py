@@ -37,8 +37,9 @@ class RefineSettings:
     kept as switches by the polish solve, the rest held at zero (0: no polish);
     ``polish_penalty_scale`` scales the L1 weights in that solve. ``ipopt_tol``: IPOPT's
     convergence tolerance (chi-square units; against 1e-6, 1e-5 moves the dev tracks by at most
-    0.6 m with 7 % fewer iterations, while 1e-4 moves a block seam by 2.7 m:
-    ``python -m benchmarks.refine_profile``).
+    0.4 m with 8 % fewer iterations (``python -m benchmarks.refine_profile``) and the block
+    seams of tests/test_refine.py from 0.01 to 0.06 m; 1e-4 saves 7 % more but moves a seam
+    by 0.96 m).
     """
 
     max_node_step_s: float = 20.0
