@@ -20,6 +20,7 @@ import shutil
 import tempfile
 from collections.abc import Sequence
 from functools import cache
+from pathlib import Path
 
 import casadi as ca
 
@@ -35,6 +36,9 @@ def compiler() -> str | None:
     return shutil.which(os.environ.get("CC") or "cc")
 
 
+PREFIX = "trajrecon-jit-"
+
+
 @cache
 def directory() -> str:
     """This process's directory for the generated C, removed when the process exits.
@@ -42,11 +46,31 @@ def directory() -> str:
     CasADi deletes a function's source only when the function is destroyed, which a cached
     function never is in a pool worker (multiprocessing ends it with ``os._exit``): measured,
     every such process left its sources in the temporary directory. A multiprocessing finalizer
-    runs at the exit of the main process and of every multiprocessing child alike.
+    runs at the exit of the main process and of every multiprocessing child alike; directories of
+    processes that were killed (no finalizer) are removed by the next process that compiles.
     """
-    path = tempfile.mkdtemp(prefix="trajrecon-jit-")
+    _remove_orphans()
+    path = tempfile.mkdtemp(prefix=f"{PREFIX}{os.getpid()}-")
     multiprocessing.util.Finalize(None, shutil.rmtree, args=(path, True), exitpriority=0)
     return path
+
+
+def _remove_orphans() -> None:
+    """Remove the directories of dead processes (``trajrecon-jit-<pid>-*``, ``pid`` not alive)."""
+    for path in Path(tempfile.gettempdir()).glob(f"{PREFIX}*-*"):
+        pid = path.name[len(PREFIX):].split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def jit_options(cc: str) -> dict:

@@ -8,6 +8,7 @@ import logging
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import casadi as ca
@@ -160,3 +161,20 @@ def test_generated_sources_are_removed_when_processes_exit(tmp_path):
     assert child_exists == "False", child
     assert not Path(main).exists(), main
     assert "trajrecon-jit-" in main and "Failed to remove" not in r.stderr
+
+
+def test_directories_of_killed_processes_are_removed_by_the_next(tmp_path, monkeypatch):
+    """A killed process runs no finalizer; the next process that compiles removes its directory
+    (named after its pid), and never one of a live process."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    orphan = tmp_path / f"{compiled.PREFIX}{dead.stdout.strip()}-abc"
+    live = tmp_path / f"{compiled.PREFIX}{os.getpid()}-def"
+    other = tmp_path / "someone-else"
+    for d in (orphan, live, other):
+        d.mkdir()
+        (d / "jit_tmp.c").write_text("int x;\n")
+    compiled._remove_orphans()
+    assert not orphan.exists()
+    assert live.exists() and other.exists()
