@@ -466,10 +466,12 @@ def _rts_covariance(A: np.ndarray, Rinv: np.ndarray, qvar: np.ndarray,
         Pf[k] = P
     Ps = np.empty_like(Pf)
     Ps[-1] = Pf[-1]
+    if n < 2:
+        return Ps
+    G = np.linalg.solve(Pp[1:], A[: n - 1] @ Pf[:-1]).transpose(0, 2, 1)  # batched: filter only
     for k in range(n - 2, -1, -1):
-        G = np.linalg.solve(Pp[k + 1], A[k] @ Pf[k]).T
-        Ps[k] = Pf[k] + G @ (Ps[k + 1] - Pp[k + 1]) @ G.T
-        Ps[k] = (Ps[k] + Ps[k].T) / 2
+        P = Pf[k] + G[k] @ (Ps[k + 1] - Pp[k + 1]) @ G[k].T
+        Ps[k] = (P + P.T) / 2
     return Ps
 
 

@@ -120,9 +120,13 @@ def rts_smoother(xf: FloatArray, Pf: FloatArray, xp: FloatArray, Pp: FloatArray,
     """``C_k = Pf_k Phi_k^T Pp_{k+1}^-1``; ``xs_k = xf_k + C_k (xs_{k+1} - xp_{k+1})``;
     ``Ps_k = Pf_k + C_k (Ps_{k+1} - Pp_{k+1}) C_k^T``."""
     xs, Ps = xf.copy(), Pf.copy()
-    for k in range(xf.shape[0] - 2, -1, -1):
-        C = np.linalg.solve(Pp[k + 1], Phi[k] @ Pf[k]).T
-        xs[k] = xf[k] + C @ (xs[k + 1] - xp[k + 1])
-        Ps[k] = Pf[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
-        Ps[k] = 0.5 * (Ps[k] + Ps[k].T)
+    n = xf.shape[0]
+    if n < 2:
+        return xs, Ps
+    # the gains need only the filter's output: one batched solve, then the recursion proper
+    C = np.linalg.solve(Pp[1:], Phi[: n - 1] @ Pf[:-1]).transpose(0, 2, 1)
+    for k in range(n - 2, -1, -1):
+        xs[k] = xf[k] + C[k] @ (xs[k + 1] - xp[k + 1])
+        P = Pf[k] + C[k] @ (Ps[k + 1] - Pp[k + 1]) @ C[k].T
+        Ps[k] = 0.5 * (P + P.T)
     return xs, Ps
