@@ -3,6 +3,8 @@
     python -m benchmarks.tune baselines     # q of the CV filter/smoother, IMM grid, per profile
     python -m benchmarks.tune recon         # the reconstruction's window, trial step, criterion,
                                             # solver (one factor at a time around the default)
+    python -m benchmarks.tune refine        # the refinement's penalties (one factor at a time
+                                            # around RefineSettings(), also with altitude)
 
 Tuning seeds (100, 101 by default) are disjoint from the benchmark's seeds (0, 1, ...), so the
 frozen values are not fitted to the very noise they are scored on; the tracks are the same (the
@@ -36,6 +38,9 @@ RECON_AXES = {"window_plots": (3, 4, 5), "trial_step_s": (2.5, 5.0, 10.0, 20.0),
 # settings above; starting it from the sliding windows brings the window length back into play.
 REFINE_INIT_POINTS = ({"refine_init": "sliding", "window_plots": 3},
                       {"refine_init": "sliding", "window_plots": 5})
+# The refinement's penalties (solver.config.RefineSettings), one at a time around the default.
+REFINE_AXES = {"switch_penalty_u": (0.7, 1.4), "switch_penalty_w": (0.6, 2.5, 5.0),
+               "level_penalty_u": (0.05, 0.2), "level_penalty_w": (0.05, 0.2)}
 
 
 def dev_set() -> list[str]:
@@ -121,6 +126,47 @@ def tune_recon(profiles: list[str], seeds: list[int], t_max: float | None,
             "axes": RECON_AXES, "rows": rows, "failures": failures}
 
 
+def tune_refine(profiles: list[str], seeds: list[int], t_max: float | None) -> dict:
+    """One factor of :data:`REFINE_AXES` at a time around ``RefineSettings()``: pooled RMS position
+    error and 95 % ellipse coverage per profile, and on the ssr plots with their altitude."""
+    from solver.config import RefineSettings
+
+    default = RefineSettings()
+    points: list[dict] = [{}]
+    for axis, values in REFINE_AXES.items():
+        points += [{axis: v} for v in values if v != getattr(default, axis)]
+    ests = []
+    for pt in points:
+        cfg = recon_config("refined", 3, "R2", refine=replace(default, **pt))
+        label = " ".join(f"{k}={v}" for k, v in pt.items()) or "default"
+        for alt in (False, True):
+            ests.append(Estimator(f"refine {label}{'+alt' if alt else ''}", "recon",
+                                  _recon_run(cfg), with_altitude=alt))
+    res = run_benchmark(dev_set(), profiles, seeds, ests, t_max=t_max, figure_cases=())
+    overall, _ = summaries(res)
+    rows = []
+    for i, pt in enumerate(points):
+        row: dict = {"settings": pt}
+        for est in ests[2 * i: 2 * i + 2]:
+            for p in profiles:
+                m = overall.get(p, {}).get(est.name)
+                if est.applies_to(p):
+                    key = p + ("+alt" if est.with_altitude else "")
+                    row[key] = None if m is None else {k: m[k] for k in ("rms_pos", "coverage95")}
+        rows.append(row)
+    return {"seeds": seeds, "tracks": dev_set(), "t_max": t_max,
+            "default": {k: getattr(default, k) for k in REFINE_AXES}, "axes": REFINE_AXES,
+            "rows": rows, "failures": [f.__dict__ for f in res.failures]}
+
+
+def _recon_run(cfg):
+    def run(plots, radar, _):
+        from solver.reconstruct import reconstruct
+        rec = reconstruct(plots, radar, cfg)
+        return Estimate(rec.at_plots, rec)
+    return run
+
+
 def render(out_dir: Path) -> str:
     """Markdown of the tuning results present in ``out_dir``."""
     md = ["## Tuning on the dev set", ""]
@@ -148,7 +194,29 @@ def render(out_dir: Path) -> str:
         rec = out_dir / f"tuning_recon_{method}.json"
         if rec.exists():
             md += _render_recon(json.loads(rec.read_text()))
+    ref = out_dir / "tuning_refine.json"
+    if ref.exists():
+        md += _render_refine(json.loads(ref.read_text()))
     return "\n".join(md)
+
+
+def _render_refine(r: dict) -> list[str]:
+    cols = [k for k in r["rows"][0] if k != "settings"]
+    md = [f"Refinement penalties (`python -m benchmarks.tune refine`): one at a time around "
+          f"{r['default']}; the six ADS-B tracks"
+          + (f" cut to {r['t_max']:.0f} s" if r["t_max"] else "")
+          + f", seeds {r['seeds']}. RMS position error (m) and 95 % ellipse coverage; `+alt`: "
+          "the plots carry the true altitude.", "",
+          "| changed | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for row in r["rows"]:
+        changed = ", ".join(f"{k}={v}" for k, v in row["settings"].items()) or "(default)"
+        cells = ["failed" if row[c] is None else
+                 f"{row[c]['rms_pos']:.1f} ({100 * row[c]['coverage95']:.1f} %)" for c in cols]
+        md.append(f"| {changed} | " + " | ".join(cells) + " |")
+    if r["failures"]:
+        md += ["", f"{len(r['failures'])} failed runs."]
+    md.append("")
+    return md
 
 
 def _render_recon(r: dict) -> list[str]:
@@ -179,7 +247,7 @@ def _render_recon(r: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.tune", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=("baselines", "recon", "render"))
+    ap.add_argument("part", choices=("baselines", "recon", "refine", "render"))
     ap.add_argument("--profiles", nargs="+", default=["seed000", "seed001", "ssr"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101])
     ap.add_argument("--t-max", type=float, default=None)
@@ -206,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
             old["failures"] += data["failures"]
             data = old
         path.write_text(json.dumps(data, indent=1))
+    elif args.part == "refine":
+        data = tune_refine(args.profiles, args.seeds, args.t_max)
+        (args.out / "tuning_refine.json").write_text(json.dumps(data, indent=1))
     (args.out / "tuning.md").write_text(render(args.out))
     print(render(args.out))
     return 0
