@@ -73,7 +73,7 @@ def recon_config(method: str, window: int, criterion: str, **kw) -> Reconstructi
     return ReconstructionConfig(method=method, window_plots=window, criterion=criterion, **kw)
 
 
-def _recon(config: ReconstructionConfig):
+def recon_runner(config: ReconstructionConfig):
     def run(plots: Plots, radar: Radar, profile: str) -> Estimate:
         from solver.reconstruct import reconstruct
         rec = reconstruct(plots, radar, config)
@@ -104,9 +104,10 @@ def registry() -> dict[str, Estimator]:
         for window in (3, 4, 5):
             for crit in ("R2", "R1"):
                 cfg = recon_config(method, window, crit)
-                est.append(Estimator(f"recon-{method}-m{window}-{crit}", "recon", _recon(cfg)))
+                est.append(Estimator(f"recon-{method}-m{window}-{crit}", "recon",
+                                     recon_runner(cfg)))
     est.append(Estimator("recon-refined-m3-R2+alt", "recon",
-                         _recon(recon_config("refined", 3, "R2")), with_altitude=True))
+                         recon_runner(recon_config("refined", 3, "R2")), with_altitude=True))
     return {e.name: e for e in est}
 
 

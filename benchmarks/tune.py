@@ -23,7 +23,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from .baselines import ImmTuning, filterpy_imm, stonesoup_cv
-from .estimators import Estimate, Estimator, recon_config
+from .estimators import Estimate, Estimator, recon_config, recon_runner
 from .run import RESULTS_DIR, run_benchmark, summaries
 from .truth import SYNTHETIC, truth_names
 
@@ -67,14 +67,8 @@ def _recon(settings: dict, method: str) -> Estimator:
     cfg = recon_config(method, settings["window_plots"], settings["criterion"],
                        trial_step_s=settings["trial_step_s"], nlp_solver=settings["nlp_solver"],
                        **extra)
-
-    def run(plots, radar, _):
-        from solver.reconstruct import reconstruct
-        rec = reconstruct(plots, radar, cfg)
-        return Estimate(rec.at_plots, rec)
-
     label = " ".join(f"{k}={v}" for k, v in settings.items())
-    return Estimator(f"{method} {label}", "recon", run)
+    return Estimator(f"{method} {label}", "recon", recon_runner(cfg))
 
 
 def tune_baselines(profiles: list[str], seeds: list[int]) -> dict:
@@ -141,7 +135,7 @@ def tune_refine(profiles: list[str], seeds: list[int], t_max: float | None) -> d
         label = " ".join(f"{k}={v}" for k, v in pt.items()) or "default"
         for alt in (False, True):
             ests.append(Estimator(f"refine {label}{'+alt' if alt else ''}", "recon",
-                                  _recon_run(cfg), with_altitude=alt))
+                                  recon_runner(cfg), with_altitude=alt))
     res = run_benchmark(dev_set(), profiles, seeds, ests, t_max=t_max, figure_cases=())
     overall, _ = summaries(res)
     rows = []
@@ -157,14 +151,6 @@ def tune_refine(profiles: list[str], seeds: list[int], t_max: float | None) -> d
     return {"seeds": seeds, "tracks": dev_set(), "t_max": t_max,
             "default": {k: getattr(default, k) for k in REFINE_AXES}, "axes": REFINE_AXES,
             "rows": rows, "failures": [f.__dict__ for f in res.failures]}
-
-
-def _recon_run(cfg):
-    def run(plots, radar, _):
-        from solver.reconstruct import reconstruct
-        rec = reconstruct(plots, radar, cfg)
-        return Estimate(rec.at_plots, rec)
-    return run
 
 
 def render(out_dir: Path) -> str:

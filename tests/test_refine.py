@@ -170,7 +170,7 @@ def test_solver_failure_is_reported_not_raised(monkeypatch):
 
     real = refine_module.block_solver
 
-    def crippled(n, warm=False, tol=1e-5):
+    def crippled(n, warm=False, tol=RefineSettings.ipopt_tol):
         solver = real(n, warm, tol)
 
         class OneIteration:
