@@ -23,6 +23,7 @@ from functools import cache
 from pathlib import Path
 
 import casadi as ca
+import numpy as np
 
 LOG = logging.getLogger(__name__)
 _COMPILED: set[str] = set()
@@ -105,3 +106,36 @@ def function(name: str, inputs: Sequence[ca.SX], outputs: Sequence[ca.SX],
 def is_compiled(name: str) -> bool:
     """Whether the function ``name`` built by :func:`function` runs compiled code."""
     return name in _COMPILED
+
+
+def columns(f: ca.Function, *args: np.ndarray) -> list[np.ndarray]:
+    """Evaluate ``f`` on every column of ``args`` (input ``i`` shaped ``(size_in(i), m)``):
+    output ``j`` as a dense ``(m, *size_out(j))`` array.
+
+    Through :meth:`casadi.Function.buffer` of ``f.map(m)``, which reads and writes numpy memory
+    directly; calling ``f`` instead returns a ``DM`` whose conversion to numpy goes through a
+    Python list (about 80 ns per element: 16 of the 21 ms of 6000 Jacobians of the motion map).
+    """
+    m = args[0].shape[1]
+    outs = [np.zeros((m, *f.size_out(j))) for j in range(f.n_out())]
+    if m == 0:
+        return outs
+    ins = []
+    for i, a in enumerate(args):
+        if not f.sparsity_in(i).is_dense() or a.shape != (f.size1_in(i), m):
+            raise ValueError(f"input {i} of {f.name()}: expected a dense "
+                             f"{f.size1_in(i)} x {m} array, got {a.shape}")
+        ins.append(np.asfortranarray(a, dtype=float).reshape(-1, order="F"))
+    nz = [np.empty(m * f.nnz_out(j)) for j in range(f.n_out())]
+    buf, evaluate = f.map(m).buffer()
+    for i, a in enumerate(ins):
+        buf.set_arg(i, memoryview(a))
+    for j, r in enumerate(nz):
+        buf.set_res(j, memoryview(r))
+    evaluate()
+    if buf.ret() != 0:
+        raise RuntimeError(f"evaluating {f.name()} failed (status {buf.ret()})")
+    for j, out in enumerate(outs):
+        sp = f.sparsity_out(j)
+        out[:, np.array(sp.row()), np.array(sp.get_col())] = nz[j].reshape(m, sp.nnz())
+    return outs

@@ -419,8 +419,7 @@ def _node_covariance(t_nodes: FloatArray, sol: np.ndarray, meas: np.ndarray,
     """Smoothed ``(n, 6, 6)`` covariance of ``(x, z, phi, v, u, w)`` at the nodes (Laplace)."""
     n = t_nodes.size
     dt = np.append(np.diff(t_nodes), 0.0)
-    # a CasADi function called on column-stacked inputs evaluates column by column
-    A = np.array(_jacobian_function()(sol.T, dt[None, :])).reshape(NX, n, NX).transpose(1, 0, 2)
+    A = compiled.columns(_jacobian_function(), sol.T, dt[None, :])[0]
     # Objective = sum q + lambda |Delta| = 2 * neg-log-posterior: q = chi^2 and the Laplace
     # prior exp(-lambda |Delta| / 2) has variance 8 / lambda^2.
     qvar = st.covariance_scale * np.array([8 / st.switch_penalty_u**2, 8 / st.switch_penalty_w**2])
@@ -487,7 +486,7 @@ def _series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray,
     s = sol[k]
     x, z, phi, v = propagate(s[:, 0], s[:, 1], s[:, 2], s[:, 3], s[:, 4], s[:, 5], tau)
     m = t.size
-    A = np.array(_jacobian_function()(s.T, tau[None, :])).reshape(NX, m, NX).transpose(1, 0, 2)
+    A = compiled.columns(_jacobian_function(), s.T, tau[None, :])[0]
     P = A @ cov_nodes[k] @ A.transpose(0, 2, 1)
     T = np.zeros((m, 4, NX))
     T[:, 0, 0] = T[:, 1, 1] = 1.0
