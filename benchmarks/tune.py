@@ -5,6 +5,7 @@
                                             # solver (one factor at a time around the default)
     python -m benchmarks.tune refine        # the refinement's penalties (one factor at a time
                                             # around RefineSettings(), also with altitude)
+    python -m benchmarks.tune refine --grid # the two turn penalties together (REFINE_GRID)
 
 Tuning seeds (100, 101 by default) are disjoint from the benchmark's seeds (0, 1, ...), so the
 frozen values are not fitted to the very noise they are scored on; the tracks are the same (the
@@ -41,6 +42,8 @@ REFINE_INIT_POINTS = ({"refine_init": "sliding", "window_plots": 3},
 # The refinement's penalties (solver.config.RefineSettings), one at a time around the default.
 REFINE_AXES = {"switch_penalty_u": (0.7, 1.4), "switch_penalty_w": (0.6, 2.5, 5.0),
                "level_penalty_u": (0.05, 0.2), "level_penalty_w": (0.05, 0.2)}
+# The two penalties on turning, together: is there one setting better on every profile?
+REFINE_GRID = {"level_penalty_u": (0.0, 0.02, 0.05, 0.1), "switch_penalty_u": (0.5, 0.7, 1.0)}
 
 
 def dev_set() -> list[str]:
@@ -120,14 +123,20 @@ def tune_recon(profiles: list[str], seeds: list[int], t_max: float | None,
             "axes": RECON_AXES, "rows": rows, "failures": failures}
 
 
-def tune_refine(profiles: list[str], seeds: list[int], t_max: float | None) -> dict:
-    """One factor of :data:`REFINE_AXES` at a time around ``RefineSettings()``: pooled RMS position
-    error and 95 % ellipse coverage per profile, and on the ssr plots with their altitude."""
+def tune_refine(profiles: list[str], seeds: list[int], t_max: float | None,
+                grid: bool = False) -> dict:
+    """One factor of :data:`REFINE_AXES` at a time around ``RefineSettings()`` (or, ``grid``,
+    every point of :data:`REFINE_GRID`): pooled RMS position error and 95 % ellipse coverage per
+    profile, and on the ssr plots with their altitude."""
     from solver.config import RefineSettings
 
     default = RefineSettings()
     points: list[dict] = [{}]
-    for axis, values in REFINE_AXES.items():
+    if grid:
+        points += [pt for pt in (dict(zip(REFINE_GRID, vals, strict=True))
+                                 for vals in itertools.product(*REFINE_GRID.values()))
+                   if any(v != getattr(default, k) for k, v in pt.items())]
+    for axis, values in ({} if grid else REFINE_AXES).items():
         points += [{axis: v} for v in values if v != getattr(default, axis)]
     ests = []
     for pt in points:
@@ -148,8 +157,9 @@ def tune_refine(profiles: list[str], seeds: list[int], t_max: float | None) -> d
                     key = p + ("+alt" if est.with_altitude else "")
                     row[key] = None if m is None else {k: m[k] for k in ("rms_pos", "coverage95")}
         rows.append(row)
-    return {"seeds": seeds, "tracks": dev_set(), "t_max": t_max,
-            "default": {k: getattr(default, k) for k in REFINE_AXES}, "axes": REFINE_AXES,
+    axes = REFINE_GRID if grid else REFINE_AXES
+    return {"seeds": seeds, "tracks": dev_set(), "t_max": t_max, "grid": grid,
+            "default": {k: getattr(default, k) for k in REFINE_AXES}, "axes": axes,
             "rows": rows, "failures": [f.__dict__ for f in res.failures]}
 
 
@@ -180,16 +190,18 @@ def render(out_dir: Path) -> str:
         rec = out_dir / f"tuning_recon_{method}.json"
         if rec.exists():
             md += _render_recon(json.loads(rec.read_text()))
-    ref = out_dir / "tuning_refine.json"
-    if ref.exists():
-        md += _render_refine(json.loads(ref.read_text()))
+    for name in ("tuning_refine.json", "tuning_refine_grid.json"):
+        if (out_dir / name).exists():
+            md += _render_refine(json.loads((out_dir / name).read_text()))
     return "\n".join(md)
 
 
 def _render_refine(r: dict) -> list[str]:
     cols = [k for k in r["rows"][0] if k != "settings"]
-    md = [f"Refinement penalties (`python -m benchmarks.tune refine`): one at a time around "
-          f"{r['default']}; the six ADS-B tracks"
+    how = (f"the grid {r['axes']}, with the other penalties at" if r.get("grid") else
+           "one at a time around")
+    md = [f"Refinement penalties (`python -m benchmarks.tune refine"
+          f"{' --grid' if r.get('grid') else ''}`): {how} {r['default']}; the six ADS-B tracks"
           + (f" cut to {r['t_max']:.0f} s" if r["t_max"] else "")
           + f", seeds {r['seeds']}. RMS position error (m) and 95 % ellipse coverage; `+alt`: "
           "the plots carry the true altitude.", "",
@@ -240,6 +252,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--method", choices=("sliding", "refined"), default="refined")
     ap.add_argument("--only-init", action="store_true",
                     help="recon: only the default and the refinement's start variants")
+    ap.add_argument("--grid", action="store_true",
+                    help="refine: the grid REFINE_GRID instead of one factor at a time")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR)
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -261,8 +275,9 @@ def main(argv: list[str] | None = None) -> int:
             data = old
         path.write_text(json.dumps(data, indent=1))
     elif args.part == "refine":
-        data = tune_refine(args.profiles, args.seeds, args.t_max)
-        (args.out / "tuning_refine.json").write_text(json.dumps(data, indent=1))
+        data = tune_refine(args.profiles, args.seeds, args.t_max, args.grid)
+        name = "tuning_refine_grid.json" if args.grid else "tuning_refine.json"
+        (args.out / name).write_text(json.dumps(data, indent=1))
     (args.out / "tuning.md").write_text(render(args.out))
     print(render(args.out))
     return 0
