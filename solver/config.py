@@ -15,31 +15,31 @@ NlpSolver = Literal["sqpmethod", "ipopt"]
 @dataclass(frozen=True)
 class RefineSettings:
     """Tuning of the full-track NLP (``solver.refine``); defaults chosen on the benchmark dev set
-    (one-factor-at-a-time sweeps on all three radar profiles: every variation within 2 %).
+    (``python -m benchmarks.tune refine [--grid]``, table in ``benchmarks/results/tuning.md``:
+    no other point of the sweeps is better on every radar profile).
 
     ``max_node_step_s``: longest interval between control nodes (gaps are subdivided; on the
     19-s-scan profile 5, 10 and 20 s gave the same accuracy, 20 s at a quarter of the nodes).
-    ``switch_penalty_u`` / ``switch_penalty_w``: L1 weight per m/s^2 of control change, in
-    criterion (chi-square) units (``w``: 5 -> 1.25 measured 1-2 % better on seed000 and ssr and
-    5 % with altitude, seed001 unchanged, on both dev seeds 100 and 101). ``level_penalty_u`` /
-    ``level_penalty_w``: weight per (m/s^2 s) of ``|u|``, ``|w|`` (aircraft fly mostly straight
-    at constant speed), smoothed over ``level_smoothing`` m/s^2. ``huber_delta``: pseudo-Huber
-    threshold in sigmas (None: plain least squares); ``outlier_gate``: plots further than this
-    many sigmas from the first solution get no weight in the second (None: keep all).
-    ``block_nodes`` / ``overlap_nodes``: block length and overlap for long tracks (the cut
-    leaves ``overlap_nodes / 2`` nodes of look-ahead: 256 kept seams within 0.3 m of the
-    one-block solution). ``init``: initial guess (``smoother`` measured better than
-    ``sliding``). ``covariance_scale``: multiplies the prior variance of a control change in the
-    Laplace covariance (``8 / lambda^2``): real tracks need wider ellipses than tracks that truly
-    have piecewise-constant controls; 0.035 covers 97.8 % of those (the calibration test allows
-    at most 98 %) and 90.5 / 95.5 / 96.7 % of the real dev tracks (seed000 / seed001 / ssr with
-    altitude, 95 % ellipses). ``switch_threshold``: control changes above it (m/s^2) are
-    kept as switches by the polish solve, the rest held at zero (0: no polish);
-    ``polish_penalty_scale`` scales the L1 weights in that solve. ``ipopt_tol``: IPOPT's
-    convergence tolerance (chi-square units; against 1e-6, 1e-5 moves the dev tracks by at most
-    0.4 m with 8 % fewer iterations (``python -m benchmarks.refine_profile``) and the block
-    seams of tests/test_refine.py from 0.01 to 0.06 m; 1e-4 saves 7 % more but moves a seam
-    by 0.96 m).
+    ``switch_penalty_u`` / ``switch_penalty_w``: L1 weight per m/s^2 of control change, in criterion
+    (chi-square) units (``w``: 5 -> 1.25 measured 1-2 % better on seed000 and ssr and 5 % with
+    altitude, seed001 unchanged, on both dev seeds 100 and 101). ``level_penalty_u`` /
+    ``level_penalty_w``: weight per (m/s^2 s) of ``|u|``, ``|w|`` (aircraft fly mostly straight at
+    constant speed), smoothed over ``level_smoothing`` m/s^2. ``huber_delta``: pseudo-Huber
+    threshold in sigmas (None: plain least squares); ``outlier_gate``: plots further than this many
+    sigmas from the first solution get no weight in the second (None: keep all). ``block_nodes`` /
+    ``overlap_nodes``: block length and overlap for long tracks (the cut leaves half the overlap as
+    look-ahead: 256 kept seams within 0.3 m of the one-block solution). ``init``: initial guess (it
+    changes the iteration count, not the answer: see :func:`solver.refine.refine`).
+    ``covariance_scale``: multiplies the prior variance of a control change in the Laplace
+    covariance (``8 / lambda^2``): real tracks need wider ellipses than tracks that truly have
+    piecewise-constant controls; 0.035 covers 97.8 % of those (the calibration test allows at most
+    98 %) and 90.5 / 95.5 / 96.7 % of the real dev tracks (seed000 / seed001 / ssr with altitude, 95
+    % ellipses). ``switch_threshold``: control changes above it (m/s^2) are kept as switches by the
+    polish solve, the rest held at zero (0: no polish); ``polish_penalty_scale`` scales the L1
+    weights in that solve. ``ipopt_tol``: IPOPT's convergence tolerance (chi-square units; against
+    1e-6, 1e-5 moves the dev tracks by at most 0.4 m with 8 % fewer iterations (``python -m
+    benchmarks.refine_profile``) and the block seams of tests/test_refine.py from 0.01 to 0.06 m;
+    1e-4 saves 7 % more but moves a seam by 0.96 m).
     """
 
     max_node_step_s: float = 20.0
