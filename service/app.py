@@ -29,8 +29,9 @@ from .workers import SolveError
 
 DESCRIPTION = """\
 Reconstructs one aircraft's trajectory from a batch of radar plots (time, slant range, azimuth)
-by sliding constant-control windows (each window a bounded CasADi NLP), optionally refined over
-the whole track, and runs recursive filters beside it.
+by one bounded piecewise-constant-control CasADi NLP over the whole track (default) or by the
+seed's sliding constant-control windows (each window a bounded CasADi NLP), and runs recursive
+filters beside it.
 
 **Conventions.** SI units; the unit is in every field name. Horizontal plane centred on the
 radar: `x` north, `z` east (m). Azimuth and heading in degrees, clockwise from north.

@@ -137,9 +137,10 @@ class ReconstructionRequest(_In):
         "R2", description="Window fit criterion: `R1` plain least squares, `R2` residuals "
         "weighted by each plot's uncertainty ellipse (default).")
     method: Literal["refined", "sliding"] = Field(
-        "refined", description="`refined` (default): the sliding-window result refined by one "
-        "full-track NLP that uses every plot before and after each point. `sliding`: the "
-        "seed's pure sliding-window result.")
+        "refined", description="`refined` (default): one bounded piecewise-constant-control "
+        "NLP over the whole track, which uses every plot before and after each point (started "
+        "from a constant-velocity smoother; tracks of fewer than 3 plots take the sliding "
+        "path). `sliding`: the seed's pure sliding-window result.")
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description="Recursive estimators to run beside the "
         "reconstruction, each answered under `filters.<name>`. Default: none (the "

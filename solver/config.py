@@ -66,7 +66,7 @@ class ReconstructionConfig:
     ``window_plots`` (m) plots per window (the seed used 3-5; 3 was best on hard manoeuvres);
     ``trial_step_s``: spacing of the extra trial start points between plots; ``criterion``: R1
     (least squares) or R2 (ellipse-shaped, default); ``sample_step_s``: spacing of the regular
-    samples; ``method``: ``refined`` (the full-track NLP seeded by the sliding windows) or
+    samples; ``method``: ``refined`` (the full-track NLP, :mod:`solver.refine`) or
     ``sliding`` (the seed's method alone); ``nlp_solver``: the window NLP's CasADi plugin.
     """
 

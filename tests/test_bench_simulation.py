@@ -136,3 +136,20 @@ def test_profiles_match_profiles_md():
     radar = p["seed000"].radar()
     assert radar.sigma_r == pytest.approx(500 / 3) and radar.range_error_m == 500.0
     assert radar.max_elevation_rad == pytest.approx(np.pi / 3)
+
+
+def test_bias_variance_noise_free_raw_error_is_the_slant_range_excess():
+    """Noise-free plots put the raw point at the slant range on the true azimuth, so its error is
+    ``sqrt(d^2 + h^2) - d`` exactly; the noisy run has the same plot times and larger errors."""
+    from benchmarks.bias_variance import errors
+
+    name, seed = "calibration__vienna", 100
+    res = errors("ssr", ("raw", "ss-cv-rts"), [name], [seed], progress=False, t_max=600.0)
+    sim = simulate(load_truth(name), PROFILES["ssr"], seed, t_max=600.0)
+    d = np.hypot(sim.truth.x, sim.truth.z)
+    np.testing.assert_allclose(res["raw"]["noise-free"], np.hypot(d, sim.altitude) - d,
+                               rtol=1e-9, atol=1e-6)
+    for e in res.values():
+        assert e["noisy"].shape == e["noise-free"].shape == d.shape
+    rms = {k: np.sqrt(np.mean(v**2)) for k, v in res["raw"].items()}
+    assert rms["noisy"] > 2 * rms["noise-free"]
