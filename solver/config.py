@@ -26,7 +26,10 @@ class RefineSettings:
     ``level_penalty_w``: weight per (m/s^2 s) of ``|u|``, ``|w|`` (aircraft fly mostly straight at
     constant speed), smoothed over ``level_smoothing`` m/s^2. ``huber_delta``: pseudo-Huber
     threshold in sigmas (None: plain least squares); ``outlier_gate``: plots further than this many
-    sigmas from the first solution get no weight in the second (None: keep all). ``block_nodes`` /
+    sigmas from the first solution get no weight in the second (None: keep all), as long as they
+    are at most ``outlier_max_share`` of the plots (more are not wild plots but a track that the
+    bounds or the radar's sigmas do not fit: then none is rejected, and a warning says so).
+    ``block_nodes`` /
     ``overlap_nodes``: block length and overlap for long tracks (the cut leaves half the overlap as
     look-ahead: 256 kept seams within 0.3 m of the one-block solution). ``init``: initial guess (it
     changes the iteration count, not the answer: see :func:`solver.refine.refine`).
@@ -50,6 +53,7 @@ class RefineSettings:
     level_smoothing: float = 0.05
     huber_delta: float | None = 3.0
     outlier_gate: float | None = 5.0
+    outlier_max_share: float = 0.2
     block_nodes: int = 2048
     overlap_nodes: int = 1024
     init: Literal["sliding", "smoother"] = "smoother"

@@ -224,7 +224,14 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
     # the stitched solution, so blocks and one block decide alike.
     rejected = np.array([], dtype=int)
     if st.outlier_gate is not None:
-        rejected = np.flatnonzero(_quad(sol, meas)[plot_node] > st.outlier_gate**2)
+        far = np.flatnonzero(_quad(sol, meas)[plot_node] > st.outlier_gate**2)
+        if far.size <= st.outlier_max_share * plot_node.size:
+            rejected = far
+        else:
+            diag.warnings.append(
+                f"{far.size} of {plot_node.size} plots are more than {st.outlier_gate:g} sigma "
+                "from the track: too many to be wild plots (do the bounds and the radar's sigmas "
+                "fit this aircraft?); none was given zero weight")
     fixed = None
     if st.switch_threshold > 0 and n > 1:
         fixed = np.zeros((2, n), dtype=bool)
@@ -244,6 +251,7 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
     if failures:
         diag.warnings.append(f"refinement: IPOPT did not converge in {failures} of "
                              f"{len(blocks)} block(s); the last iterate was kept")
+    _report_bounds(t_nodes, sol, bounds, diag)
     segments = _segments(t_nodes, sol, bounds)
     cov_nodes = _node_covariance(t_nodes, sol, meas, st, delta, bounds)
     at_plots = _series(t_nodes, sol, cov_nodes, plots.t)
@@ -398,6 +406,29 @@ def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.nd
         return BlockResult(guess.copy(), False, its, None, model_s)
     return BlockResult(x, bool(stats["success"]), its,
                        (np.array(res["lam_x"]), np.array(res["lam_g"])), model_s)
+
+
+def _report_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
+                   diag: Diagnostics) -> None:
+    """Share of the track's time with ``v``, ``u``, ``w`` at a bound (``extra``), and a warning
+    when the speed sits at one for 10 % of it or more: the plots then ask for an aircraft the
+    bounds do not allow (the turn and acceleration bounds are met in hard manoeuvres)."""
+    dt = np.diff(t_nodes)
+    if dt.size == 0 or dt.sum() <= 0:
+        return
+    for col, name in ((3, "v"), (4, "u"), (5, "w")):
+        lo, hi = getattr(bounds, name)
+        tol = 1e-4 * (hi - lo)
+        val = sol[:-1, col]
+        at_lo = float(dt[val <= lo + tol].sum() / dt.sum())
+        at_hi = float(dt[val >= hi - tol].sum() / dt.sum())
+        diag.extra[f"{name}_at_bound_share"] = at_lo + at_hi
+        if name == "v":
+            for share, side, value in ((at_lo, "lower", lo), (at_hi, "upper", hi)):
+                if share >= 0.1:
+                    diag.warnings.append(
+                        f"speed at its {side} bound ({value:g} m/s) for {100 * share:.0f} % of "
+                        "the track: the plots ask for an aircraft that bounds.v does not allow")
 
 
 def _segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segment]:

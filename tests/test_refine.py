@@ -226,3 +226,39 @@ def test_plots_overhead_keep_finite_weights():
     assert np.all(np.isfinite(statistical_ellipses(overhead, radar).weights()))
     rec = reconstruct(overhead, radar)
     assert np.all(np.isfinite(rec.samples.states)) and np.all(np.isfinite(rec.samples.cov))
+
+
+def _straight(speed: float, wild: tuple[int, ...] = (), seed: int = 3) -> tuple[Plots, Radar]:
+    """62 plots of a straight pass at ``speed`` (SSR-like noise), ``wild`` ones 20 km long."""
+    radar = Radar(range_error_m=150.0, azimuth_error_rad=np.deg2rad(0.24), range_sigma_m=50.0,
+                  azimuth_sigma_rad=np.deg2rad(0.08))
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 300.0, 4.8)
+    x, z = 30_000.0 + speed * t, np.full(t.size, 5_000.0)
+    r = np.hypot(x, z) + rng.normal(0.0, 50.0, t.size)
+    r[list(wild)] += 20_000.0
+    return Plots.from_arrays(t, r, np.arctan2(z, x) + rng.normal(0.0, 0.0014, t.size)), radar
+
+
+def test_a_minority_of_wild_plots_is_rejected_and_listed():
+    plots, radar = _straight(200.0, wild=(10, 30, 50))
+    diag = reconstruct(plots, radar).diagnostics
+    assert diag.extra["rejected_plots"] == 3
+    assert any("plots [10, 30, 50]" in w for w in diag.warnings), diag.warnings
+    assert diag.extra["v_at_bound_share"] == 0.0
+
+
+def test_a_track_the_bounds_do_not_fit_rejects_no_plot_and_says_why():
+    """700 m/s against bounds.v up to 330 m/s: nearly every plot is far from the best bounded
+    track, which makes them a misfit of the bounds, not wild plots; nothing gets zero weight."""
+    plots, radar = _straight(700.0)
+    diag = reconstruct(plots, radar).diagnostics
+    assert diag.extra["rejected_plots"] == 0
+    assert diag.extra["v_at_bound_share"] == pytest.approx(1.0)
+    assert any("too many to be wild plots" in w for w in diag.warnings), diag.warnings
+    assert any("upper bound (330 m/s) for 100 %" in w for w in diag.warnings), diag.warnings
+    # with bounds that allow it, the same plots fit: no warning, no speed at a bound
+    fast = ReconstructionConfig(bounds=dataclasses.replace(ReconstructionConfig().bounds,
+                                                           v=(30.0, 800.0)))
+    diag = reconstruct(plots, radar, fast).diagnostics
+    assert diag.warnings == [] and diag.extra["v_at_bound_share"] == 0.0
