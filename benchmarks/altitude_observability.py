@@ -26,7 +26,7 @@ from solver.inputs import Plots
 from solver.reconstruct import reconstruct
 
 from .profiles import PROFILES
-from .run import RESULTS_DIR
+from .run import publish
 from .simulate import simulate
 from .truth import SYNTHETIC, load_truth, truth_names
 
@@ -75,10 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         md.append(f"| {short} | {r['plots']} | {true_h} | criterion | "
                   + " | ".join(f"{v:+.2f}" for v in c - c.min()) + " |")
         md.append("| | | | RMS (m) | " + " | ".join(f"{v:.0f}" for v in r["rms"]) + " |")
-    out = RESULTS_DIR / "altitude_observability.md"
-    out.write_text("\n".join(md) + "\n")
-    print("\n".join(md))
-    print(f"wrote {out}")
+    publish("altitude_observability.md", md)
     return 0
 
 

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from .estimators import registry
 from .metrics import rms
 from .profiles import PROFILES
-from .run import RESULTS_DIR
+from .run import publish
 from .simulate import simulate
 from .truth import SYNTHETIC, load_truth, truth_names
 
@@ -90,10 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         "|---|---|---:|---:|---:|",
         *md_rows,
     ]
-    out = RESULTS_DIR / "bias_variance.md"
-    out.write_text("\n".join(md) + "\n")
-    print("\n".join(md))
-    print(f"wrote {out}")
+    publish("bias_variance.md", md)
     return 0
 
 

@@ -24,7 +24,7 @@ from solver.config import ReconstructionConfig, RefineSettings
 from solver.reconstruct import reconstruct
 
 from .profiles import PROFILES
-from .run import RESULTS_DIR
+from .run import publish
 from .simulate import simulate
 from .truth import SYNTHETIC, load_truth, truth_names
 
@@ -107,9 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     worst = [max(r["runs"][i]["moved_max"] for r in rows) for i in range(len(args.tols))]
     md.append("| all | | " + " / ".join(f"{v:.0f}" for v in its) + " | "
               + " ; ".join(f"{v:.2f} max" for v in worst) + " |")
-    out = RESULTS_DIR / "refine_profile.md"
-    out.write_text("\n".join(md) + "\n")
-    print("\n".join(md))
+    publish("refine_profile.md", md)
     return 0
 
 

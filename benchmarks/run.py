@@ -33,6 +33,15 @@ from .simulate import SimulatedTrack, simulate
 from .truth import SYNTHETIC, load_truth, truth_names
 
 RESULTS_DIR = Path(__file__).parent / "results"
+
+
+def publish(name: str, md: list[str]) -> Path:
+    """Write the markdown lines ``md`` to ``results/<name>`` and print them."""
+    out = RESULTS_DIR / name
+    out.write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+    print(f"wrote {out}")
+    return out
 QUICK_TRUTHS = ("calibration__vienna", SYNTHETIC)
 QUICK_T_MAX = 1200.0
 FIGURE_CASES = ((SYNTHETIC, "seed000"), ("calibration__kiruna", "seed001"),
