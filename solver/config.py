@@ -29,10 +29,10 @@ class RefineSettings:
     sigmas from the first solution get no weight in the second (None: keep all), as long as they
     are at most ``outlier_max_share`` of the plots (more are not wild plots but a track that the
     bounds or the radar's sigmas do not fit: then none is rejected, and a warning says so).
-    ``block_nodes`` /
-    ``overlap_nodes``: block length and overlap for long tracks (the cut leaves half the overlap as
-    look-ahead: 256 kept seams within 0.3 m of the one-block solution). ``init``: initial guess (it
-    changes the iteration count, not the answer: see :func:`solver.refine.refine`).
+    ``block_nodes`` / ``overlap_nodes``: block length and overlap for long tracks (the cut leaves
+    half the overlap as look-ahead: 256 kept seams within 0.3 m of the one-block solution).
+    ``init``: initial guess (it changes the iteration count, not the answer: see
+    :func:`solver.refine.refine`).
     ``covariance_scale``: multiplies the prior variance of a control change in the Laplace
     covariance (``8 / lambda^2``): real tracks need wider ellipses than tracks that truly have
     piecewise-constant controls; 0.035 covers 97.8 % of those (the calibration test allows at most

@@ -20,7 +20,9 @@ derivatives. Since ``v`` is linear inside an interval, bounds at the nodes bound
 
 A second, warm-started solve then holds every control change the first one did not select
 (``<= switch_threshold``) at exactly zero, so the segments describe the trajectory exactly, and
-gives no weight to plots further than ``outlier_gate`` sigmas from the first solution.
+gives no weight to plots further than ``outlier_gate`` sigmas from the first solution (unless
+they are more than ``outlier_max_share`` of the plots: then the bounds or the sigmas, not a few
+wild plots, are what does not fit, and a warning says so).
 
 Solvers are built once per block size of a fixed ladder and reused: a track is cut into
 overlapping blocks of at most ``block_nodes`` nodes, each padded to the next ladder size with
@@ -413,9 +415,7 @@ def _report_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
     """Share of the track's time with ``v``, ``u``, ``w`` at a bound (``extra``), and a warning
     when the speed sits at one for 10 % of it or more: the plots then ask for an aircraft the
     bounds do not allow (the turn and acceleration bounds are met in hard manoeuvres)."""
-    dt = np.diff(t_nodes)
-    if dt.size == 0 or dt.sum() <= 0:
-        return
+    dt = np.diff(t_nodes)  # at least 3 plots at increasing times: sum > 0
     for col, name in ((3, "v"), (4, "u"), (5, "w")):
         lo, hi = getattr(bounds, name)
         tol = 1e-4 * (hi - lo)
