@@ -229,7 +229,7 @@ def test_plots_overhead_keep_finite_weights():
 
 
 def _straight(speed: float, wild: tuple[int, ...] = (), seed: int = 3) -> tuple[Plots, Radar]:
-    """62 plots of a straight pass at ``speed`` (SSR-like noise), ``wild`` ones 20 km long."""
+    """63 plots of a straight pass at ``speed`` (SSR-like noise), ``wild`` ones 20 km long."""
     radar = Radar(range_error_m=150.0, azimuth_error_rad=np.deg2rad(0.24), range_sigma_m=50.0,
                   azimuth_sigma_rad=np.deg2rad(0.08))
     rng = np.random.default_rng(seed)
