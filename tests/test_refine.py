@@ -9,10 +9,15 @@ import numpy as np
 import pytest
 from tracks import SEED_RADAR, make_track, truth
 
-from solver.config import ReconstructionConfig, RefineSettings
-from solver.inputs import Plots, Radar
+from solver.config import (
+    MAX_BLOCK_NODES,
+    MIN_BLOCK_NODES,
+    ReconstructionConfig,
+    RefineSettings,
+)
+from solver.inputs import InputError, Plots, Radar
 from solver.reconstruct import reconstruct
-from solver.refine import node_grid, refine
+from solver.refine import LADDER, node_grid, refine
 
 # Switches on the 10-s scan grid, so the node grid can represent the truth exactly: straight
 # legs, a deceleration, a right turn of about 210 deg, an acceleration, a left turn of about
@@ -262,3 +267,41 @@ def test_a_track_the_bounds_do_not_fit_rejects_no_plot_and_says_why():
                                                            v=(30.0, 800.0)))
     diag = reconstruct(plots, radar, fast).diagnostics
     assert diag.warnings == [] and diag.extra["v_at_bound_share"] == 0.0
+
+
+@pytest.mark.parametrize(("field", "value", "message"), [
+    ("switch_penalty_u", 0.0, "must be positive"),  # the covariance divides by it
+    ("level_smoothing", 0.0, "must be positive"),
+    ("ipopt_tol", float("nan"), "must be positive"),
+    ("level_penalty_w", -0.1, "must be zero or positive"),
+    ("huber_delta", 0.0, "must be positive or None"),
+    ("outlier_max_share", 1.5, "must be between 0 and 1"),
+    ("block_nodes", 4096, "must be between 16 and 2048"),
+    ("block_nodes", 8, "must be between 16 and 2048"),
+    ("overlap_nodes", 1, "must be at least 2"),
+    ("overlap_nodes", 64, "less than 2 * block_nodes"),  # block_nodes 32
+    ("init", "truth", "must be sliding or smoother"),
+])
+def test_unusable_refine_settings_are_named(field, value, message):
+    plots, radar = _straight(200.0)
+    settings = dataclasses.replace(RefineSettings(block_nodes=32, overlap_nodes=16),
+                                   **{field: value})
+    with pytest.raises(InputError) as err:
+        reconstruct(plots, radar, ReconstructionConfig(refine=settings))
+    assert err.value.loc == ("refine", field)
+    assert message in str(err.value), str(err.value)
+
+
+def test_smallest_blocks_the_settings_allow_still_chain():
+    """Blocks of the smallest solver, cut 1 node before their end (overlap 2): the 63-plot pass
+    is solved in 5 blocks into one continuous trajectory. (Such a short look-ahead costs
+    accuracy, see ``RefineSettings``.) The accepted block sizes are the ladder's."""
+    assert (LADDER[0], LADDER[-1]) == (MIN_BLOCK_NODES, MAX_BLOCK_NODES)
+    plots, radar = _straight(200.0)
+    rec = reconstruct(plots, radar, ReconstructionConfig(
+        refine=RefineSettings(block_nodes=MIN_BLOCK_NODES, overlap_nodes=2)))
+    assert rec.diagnostics.extra["refine_blocks"] == 5
+    assert rec.segments[0].t_start == plots.t[0] and rec.segments[-1].t_end == plots.t[-1]
+    for a, b in zip(rec.segments, rec.segments[1:], strict=False):
+        assert a.t_end == pytest.approx(b.t_start)
+    assert np.all(np.isfinite(rec.at_plots.states))
