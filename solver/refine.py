@@ -225,6 +225,7 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
         return out, fails, its
 
     sol, failures, iters = solve_blocks(guess, meas, None)
+    solves = len(blocks)
     # Second solve. Outlier gate: plots further than ``outlier_gate`` sigmas from the first
     # solution get no weight (reported). Polish (relaxed lasso): keep the switches the L1
     # solution selected, hold every other control change at exactly zero. Both are decided on
@@ -247,7 +248,7 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
         meas = meas.copy()
         meas[plot_node[rejected], M_W] = 0.0
         sol, f2, it2 = solve_blocks(sol, meas, fixed)
-        failures, iters = failures + f2, iters + it2
+        failures, iters, solves = failures + f2, iters + it2, solves + len(blocks)
     if rejected.size:
         diag.warnings.append(
             f"{rejected.size} plot(s) more than {st.outlier_gate:g} sigma from the track were "
@@ -256,8 +257,9 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
     diag.solver_failures += failures
     diag.extra.update(refine_blocks=len(blocks), refine_nodes=n, refine_iterations=iters)
     if failures:
-        diag.warnings.append(f"refinement: IPOPT did not converge in {failures} of "
-                             f"{len(blocks)} block(s); the last iterate was kept")
+        diag.warnings.append(f"refinement: IPOPT did not converge in {failures} of {solves} "
+                             f"block solve(s) over {len(blocks)} block(s); the last iterate "
+                             "was kept")
     _report_bounds(t_nodes, sol, bounds, diag)
     segments = _segments(t_nodes, sol, bounds)
     cov_nodes = _node_covariance(t_nodes, sol, meas, st, delta, bounds)
