@@ -21,8 +21,9 @@ derivatives. Since ``v`` is linear inside an interval, bounds at the nodes bound
 A second, warm-started solve then holds every control change the first one did not select
 (``<= switch_threshold``) at exactly zero, so the segments describe the trajectory exactly, and
 gives no weight to plots further than ``outlier_gate`` sigmas from the first solution (unless
-they are more than ``outlier_max_share`` of the plots: then the bounds or the sigmas, not a few
-wild plots, are what does not fit, and a warning says so).
+they are more than ``outlier_max_share`` of the plots, or the first solution's speed sits at a
+bound for ``SPEED_MISFIT_SHARE`` of the track: then the bounds or the sigmas, not a few wild
+plots, are what does not fit, and a warning says so).
 
 Solvers are built once per block size of a fixed ladder and reused: a track is cut into
 overlapping blocks of at most ``block_nodes`` nodes, each padded to the next ladder size with
@@ -67,6 +68,9 @@ ND = 4  # L1 split: du+, du-, dw+, dw-
 # units of 10 m/s) and on the dynamics gaps divided likewise: 9 % and 7 % fewer iterations than
 # unscaled on the 18 dev runs of seeds 100 and 101 (10 m or 100 m: 2-11 %), same solutions.
 VAR_SCALE = np.array([30.0, 30.0, 1.0, 10.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+# The speed at a bound of bounds.v for this share of the track or more means the bounds do not
+# fit the aircraft (warned; no plot is then taken for a wild one).
+SPEED_MISFIT_SHARE = 0.1
 
 
 @cache
@@ -233,13 +237,17 @@ def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
     rejected = np.array([], dtype=int)
     if st.outlier_gate is not None:
         far = np.flatnonzero(_quad(sol, meas)[plot_node] > st.outlier_gate**2)
-        if far.size <= st.outlier_max_share * plot_node.size:
-            rejected = far
+        far_text = (f"{far.size} of {plot_node.size} plots are more than {st.outlier_gate:g} "
+                    "sigma from the track")
+        if far.size and max(_at_bounds(t_nodes, sol, bounds, "v")) >= SPEED_MISFIT_SHARE:
+            diag.warnings.append(f"{far_text}, whose speed sits at a bound of bounds.v: the "
+                                 "bounds, not wild plots, keep them far; none was given zero "
+                                 "weight")
+        elif far.size > st.outlier_max_share * plot_node.size:
+            diag.warnings.append(f"{far_text}: too many to be wild plots (do the bounds and the "
+                                 "radar's sigmas fit this aircraft?); none was given zero weight")
         else:
-            diag.warnings.append(
-                f"{far.size} of {plot_node.size} plots are more than {st.outlier_gate:g} sigma "
-                "from the track: too many to be wild plots (do the bounds and the radar's sigmas "
-                "fit this aircraft?); none was given zero weight")
+            rejected = far
     fixed = None
     if st.switch_threshold > 0 and n > 1:
         fixed = np.zeros((2, n), dtype=bool)
@@ -418,25 +426,34 @@ def _solve_block(t: FloatArray, meas: np.ndarray, guess: np.ndarray, prev: np.nd
                        (np.array(res["lam_x"]), np.array(res["lam_g"])), model_s)
 
 
+def _at_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds, name: str
+               ) -> tuple[float, float]:
+    """Shares of the track's time with ``name`` (``v``, ``u`` or ``w``) at its lower and at its
+    upper bound (within 1e-4 of the bound range)."""
+    dt = np.diff(t_nodes)  # at least 3 plots at increasing times: sum > 0
+    lo, hi = getattr(bounds, name)
+    tol = 1e-4 * (hi - lo)
+    val = sol[:-1, 3 + "vuw".index(name)]
+    return (float(dt[val <= lo + tol].sum() / dt.sum()),
+            float(dt[val >= hi - tol].sum() / dt.sum()))
+
+
 def _report_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
                    diag: Diagnostics) -> None:
     """Share of the track's time with ``v``, ``u``, ``w`` at a bound (``extra``), and a warning
-    when the speed sits at one for 10 % of it or more: the plots then ask for an aircraft the
-    bounds do not allow (the turn and acceleration bounds are met in hard manoeuvres)."""
-    dt = np.diff(t_nodes)  # at least 3 plots at increasing times: sum > 0
-    for col, name in ((3, "v"), (4, "u"), (5, "w")):
-        lo, hi = getattr(bounds, name)
-        tol = 1e-4 * (hi - lo)
-        val = sol[:-1, col]
-        at_lo = float(dt[val <= lo + tol].sum() / dt.sum())
-        at_hi = float(dt[val >= hi - tol].sum() / dt.sum())
+    when the speed sits at one for ``SPEED_MISFIT_SHARE`` of it or more: the plots then ask for
+    an aircraft the bounds do not allow (the turn and acceleration bounds are met in hard
+    manoeuvres)."""
+    for name in "vuw":
+        at_lo, at_hi = _at_bounds(t_nodes, sol, bounds, name)
         diag.extra[f"{name}_at_bound_share"] = at_lo + at_hi
-        if name == "v":
-            for share, side, value in ((at_lo, "lower", lo), (at_hi, "upper", hi)):
-                if share >= 0.1:
-                    diag.warnings.append(
-                        f"speed at its {side} bound ({value:g} m/s) for {100 * share:.0f} % of "
-                        "the track: the plots ask for an aircraft that bounds.v does not allow")
+    lo, hi = bounds.v
+    for share, side, value in zip(_at_bounds(t_nodes, sol, bounds, "v"), ("lower", "upper"),
+                                  (lo, hi), strict=True):
+        if share >= SPEED_MISFIT_SHARE:
+            diag.warnings.append(
+                f"speed at its {side} bound ({value:g} m/s) for {100 * share:.0f} % of "
+                "the track: the plots ask for an aircraft that bounds.v does not allow")
 
 
 def _segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segment]:

@@ -256,20 +256,35 @@ def test_a_minority_of_wild_plots_is_rejected_and_listed():
     assert diag.extra["v_at_bound_share"] == 0.0
 
 
-def test_a_track_the_bounds_do_not_fit_rejects_no_plot_and_says_why():
-    """700 m/s against bounds.v up to 330 m/s: nearly every plot is far from the best bounded
-    track, which makes them a misfit of the bounds, not wild plots; nothing gets zero weight."""
-    plots, radar = _straight(700.0)
+@pytest.mark.parametrize(("speed", "side"), [(700.0, "upper bound (330 m/s)"),
+                                             (20.0, "lower bound (30 m/s)")])
+def test_a_track_the_bounds_do_not_fit_rejects_no_plot_and_says_why(speed, side):
+    """700 m/s against bounds.v up to 330 m/s (62 of 63 plots far from the best bounded track),
+    or a slow 20 m/s against bounds.v from 30 m/s (4 of 63 far, few enough to pass for wild
+    plots): the speed sits at a bound, so the bounds, not wild plots, keep them far; nothing
+    gets zero weight (the slow target lost its 4 far plots before)."""
+    plots, radar = _straight(speed)
     diag = reconstruct(plots, radar).diagnostics
     assert diag.extra["rejected_plots"] == 0
     assert diag.extra["v_at_bound_share"] == pytest.approx(1.0)
-    assert any("too many to be wild plots" in w for w in diag.warnings), diag.warnings
-    assert any("upper bound (330 m/s) for 100 %" in w for w in diag.warnings), diag.warnings
+    assert any("the bounds, not wild plots, keep them far" in w for w in diag.warnings), \
+        diag.warnings
+    assert any(f"{side} for 100 %" in w for w in diag.warnings), diag.warnings
     # with bounds that allow it, the same plots fit: no warning, no speed at a bound
-    fast = ReconstructionConfig(bounds=dataclasses.replace(ReconstructionConfig().bounds,
-                                                           v=(30.0, 800.0)))
-    diag = reconstruct(plots, radar, fast).diagnostics
+    fits = ReconstructionConfig(bounds=dataclasses.replace(ReconstructionConfig().bounds,
+                                                           v=(1.0, 800.0)))
+    diag = reconstruct(plots, radar, fits).diagnostics
     assert diag.warnings == [] and diag.extra["v_at_bound_share"] == 0.0
+
+
+def test_sigmas_far_too_small_reject_no_plot_and_say_why():
+    """Radar sigmas declared 10 times too small: 36 of 63 plots of a straight pass are more than
+    5 (declared) sigma from the track, too many to be wild plots; nothing gets zero weight."""
+    plots, radar = _straight(200.0)
+    tight = dataclasses.replace(radar, range_sigma_m=5.0, azimuth_sigma_rad=np.deg2rad(0.008))
+    diag = reconstruct(plots, tight).diagnostics
+    assert diag.extra["rejected_plots"] == 0 and diag.extra["v_at_bound_share"] == 0.0
+    assert any("too many to be wild plots" in w for w in diag.warnings), diag.warnings
 
 
 @pytest.mark.parametrize(("field", "value", "message"), [
