@@ -154,7 +154,9 @@ class ReconstructionRequest(_In):
 # ---------------------------------------------------------------------------------- response
 
 Cov = list[list[float]]
-_COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2")
+_COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2. It does not "
+        "include the bias of about h^2 / 2r away from the radar that plots without `altitude_m` "
+        "carry (a constant altitude is not observable from 2-D plots)")
 
 
 class StateOut(_Out):
