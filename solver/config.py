@@ -28,8 +28,9 @@ class RefineSettings:
     constant speed), smoothed over ``level_smoothing`` m/s^2. ``huber_delta``: pseudo-Huber
     threshold in sigmas (None: plain least squares); ``outlier_gate``: plots further than this many
     sigmas from the first solution get no weight in the second (None: keep all), as long as they
-    are at most ``outlier_max_share`` of the plots (more are not wild plots but a track that the
-    bounds or the radar's sigmas do not fit: then none is rejected, and a warning says so).
+    are at most ``outlier_max_share`` of the plots and the speed does not sit at a bound (else
+    they are not wild plots but a track that the bounds or the radar's sigmas do not fit: then
+    none is rejected, and a warning says so).
     ``block_nodes`` / ``overlap_nodes``: block length and overlap for long tracks (the cut leaves
     half the overlap as look-ahead: 256 kept seams within 0.3 m of the one-block solution; short
     look-aheads cost accuracy: on a 63-plot pass, blocks of 16 nodes with overlap 8 end 17 m from

@@ -444,12 +444,10 @@ def _report_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
     when the speed sits at one for ``SPEED_MISFIT_SHARE`` of it or more: the plots then ask for
     an aircraft the bounds do not allow (the turn and acceleration bounds are met in hard
     manoeuvres)."""
-    for name in "vuw":
-        at_lo, at_hi = _at_bounds(t_nodes, sol, bounds, name)
+    shares = {name: _at_bounds(t_nodes, sol, bounds, name) for name in "vuw"}
+    for name, (at_lo, at_hi) in shares.items():
         diag.extra[f"{name}_at_bound_share"] = at_lo + at_hi
-    lo, hi = bounds.v
-    for share, side, value in zip(_at_bounds(t_nodes, sol, bounds, "v"), ("lower", "upper"),
-                                  (lo, hi), strict=True):
+    for share, side, value in zip(shares["v"], ("lower", "upper"), bounds.v, strict=True):
         if share >= SPEED_MISFIT_SHARE:
             diag.warnings.append(
                 f"speed at its {side} bound ({value:g} m/s) for {100 * share:.0f} % of "
