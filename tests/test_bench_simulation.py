@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -153,3 +155,38 @@ def test_bias_variance_noise_free_raw_error_is_the_slant_range_excess():
         assert e["noisy"].shape == e["noise-free"].shape == d.shape
     rms = {k: np.sqrt(np.mean(v**2)) for k, v in res["raw"].items()}
     assert rms["noisy"] > 2 * rms["noise-free"]
+
+
+def test_penalty_oracle_scales_the_four_penalties_and_matches_the_benchmark():
+    """``scaled`` multiplies exactly the four penalty weights; at scale 1 the oracle's error is
+    the benchmark's own refined estimator's on the same plots, and the scale changes the result."""
+    from benchmarks.estimators import registry
+    from benchmarks.penalty_oracle import scaled, squared_errors
+    from solver.config import RefineSettings
+
+    assert scaled(1.0) == RefineSettings()
+    d, s2 = RefineSettings(), scaled(2.0)
+    assert (s2.switch_penalty_u, s2.switch_penalty_w, s2.level_penalty_u, s2.level_penalty_w) == (
+        2 * d.switch_penalty_u, 2 * d.switch_penalty_w, 2 * d.level_penalty_u,
+        2 * d.level_penalty_w)
+    assert dataclasses.replace(s2, switch_penalty_u=d.switch_penalty_u,
+                               switch_penalty_w=d.switch_penalty_w,
+                               level_penalty_u=d.level_penalty_u,
+                               level_penalty_w=d.level_penalty_w) == d
+
+    name, seed, t_max = "calibration__vienna", 100, 900.0
+    scales = [0.35, 0.7, 1.0, 1.4, 2.8]
+    sse, sse_mean, sse_ss, plots = squared_errors("seed001", [name], [seed], scales,
+                                                  progress=False, t_max=t_max)
+    sim = simulate(load_truth(name), PROFILES["seed001"], seed, t_max=t_max)
+    reg = registry()
+    for est, value in (("recon-refined-m3-R2", sse[0, 2]), ("ss-cv-rts", sse_ss[0])):
+        st = reg[est].run(sim.plots, PROFILES["seed001"].radar(), "seed001").states
+        assert value == pytest.approx(np.sum((st.x - sim.truth.x) ** 2 + (st.z - sim.truth.z) ** 2))
+    assert plots[0] == sim.plots.t.size
+    assert np.ptp(sse[0]) > 0.01 * sse[0, 2]
+    # the ensemble is the mean of the 0.7, 1, 1.4 solutions: by convexity its squared error is
+    # at most the mean of theirs
+    assert 0 < sse_mean[0] <= np.mean(sse[0, 1:4]) + 1e-9
+    with pytest.raises(ValueError, match="must include"):
+        squared_errors("seed001", [name], [seed], [1.0], progress=False, t_max=t_max)
