@@ -27,6 +27,11 @@ class InputError(ValueError):
         self.message = message
         super().__init__(f"{format_loc(loc)} {message}")
 
+    def __reduce__(self) -> tuple[type[InputError], tuple[tuple[str | int, ...], str]]:
+        """Pickle by ``(loc, message)``: the default rebuilds from ``args`` (the formatted text
+        alone) and fails, so the error could not cross a process boundary."""
+        return (type(self), (self.loc, self.message))
+
 
 def format_loc(loc: tuple[str | int, ...]) -> str:
     """``("plots", 17, "t")`` -> ``plots[17].t``."""
