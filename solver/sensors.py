@@ -1,0 +1,261 @@
+"""Sensor (measurement) models: what a sensor measures of an aircraft, and how sure it is.
+
+One class per kind, as Stone Soup's measurement models:
+
+- :class:`RadarSensor`: slant range and azimuth from a site on WGS-84 (or, for the seed's single
+  radar, from the origin of a flat plane), with the a priori errors and sigmas of
+  :class:`solver.inputs.Radar`; optional Mode C / geometric altitude per plot; optional
+  systematic biases (range, azimuth, time offsets) estimated with the trajectory.
+- :class:`PositionSensor`: ADS-B / WAM-like latitude and longitude with a horizontal sigma per
+  axis, optional altitude.
+
+``measure`` turns a state (plane position and height) into the predicted measurement;
+``fixes`` turns measurements into positions in the local plane with their one-sigma ellipses
+(the weights of the reconstruction's criterion), and, for radar plots whose altitude is unknown,
+the exact dependence of that position on the altitude (:class:`PlaneFixes`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from .frames import LocalFrame, check_lat_lon, radar_plot_position, slant_and_azimuth
+from .geometry import Ellipses, ground_range_error
+from .inputs import FloatArray, InputError, Radar
+
+ALTITUDE_RANGE_M = (-500.0, 15_000.0)
+"""Heights above the ellipsoid an unknown altitude may take (m) when it is estimated."""
+MAX_ELEVATION_FRACTION = 0.9
+"""An aircraft is at most ``0.9 r`` above a radar at slant range ``r`` (elevation < 64 deg)."""
+ALTITUDE_FIT_DEGREE = 3
+
+
+@dataclass(frozen=True)
+class Site:
+    """A sensor's position on WGS-84: latitude, longitude (degrees), height above the
+    ellipsoid (m)."""
+
+    lat_deg: float
+    lon_deg: float
+    height_m: float = 0.0
+
+    def validate(self, loc: tuple[str | int, ...]) -> None:
+        check_lat_lon(self.lat_deg, self.lon_deg, loc)
+        if not (np.isfinite(self.height_m) and -500.0 <= self.height_m <= 10_000.0):
+            raise InputError((*loc, "height_m"), "must be a finite height in [-500, 10000] m")
+
+    @property
+    def tuple(self) -> tuple[float, float, float]:
+        return (float(self.lat_deg), float(self.lon_deg), float(self.height_m))
+
+
+@dataclass(frozen=True)
+class BiasPrior:
+    """Prior standard deviations of a radar's systematic errors (zero mean): range offset
+    (m), azimuth offset (rad), time offset (s). Wide enough for the offsets a registration
+    finds in practice (tens to hundreds of metres, tenths of a degree, up to a second)."""
+
+    range_m: float = 300.0
+    azimuth_rad: float = float(np.deg2rad(0.5))
+    time_s: float = 1.0
+
+    @property
+    def sigmas(self) -> FloatArray:
+        return np.array([self.range_m, self.azimuth_rad, self.time_s])
+
+
+@dataclass(frozen=True)
+class PlaneFixes:
+    """Plots as positions in the local plane (``x`` north, ``z`` east, m).
+
+    ``ellipses``: centres at the plot's altitude (known) or at the nominal altitude (unknown,
+    see ``altitude_free``), with one-sigma semi-axes along (``B``) and across (``A``) the
+    sensor's ray; a position plot has a circle. For a radar plot with unknown altitude the
+    centre at height ``h`` is, exactly up to a cubic's fit error (< 0.05 m, tested)::
+
+        c(h) = ray * sqrt(r^2 - (h - h_site)^2) + sum_j poly[:, j] * s^j,
+        s = (h - h_mid) / h_half,  h in [h_lo, h_hi]
+
+    (the flat-earth ground distance along the ray, plus a smooth remainder from the earth's
+    curvature and the projection). ``d_range`` and ``d_azimuth`` are the derivatives of the
+    centre with respect to the measured slant range and azimuth (for sensor biases).
+    """
+
+    ellipses: Ellipses
+    altitude_free: np.ndarray  # (n,) bool
+    ray: FloatArray  # (n, 2)
+    slant: FloatArray  # (n,)
+    site_h: FloatArray  # (n,)
+    poly: FloatArray  # (n, 2, ALTITUDE_FIT_DEGREE + 1)
+    h_mid: FloatArray
+    h_half: FloatArray
+    d_range: FloatArray  # (n, 2)
+    d_azimuth: FloatArray  # (n, 2)
+
+    def centre_at(self, h: FloatArray) -> FloatArray:
+        """``(n, 2)`` centres at heights ``h`` (ignored where the altitude is known)."""
+        h = np.broadcast_to(np.asarray(h, float), self.slant.shape)
+        s = (h - self.h_mid) / self.h_half
+        powers = s[:, None] ** np.arange(self.poly.shape[2])[None, :]
+        c = np.einsum("nij,nj->ni", self.poly, powers)
+        g = np.sqrt(np.maximum(self.slant**2 - (h - self.site_h) ** 2, 0.0))
+        c = c + self.ray * g[:, None]
+        fixed = np.column_stack([self.ellipses.cx, self.ellipses.cz])
+        return np.where(self.altitude_free[:, None], c, fixed)
+
+
+@dataclass(frozen=True)
+class RadarSensor(Radar):
+    """A radar: the accuracies of :class:`Radar` plus an ``id``, its ``site`` (None: at the
+    origin of the plane: on a flat earth when no frame is given, else at the reference point)
+    and whether to estimate its systematic biases."""
+
+    id: str = field(default="radar", kw_only=True)
+    site: Site | None = field(default=None, kw_only=True)
+    estimate_bias: bool = field(default=False, kw_only=True)
+    bias_prior: BiasPrior = field(default_factory=BiasPrior, kw_only=True)
+    kind: ClassVar[str] = "radar"
+
+    def validate_at(self, loc: tuple[str | int, ...]) -> None:
+        """:meth:`Radar.validate` with errors located at ``loc`` (e.g. ``("sensors", 1)``)."""
+        try:
+            self.validate()
+        except InputError as e:
+            raise InputError((*loc, *e.loc[1:]), e.message) from None
+        if self.site is not None:
+            self.site.validate(loc)
+
+    def site_in(self, frame: LocalFrame) -> tuple[float, float, float]:
+        """The site as ``(lat, lon, h)``; a radar without a site sits at the reference point."""
+        return self.site.tuple if self.site is not None else (frame.lat_deg, frame.lon_deg, 0.0)
+
+    # ----------------------------------------------------------------- measurement model
+
+    def measure(self, frame: LocalFrame | None, x: FloatArray, z: FloatArray, h: FloatArray
+                ) -> tuple[FloatArray, FloatArray]:
+        """Predicted ``(slant range, azimuth)`` of aircraft at plane ``(x, z)`` and height ``h``
+        (flat frame: height above the radar)."""
+        if frame is None:
+            return np.sqrt(x * x + z * z + h * h), np.mod(np.arctan2(z, x), 2 * np.pi)
+        lat, lon = frame.to_geodetic(x, z)
+        r, az, _ = slant_and_azimuth(self.site_in(frame), lat, lon, h)
+        return r, az
+
+    def positions(self, frame: LocalFrame | None, range_m: FloatArray, azimuth_rad: FloatArray,
+                  h: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Plane positions ``(x, z)`` of plots at height ``h`` (flat frame: ground range
+        ``sqrt(r^2 - h^2)`` on the ray)."""
+        if frame is None:
+            d = np.sqrt(np.maximum(range_m**2 - h**2, 0.0))
+            return d * np.cos(azimuth_rad), d * np.sin(azimuth_rad)
+        lat, lon, _ = radar_plot_position(self.site_in(frame), range_m, azimuth_rad, h)
+        return frame.to_plane(lat, lon)
+
+    def fixes(self, frame: LocalFrame | None, range_m: FloatArray, azimuth_rad: FloatArray,
+              altitude_m: FloatArray, estimate_altitude: bool) -> PlaneFixes:
+        """Plots ``(r, psi, h or NaN)`` as plane fixes.
+
+        Known altitude: the exact position at that height. Unknown: at the site's height (the
+        slant range taken for the ground range, the seed's convention, whose ``h^2 / 2r`` bias
+        a single radar cannot remove), and with ``estimate_altitude`` the position as a function
+        of the height (:class:`PlaneFixes`). One-sigma ellipse: along the ray ``sigma_r |dc/dr|``
+        (at most ``sqrt(2 r sigma_r) |dc/dr| d / r`` overhead, :func:`ground_range_error`),
+        across ``max(sigma_psi |dc/dpsi|, 1 m)``.
+        """
+        r = np.asarray(range_m, float)
+        psi = np.asarray(azimuth_rad, float)
+        n = r.size
+        alt = np.asarray(altitude_m, float)
+        known = np.isfinite(alt)
+        site_h = 0.0 if frame is None else self.site_in(frame)[2]
+        h_nom = np.where(known, alt, site_h)
+        x0, z0 = self.positions(frame, r, psi, h_nom)
+        dr, dpsi = 1.0, 1e-6  # central differences: errors O(step^2), far below a millimetre
+        xr1, zr1 = self.positions(frame, r + dr, psi, h_nom)
+        xr0, zr0 = self.positions(frame, r - dr, psi, h_nom)
+        xp1, zp1 = self.positions(frame, r, psi + dpsi, h_nom)
+        xp0, zp0 = self.positions(frame, r, psi - dpsi, h_nom)
+        d_range = np.column_stack([xr1 - xr0, zr1 - zr0]) / (2 * dr)
+        d_azimuth = np.column_stack([xp1 - xp0, zp1 - zp0]) / (2 * dpsi)
+        len_r = np.hypot(*d_range.T)
+        len_c = np.hypot(*d_azimuth.T)
+        ray = d_range / np.maximum(len_r, 1e-12)[:, None]
+        # ground distance d and the overhead cap of the along-ray error (see ground_range_error)
+        d = len_c  # |dc/dpsi| is the ground distance times the plane's scale
+        B = ground_range_error(self.sigma_r, r, np.maximum(d, 1e-9)) * len_r * d / r
+        B = np.where(len_r * d / r > 0, B, self.sigma_r)
+        A = np.maximum(self.sigma_psi * len_c, 1.0)
+        ell = Ellipses(x0, z0, np.arctan2(ray[:, 1], ray[:, 0]), A, np.maximum(B, 1e-3))
+        free = ~known & estimate_altitude
+        poly = np.zeros((n, 2, ALTITUDE_FIT_DEGREE + 1))
+        poly[:, 0, 0], poly[:, 1, 0] = x0, z0
+        h_lo = np.full(n, ALTITUDE_RANGE_M[0])
+        h_hi = np.minimum(ALTITUDE_RANGE_M[1], site_h + MAX_ELEVATION_FRACTION * r)
+        h_hi = np.maximum(h_hi, h_lo + 1.0)
+        h_mid, h_half = (h_hi + h_lo) / 2, (h_hi - h_lo) / 2
+        slant = np.where(free, r, 0.0)
+        if free.any():
+            poly[free] = _altitude_remainder(self, frame, r[free], psi[free], ray[free],
+                                             site_h, h_mid[free], h_half[free])
+        return PlaneFixes(ell, free, np.where(free[:, None], ray, 0.0), slant,
+                          np.full(n, site_h), poly, h_mid, h_half, d_range, d_azimuth)
+
+
+def _altitude_remainder(sensor: RadarSensor, frame: LocalFrame | None, r: FloatArray,
+                        psi: FloatArray, ray: FloatArray, site_h: float, h_mid: FloatArray,
+                        h_half: FloatArray) -> FloatArray:
+    """Cubic (in ``s``) fit, at Chebyshev nodes, of ``c(h) - ray sqrt(r^2 - (h - h_site)^2)``
+    per plot: ``(m, 2, K)`` coefficients of ``s^0 .. s^K-1``."""
+    K = ALTITUDE_FIT_DEGREE + 1
+    nodes = np.cos(np.pi * (np.arange(K + 3) + 0.5) / (K + 3))  # 7 nodes, least squares
+    V = nodes[:, None] ** np.arange(K)[None, :]
+    m = r.size
+    rem = np.empty((nodes.size, m, 2))
+    for j, s in enumerate(nodes):
+        h = h_mid + s * h_half
+        x, z = sensor.positions(frame, r, psi, h)
+        g = np.sqrt(np.maximum(r**2 - (h - site_h) ** 2, 0.0))
+        rem[j] = np.column_stack([x, z]) - ray * g[:, None]
+    coef, *_ = np.linalg.lstsq(V, rem.reshape(nodes.size, 2 * m), rcond=None)
+    return coef.reshape(K, m, 2).transpose(1, 2, 0)
+
+
+@dataclass(frozen=True)
+class PositionSensor:
+    """ADS-B / WAM-like positions: latitude, longitude with ``position_sigma_m`` per horizontal
+    axis; ``altitude_sigma_m`` for the altitude its plots may carry."""
+
+    id: str
+    position_sigma_m: float
+    altitude_sigma_m: float = 15.0
+    kind: ClassVar[str] = "position"
+
+    def validate_at(self, loc: tuple[str | int, ...]) -> None:
+        for name in ("position_sigma_m", "altitude_sigma_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 1e-3):
+                raise InputError((*loc, name), "must be a finite number of at least 0.001 m")
+
+    def measure(self, frame: LocalFrame, x: FloatArray, z: FloatArray
+                ) -> tuple[FloatArray, FloatArray]:
+        """Predicted ``(lat_deg, lon_deg)``."""
+        return frame.to_geodetic(x, z)
+
+    def fixes(self, frame: LocalFrame, lat_deg: FloatArray, lon_deg: FloatArray) -> PlaneFixes:
+        """Plane positions with a circle of radius ``position_sigma_m`` times the plane's scale
+        (at most 1.0003 within 250 km of the reference, so taken as 1)."""
+        x, z = frame.to_plane(lat_deg, lon_deg)
+        n = x.size
+        sig = np.full(n, float(self.position_sigma_m))
+        ell = Ellipses(x, z, np.zeros(n), sig, sig)
+        poly = np.zeros((n, 2, ALTITUDE_FIT_DEGREE + 1))
+        poly[:, 0, 0], poly[:, 1, 0] = x, z
+        zero2 = np.zeros((n, 2))
+        return PlaneFixes(ell, np.zeros(n, bool), zero2, np.zeros(n), np.zeros(n), poly,
+                          np.zeros(n), np.ones(n), zero2, zero2.copy())
+
+
+Sensor = RadarSensor | PositionSensor
