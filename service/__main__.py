@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-import uvicorn
-
 from .logs import setup_logging
+from .server import serve
 from .settings import get_settings
 
 
 def main() -> None:
-    """Run one uvicorn process; the solves run in its worker pool (``TRAJRECON_WORKERS``)."""
+    """Run one uvicorn process; the solves run in its worker pool (``TRAJRECON_WORKERS``).
+    Logging is set up before uvicorn starts, so every line, the first included, is JSON."""
     s = get_settings()
     setup_logging(s.log_level)
-    uvicorn.run("service.app:app", host=s.host, port=s.port, log_level=s.log_level.lower(),
-                log_config=None, access_log=False, proxy_headers=True)
+    serve(s)
 
 
 if __name__ == "__main__":

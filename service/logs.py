@@ -9,9 +9,20 @@ import time
 LOGGER = logging.getLogger("service")
 
 
+MAX_FIELD_CHARS = 4000  # a longer string field (a traceback, an error list) is cut to this
+
+
+def _bounded(value: object) -> object:
+    if isinstance(value, str) and len(value) > MAX_FIELD_CHARS:
+        return f"{value[:MAX_FIELD_CHARS // 2]} ...[{len(value) - MAX_FIELD_CHARS} chars cut]... " \
+               f"{value[-MAX_FIELD_CHARS // 2:]}"
+    return value
+
+
 class JsonFormatter(logging.Formatter):
     """``{"ts", "level", "logger", "msg", **extra}``; ``extra`` comes from ``log(..., extra=)``
-    under the key ``fields``."""
+    under the key ``fields``. Every string is cut to :data:`MAX_FIELD_CHARS` (its head and
+    tail), so no single request can write megabytes of log."""
 
     def format(self, record: logging.LogRecord) -> str:
         out = {
@@ -24,7 +35,7 @@ class JsonFormatter(logging.Formatter):
         out.update(getattr(record, "fields", {}))
         if record.exc_info:
             out["exc"] = self.formatException(record.exc_info)
-        return json.dumps(out, default=str)
+        return json.dumps({k: _bounded(v) for k, v in out.items()}, default=str)
 
 
 def setup_logging(level: str) -> None:

@@ -51,6 +51,14 @@ class Settings(BaseSettings):
                          "before /readyz reports ready.")
     warmup_window_plots: list[int] = Field(
         [3], description="Window sizes to warm up (JSON list, e.g. [3,4,5]).")
+    request_timeout_s: float = Field(
+        30.0, gt=0, description="Time a client has to send a whole request (headers and body) "
+        "once connected or after the previous answer; then 408 and the connection is closed.")
+    keep_alive_s: int = Field(5, ge=1, description="Idle time after an answer before a "
+                              "keep-alive connection is closed (s).")
+    shutdown_timeout_s: int = Field(
+        10, ge=1, description="On SIGTERM, time open requests get to finish before they are "
+        "cancelled and the workers stopped (s).")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         "INFO", description="Level of the JSON logs on stderr.")
     access_log: bool = Field(True, description="Log every request (method, path, status, ms).")

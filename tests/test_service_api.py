@@ -421,3 +421,12 @@ def test_extreme_values_get_200_or_422(client, case, body):
     """Physically absurd values must be refused (422) or solved (200), never a 500."""
     r = post(client, body)
     assert r.status_code in (200, 422), (case, r.status_code, r.text[:300])
+
+
+def test_json_syntax_errors_name_line_and_column(client):
+    text = '{\n  "radar": {"range_error_m": 500,\n  "azimuth_error_deg": 1.5,,\n}'
+    r = post(client, text)
+    assert r.status_code == 422
+    assert r.json()["message"].startswith("body: is not valid JSON: "), r.json()
+    assert "at line 3 column 28 (char 63)" in r.json()["message"], r.json()
+    assert r.json()["detail"][0]["loc"] == ["body"]

@@ -1,0 +1,179 @@
+"""The service's edge on a real server (``python -m service``, raw sockets): framing, parse
+errors and slow clients answered with the documented JSON body, bounded metrics and logs, JSON
+logs from the first line, compressed answers."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from procs import stop
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED_BATCH = json.loads((ROOT / "examples" / "seed_track.json").read_text())
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    """A running ``python -m service``; ``log`` collects its stderr lines."""
+
+    def __init__(self, port: int, proc: subprocess.Popen):
+        self.port, self.proc = port, proc
+        self.url = f"http://127.0.0.1:{port}"
+        self.log: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.log.append(line.decode("utf-8", "replace").rstrip("\n"))
+
+
+@pytest.fixture(scope="module")
+def server():
+    port = free_port()
+    env = {**os.environ, "TRAJRECON_PORT": str(port), "TRAJRECON_WORKERS": "1",
+           "TRAJRECON_WARMUP": "false", "TRAJRECON_REQUEST_TIMEOUT_S": "1.5",
+           "TRAJRECON_KEEP_ALIVE_S": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    srv = Server(port, proc)
+    try:
+        end = time.monotonic() + 60
+        while True:
+            assert proc.poll() is None, "\n".join(srv.log)
+            assert time.monotonic() < end, "server not ready within 60 s"
+            try:
+                if httpx.get(srv.url + "/readyz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        yield srv
+    finally:
+        stop(proc)
+
+
+def raw(port: int, data: bytes, wait_s: float = 5.0) -> bytes:
+    """Send ``data`` on a fresh connection; everything received until the server closes."""
+    with socket.create_connection(("127.0.0.1", port), timeout=wait_s) as s:
+        s.sendall(data)
+        out = b""
+        while chunk := s.recv(65536):
+            out += chunk
+    return out
+
+
+def parse(answer: bytes) -> tuple[int, dict[str, str], dict]:
+    head, _, body = answer.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = dict(line.lower().split(": ", 1) for line in lines[1:])
+    return int(lines[0].split()[1]), headers, json.loads(body)
+
+
+def test_content_length_with_transfer_encoding_is_400_and_closed(server):
+    body = b'{"radar": {}, "plots": []}'
+    chunked = f"{len(body):x}\r\n".encode() + body + b"\r\n0\r\n\r\n"
+    smuggled = b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n"  # would be a second request
+    answer = raw(server.port, b"POST /v1/reconstructions HTTP/1.1\r\nhost: x\r\n"
+                 b"content-type: application/json\r\ncontent-length: 4\r\n"
+                 b"transfer-encoding: chunked\r\n\r\n" + chunked + smuggled)
+    status, headers, err = parse(answer)
+    assert status == 400 and headers["connection"] == "close"
+    assert "Content-Length and Transfer-Encoding" in err["message"]
+    assert answer.count(b"HTTP/1.1 ") == 1, "the connection must close after the 400"
+
+
+@pytest.mark.parametrize("request_bytes", [
+    b"GARBAGE\r\n\r\n",
+    b"GET /healthz HTTP/1.1\r\nhost: x\r\ncontent-length: abc\r\n\r\n",
+    b"GET /healthz HTTP/1.1\r\nno colon here\r\n\r\n",
+])
+def test_unparseable_requests_get_the_json_error_body(server, request_bytes):
+    status, headers, err = parse(raw(server.port, request_bytes))
+    assert status == 400 and headers["content-type"] == "application/json"
+    assert err["message"].startswith("invalid HTTP request") and err["detail"]
+
+
+def test_silent_and_half_sent_requests_are_timed_out(server):
+    """A connection that sends nothing, or half a header, is answered 408 and closed after the
+    request timeout (1.5 s here), not held for ever."""
+    for data in (b"", b"POST /v1/reconstructions HTTP/1.1\r\nhost: x\r\ncontent-le"):
+        start = time.monotonic()
+        status, _, err = parse(raw(server.port, data, wait_s=10))
+        assert status == 408 and "1.5 s" in err["message"]
+        assert 1.4 < time.monotonic() - start < 5
+    # a body that never ends is cut off the same way
+    start = time.monotonic()
+    raw(server.port, b"POST /v1/reconstructions HTTP/1.1\r\nhost: x\r\n"
+        b"content-type: application/json\r\ncontent-length: 1000\r\n\r\n{", wait_s=10)
+    assert time.monotonic() - start < 5
+
+
+def test_idle_keep_alive_connection_is_closed(server):
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
+        s.sendall(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
+        start = time.monotonic()
+        got = b""
+        while chunk := s.recv(65536):
+            got += chunk
+        assert got.startswith(b"HTTP/1.1 200")
+        assert time.monotonic() - start < 4  # keep-alive 1 s here
+
+
+def test_metrics_stay_bounded_under_junk_methods_and_paths(server):
+    with httpx.Client(base_url=server.url) as c:
+        for i in range(40):
+            c.request(f"JUNK{i}", f"/junk/{i}")
+        text = c.get("/metrics").text
+    assert "JUNK" not in text and "/junk/" not in text
+    series = [ln for ln in text.splitlines()
+              if ln.startswith('trajrecon_http_requests_total{method="other"')]
+    assert len(series) == 1 and float(series[0].split()[-1]) >= 40
+
+
+def test_a_request_with_many_errors_logs_a_bounded_summary(server):
+    plots = [{"t": "x", "range_m": "y", "azimuth_deg": "z"} for _ in range(3000)]
+    before = len(server.log)
+    r = httpx.post(server.url + "/v1/reconstructions", timeout=30,
+                   json={"radar": {"range_error_m": 1, "azimuth_error_deg": 1}, "plots": plots})
+    assert r.status_code == 422 and r.json()["message"].endswith("(and 8999 more)")
+    time.sleep(0.5)
+    new = server.log[before:]
+    assert any('"invalid request"' in ln and '"errors": 9000' in ln for ln in new), new
+    assert all(len(ln) < 10_000 for ln in new), max(map(len, new))
+
+
+def test_answers_are_gzip_compressed_when_accepted(server):
+    body = dict(SEED_BATCH, plots=SEED_BATCH["plots"][:40])
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        r = c.post("/v1/reconstructions", json=body, headers={"accept-encoding": "gzip"})
+        assert r.status_code == 200 and r.headers["content-encoding"] == "gzip"
+        assert int(r.headers["content-length"]) < len(r.content) / 2
+        assert r.json()["trajectory"]["at_plots"]
+        plain = c.post("/v1/reconstructions", json=body, headers={"accept-encoding": "identity"})
+        assert "content-encoding" not in plain.headers
+        assert json.loads(gzip.decompress(gzip.compress(plain.content))) == plain.json()
+
+
+def test_logs_are_json_from_the_first_line_and_name_the_host(server):
+    assert server.log, "no log"
+    lines = [json.loads(ln) for ln in server.log]  # every line, the first included
+    starting = next(ln for ln in lines if ln["msg"] == "starting")
+    assert starting["host"] == "127.0.0.1" and starting["port"] == server.port
+    assert any(f"127.0.0.1:{server.port}" in ln["msg"] for ln in lines), lines[:5]
