@@ -1,0 +1,268 @@
+"""IMM fixed-interval smoother: a forward interacting-multiple-model filter with three linear motion
+models and a backward pass per mode pair (Kim 1994's smoother for Markov-switching linear
+models, as the IMM-RTS smoother of Nadarajah, Tharmarasa, McDonald and Kirubarajan 2012), on the
+polar plots through the EKF (or converted) position update of :mod:`.kalman`.
+
+Models, state ``(x, z, vx, vz)`` (x north, z east), white acceleration of spectral density ``q``:
+
+- ``0`` constant velocity (``q_cv``);
+- ``1`` coordinated turn to the right at the fixed rate ``+omega`` (clockwise from north);
+- ``2`` coordinated turn to the left at ``-omega``; both with ``q_ct``.
+
+Fixed-rate turns keep every model linear, so each mode pair's backward step is an exact
+Rauch-Tung-Striebel step and only the measurement update is linearised. Mode switching is a
+continuous-time Markov chain: CV is left at rate ``1/tau_cv`` for either turn (half each), a
+turn is left at rate ``1/tau_ct`` for CV, so ``Pi(T)`` follows every actual step (missed plots).
+
+Outputs the smoothed, moment-matched estimate; ``info``: ``model_probabilities`` (smoothed,
+``(n, 3)``: CV, right, left), ``filtered_model_probabilities``, ``filtered`` (the forward IMM's
+``(x, z, vx, vz)``) and ``turn_rate`` (smoothed expected turn rate, rad/s, clockwise positive).
+
+Defaults (frozen from ``python -m benchmarks.tune imm_smoother``, the grid in
+``benchmarks/tune.py::IMM_SMOOTHER_GRID`` on the six dev ADS-B tracks, dev seeds 100 and 101,
+profiles seed000, seed001 and ssr; results in ``benchmarks/results/tuning_imm_smoother.json``):
+the grid point with the lowest mean over the profiles of the RMS position error relative to
+the profile's best grid point. See :data:`DEFAULTS`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..inputs import FloatArray
+from ..results import FilterEstimate
+from .common import SIGMA_V0, estimate
+from .discretize import van_loan
+from .kalman import position_update
+from .measurements import PolarPlots
+
+N_MODES = 3
+MODE_NAMES = ("cv", "right", "left")
+
+Q_CV, Q_CT, OMEGA_DEG, TAU_CV, TAU_CT = 1.0, 10.0, 3.0, 120.0, 40.0
+DEFAULTS = {"q_cv": Q_CV, "q_ct": Q_CT, "omega_deg": OMEGA_DEG, "tau_cv": TAU_CV,
+            "tau_ct": TAU_CT}
+"""``q_cv``, ``q_ct`` (m^2/s^3), turn rate of the turn models ``omega_deg`` (deg/s), mean
+sojourn times ``tau_cv``, ``tau_ct`` (s)."""
+
+_POS = (0, 1)
+
+
+def switching_matrices(dt: FloatArray, tau_cv: float, tau_ct: float) -> FloatArray:
+    """``Pi(T) = expm(G T)``, ``(len(dt), 3, 3)``, ``Pi[i, j] = P(mode j at t + T | mode i at t)``,
+    for the generator ``G = [[-a, a/2, a/2], [b, -b, 0], [b, 0, -b]]``, ``a = 1/tau_cv``,
+    ``b = 1/tau_ct`` (``tau = inf`` makes a mode absorbing). Closed form: with ``s = a + b``,
+
+        Pi[0, 0] = (b + a e^{-sT}) / s,   Pi[0, 1] = Pi[0, 2] = a (1 - e^{-sT}) / (2 s),
+        Pi[1, 0] = Pi[2, 0] = b (1 - e^{-sT}) / s,
+        Pi[1, 1] = Pi[2, 2] = ((a + b e^{-sT}) / s + e^{-bT}) / 2,
+        Pi[1, 2] = Pi[2, 1] = ((a + b e^{-sT}) / s - e^{-bT}) / 2
+
+    (the turn share decays with ``e^{-sT}`` as in the two-state chain; the difference between
+    the two turns with ``e^{-bT}``)."""
+    T = np.asarray(dt, dtype=float)
+    a, b = 1.0 / tau_cv, 1.0 / tau_ct
+    s = a + b
+    out = np.zeros((T.size, 3, 3))
+    if s == 0.0:  # nothing ever switches
+        out[:] = np.eye(3)
+        return out
+    e = np.exp(-s * T)
+    em1 = -np.expm1(-s * T)  # 1 - e^{-sT} without cancellation
+    ct_share = (a + b * e) / s
+    eb = np.exp(-b * T)
+    out[:, 0, 0] = (b + a * e) / s
+    out[:, 0, 1] = out[:, 0, 2] = a * em1 / (2 * s)
+    out[:, 1, 0] = out[:, 2, 0] = b * em1 / s
+    out[:, 1, 1] = out[:, 2, 2] = 0.5 * (ct_share + eb)
+    out[:, 1, 2] = out[:, 2, 1] = np.maximum(0.5 * (ct_share - eb), 0.0)
+    return out
+
+
+def stationary(tau_cv: float, tau_ct: float) -> FloatArray:
+    """Stationary mode probabilities ``(b, a/2, a/2) / (a + b)`` of the chain (``a = 1/tau_cv``,
+    ``b = 1/tau_ct``); ``(1, 0, 0)`` when CV is absorbing."""
+    a, b = 1.0 / tau_cv, 1.0 / tau_ct
+    if a + b == 0.0:
+        return np.array([1.0, 0.0, 0.0])
+    return np.array([b, a / 2, a / 2]) / (a + b)
+
+
+def transitions(dt: FloatArray, q_cv: float, q_ct: float, omega: float
+                ) -> tuple[FloatArray, FloatArray]:
+    """``Phi``, ``Q`` of the three models, ``(len(dt), 3, 4, 4)``. CV: ``Phi = [[I, T I], [0, I]]``,
+    ``Q = q [[T^3/3 I, T^2/2 I], [T^2/2 I, T I]]``. Turn at rate ``w``: ``p' = v``,
+    ``v' = w [[0, -1], [1, 0]] v + a``, ``E[a a^T] = q I delta``: exact ``Phi = e^{F T}`` and
+    ``Q = int_0^T e^{F s} G q G^T e^{F^T s} ds`` by Van Loan (``discretize.van_loan``)."""
+    T = np.asarray(dt, dtype=float)
+    n = T.size
+    Phi = np.zeros((n, 3, 4, 4))
+    Q = np.zeros((n, 3, 4, 4))
+    eye2 = np.eye(2)
+    Phi[:, 0] = np.eye(4)
+    Phi[:, 0, :2, 2:] = T[:, None, None] * eye2
+    Q[:, 0, :2, :2] = (q_cv * T**3 / 3)[:, None, None] * eye2
+    Q[:, 0, :2, 2:] = Q[:, 0, 2:, :2] = (q_cv * T**2 / 2)[:, None, None] * eye2
+    Q[:, 0, 2:, 2:] = (q_cv * T)[:, None, None] * eye2
+    G = np.zeros((4, 2))
+    G[2:, :] = eye2
+    for m, w in ((1, omega), (2, -omega)):
+        F = np.zeros((4, 4))
+        F[:2, 2:] = eye2
+        F[2, 3], F[3, 2] = -w, w
+        Phi[:, m], Q[:, m] = van_loan(F, G, q_ct, T)
+    return Phi, Q
+
+
+def _prior(meas: PolarPlots) -> tuple[FloatArray, FloatArray]:
+    """The first plot point with its converted covariance, velocity 0 +- ``SIGMA_V0``."""
+    x0 = np.zeros(4)
+    x0[:2] = meas.points()[0]
+    P0 = np.zeros((4, 4))
+    P0[:2, :2] = meas.converted_cov()[0]
+    P0[2, 2] = P0[3, 3] = SIGMA_V0**2
+    return x0, P0
+
+
+def imm_forward(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray,
+                mu0: FloatArray, measurement: str = "ekf"
+                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The forward IMM (Blom and Bar-Shalom 1988). Per step ``k`` (``T = t_k - t_{k-1}``):
+
+    - predicted mode probabilities ``c_j = sum_i Pi_ij mu_i``, mixing weights
+      ``W_ij = P(m_{k-1} = i | m_k = j, Z^{k-1}) = Pi_ij mu_i / c_j``;
+    - mixed ``x0_j = sum_i W_ij x_i``, ``P0_j = sum_i W_ij (P_i + (x_i - x0_j)(x_i - x0_j)^T)``;
+    - model ``j``: ``x_j = Phi_j x0_j``, ``P_j = Phi_j P0_j Phi_j^T + Q_j``, then the position
+      update with plot ``k`` (``kalman.position_update``, Joseph form), likelihood
+      ``L_j = exp(-(nu^T S^-1 nu + log det S) / 2)``;
+    - ``mu_j = c_j L_j / sum_l c_l L_l``.
+
+    Returns the mode-conditioned filtered states ``(n, 3, 4)``, covariances ``(n, 3, 4, 4)``, the
+    mode probabilities ``(n, 3)`` and the mixing weights ``W (n - 1, 3, 3)`` (what the backward pass
+    needs). A mode with ``c_j = 0`` (absorbing chain) is mixed with ``mu`` and keeps probability 0.
+    """
+    n = len(meas)
+    x0, P0 = _prior(meas)
+    xf = np.empty((n, N_MODES, 4))
+    Pf = np.empty((n, N_MODES, 4, 4))
+    mu = np.empty((n, N_MODES))
+    W = np.empty((max(n - 1, 0), N_MODES, N_MODES))
+    xf[0], Pf[0], mu[0] = x0, P0, mu0
+    PhiT = np.swapaxes(Phi, -1, -2)
+    loglik = np.empty(N_MODES)
+    m, x, P = mu[0], xf[0], Pf[0]
+    for k in range(1, n):
+        joint = Pi[k - 1] * m[:, None]
+        c = joint.sum(0)
+        if c.min() > 0:
+            w = joint / c
+        else:
+            w = np.divide(joint, c, out=np.repeat(m[:, None], N_MODES, 1), where=c > 0)
+        W[k - 1] = w
+        wt = w.T
+        xm = wt @ x  # (j, 4)
+        d = x[None, :, :] - xm[:, None, :]  # (j, i, 4)
+        Pm = (wt @ P.reshape(N_MODES, 16)).reshape(N_MODES, 4, 4) \
+            + (d * wt[:, :, None]).transpose(0, 2, 1) @ d
+        xp = (Phi[k - 1] @ xm[:, :, None])[:, :, 0]
+        Pp = Phi[k - 1] @ Pm @ PhiT[k - 1] + Q[k - 1]
+        x, P = xf[k], Pf[k]
+        for j in range(N_MODES):
+            x[j], P[j], nis, logdet = position_update(xp[j], Pp[j], meas, k, _POS, measurement)
+            loglik[j] = -0.5 * (nis + logdet)
+        post = c * np.exp(loglik - loglik.max())
+        total = post.sum()
+        m = mu[k] = post / total if total > 0 and np.isfinite(total) else c
+    return xf, Pf, mu, W
+
+
+def imm_backward(xf: FloatArray, Pf: FloatArray, mu: FloatArray, W: FloatArray,
+                 Phi: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Backward pass per mode pair (Kim 1994). With the forward mode-conditioned ``x_k^i``,
+    ``P_k^i`` and for every pair ``(i, j)`` (``i`` at ``k``, ``j`` at ``k + 1``):
+
+    - ``x^{ij} = Phi_j x_k^i``, ``P^{ij} = Phi_j P_k^i Phi_j^T + Q_j``,
+      ``C^{ij} = P_k^i Phi_j^T (P^{ij})^-1``;
+    - ``xs_k^{ij} = x_k^i + C^{ij} (xs_{k+1}^j - x^{ij})``,
+      ``Ps_k^{ij} = P_k^i + C^{ij} (Ps_{k+1}^j - P^{ij}) C^{ij T}``;
+    - ``P(m_k = i, m_{k+1} = j | Z^N) = W_ij mus_{k+1}(j)`` (``W`` the forward mixing weights
+      ``P(m_k = i | m_{k+1} = j, Z^k)``), ``mus_k(i) = sum_j W_ij mus_{k+1}(j)``;
+    - ``xs_k^i = sum_j w_ij xs_k^{ij}``, ``Ps_k^i = sum_j w_ij (Ps_k^{ij} + dd^T)`` with
+      ``w_ij = W_ij mus_{k+1}(j) / mus_k(i)`` and ``d = xs_k^{ij} - xs_k^i``.
+
+    The pair gains depend on the forward pass only and are computed for all steps at once.
+    Returns the smoothed mode-conditioned states, covariances and mode probabilities.
+    """
+    n = xf.shape[0]
+    xs, Ps, mus = xf.copy(), Pf.copy(), mu.copy()
+    if n < 2:
+        return xs, Ps, mus
+    # pairs (k, i, j): model j applied to the filtered x_k^i
+    Phj = Phi[:, None]  # (n-1, 1, j, 4, 4)
+    Pk = Pf[:-1, :, None]  # (n-1, i, 1, 4, 4)
+    PhiP = Phj @ Pk  # Phi_j P_k^i
+    xpair = (Phj @ xf[:-1, :, None, :, None])[..., 0]  # (n-1, i, j, 4)
+    Ppair = PhiP @ np.swapaxes(Phj, -1, -2) + Q[:, None]
+    Ppair = 0.5 * (Ppair + np.swapaxes(Ppair, -1, -2))
+    C = np.swapaxes(np.linalg.solve(Ppair, PhiP), -1, -2)  # P_k^i Phi_j^T (P^{ij})^-1
+    CT = np.swapaxes(C, -1, -2)
+    # the parts of the pair recursion known before the backward pass:
+    # xs^{ij} = a^{ij} + C^{ij} xs_{k+1}^j, Ps^{ij} = B^{ij} + C^{ij} Ps_{k+1}^j C^{ij T}
+    a = xf[:-1, :, None, :] - (C @ xpair[..., None])[..., 0]
+    B = Pk - C @ Ppair @ CT
+    uniform = np.full((N_MODES, N_MODES), 1.0 / N_MODES)
+    for k in range(n - 2, -1, -1):
+        joint = W[k] * mus[k + 1]
+        m = joint.sum(1)
+        mus[k] = m / m.sum()
+        if m.min() > 0:
+            wgt = joint / m[:, None]
+        else:
+            wgt = np.divide(joint, m[:, None], out=uniform.copy(), where=m[:, None] > 0)
+        xij = a[k] + (C[k] @ xs[k + 1][None, :, :, None])[..., 0]  # (i, j, 4)
+        Pij = B[k] + C[k] @ Ps[k + 1][None] @ CT[k]
+        wv = wgt[:, :, None]
+        x = (wv * xij).sum(1)
+        d = xij - x[:, None, :]
+        xs[k] = x
+        Ps[k] = (wv[..., None] * Pij).sum(1) + (d * wv).transpose(0, 2, 1) @ d
+    Ps = 0.5 * (Ps + np.swapaxes(Ps, -1, -2))
+    return xs, Ps, mus
+
+
+def combine(x: FloatArray, P: FloatArray, mu: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Moment matching over the modes: ``x = sum_i mu_i x_i``,
+    ``P = sum_i mu_i (P_i + (x_i - x)(x_i - x)^T)``; ``(n, 4)``, ``(n, 4, 4)``."""
+    xc = np.einsum("ki,kia->ka", mu, x)
+    d = x - xc[:, None, :]
+    Pc = np.einsum("ki,kiab->kab", mu, P) + np.einsum("ki,kia,kib->kab", mu, d, d)
+    return xc, Pc
+
+
+def run_imm_smoother(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT,
+                     omega_deg: float = OMEGA_DEG, tau_cv: float = TAU_CV,
+                     tau_ct: float = TAU_CT, measurement: str = "ekf",
+                     smooth: bool = True) -> FilterEstimate:
+    """IMM (CV, right turn, left turn) filter and fixed-interval smoother on the plots;
+    ``smooth=False`` returns the forward IMM. The prior at the first plot is the plot point with
+    its converted covariance, velocity 0 +- ``SIGMA_V0``, the chain's stationary probabilities."""
+    for name, v in (("q_cv", q_cv), ("q_ct", q_ct), ("tau_cv", tau_cv), ("tau_ct", tau_ct)):
+        if not v > 0:
+            raise ValueError(f"{name} must be positive, got {v}")
+    if not np.isfinite(omega_deg):
+        raise ValueError(f"omega_deg must be finite, got {omega_deg}")
+    if measurement not in ("ekf", "converted"):
+        raise ValueError(f"unknown measurement mode {measurement!r} (use 'converted' or 'ekf')")
+    t = meas.t
+    dt = np.diff(t)
+    Phi, Q = transitions(dt, q_cv, q_ct, np.deg2rad(omega_deg))
+    Pi = switching_matrices(dt, tau_cv, tau_ct)
+    xf, Pf, mu, W = imm_forward(meas, Phi, Q, Pi, stationary(tau_cv, tau_ct), measurement)
+    sf, Cf = combine(xf, Pf, mu)
+    omega = np.deg2rad(omega_deg) * np.array([0.0, 1.0, -1.0])
+    if not smooth:
+        return estimate("imm_smoother", t, sf, Cf, model_probabilities=mu, turn_rate=mu @ omega)
+    xs, Ps, mus = imm_backward(xf, Pf, mu, W, Phi, Q)
+    s, C = combine(xs, Ps, mus)
+    return estimate("imm_smoother", t, s, C, model_probabilities=mus,
+                    filtered_model_probabilities=mu, filtered=sf, turn_rate=mus @ omega)
