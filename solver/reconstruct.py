@@ -8,36 +8,77 @@ import time
 import numpy as np
 
 from .config import ReconstructionConfig
-from .inputs import Plots, Radar
+from .inputs import InputError, Plots, Radar
+from .plots import PlotTable
 from .results import Reconstruction
 
 log = logging.getLogger(__name__)
 
 
-def reconstruct(plots: Plots, radar: Radar,
-                config: ReconstructionConfig | None = None) -> Reconstruction:
+def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
+                config: ReconstructionConfig | None = None,
+                deadline: float | None = None) -> Reconstruction:
     """Reconstruct one aircraft's trajectory from its plots.
 
-    ``config.method == "sliding"``: the seed's sliding constant-control windows (spec section
-    6). ``"refined"`` (default): one bounded full-track NLP that uses every plot before and
-    after each point (``solver.refine``); tracks of fewer than 3 plots always take the sliding
-    path, which defines their behaviour.
-    """
-    from .refine import refine
-    from .sliding import reconstruct_sliding
+    ``plots`` is either the seed's single radar's :class:`Plots` with its ``radar`` (at the
+    origin of a flat plane) or a :class:`PlotTable` of any sensors (``radar`` None).
 
+    ``config.method == "sliding"``: the seed's sliding constant-control windows (spec section
+    6), for a single radar at the origin of a flat plane only. ``"refined"`` (default): one
+    bounded full-track NLP over every plot of every sensor (``solver.refine``); single-radar
+    tracks of fewer than 3 plots take the sliding path, which defines their behaviour.
+    ``deadline`` (``time.monotonic()``): the refinement stops at its next IPOPT iteration after
+    it and raises :class:`solver.refine.DeadlineExceeded`.
+    On a frame on the earth, every state carries its latitude and longitude.
+    """
     config = config or ReconstructionConfig()
-    radar.validate()
-    plots.validate()
+    if isinstance(plots, PlotTable):
+        table = plots
+        table.validate()
+    else:
+        if radar is None:
+            raise TypeError("reconstruct(plots, radar): the radar of the plots is missing")
+        radar.validate()
+        plots.validate()
+        table = PlotTable.from_plots(plots, radar)
     config.validate()
     start = time.perf_counter()
+    if table.is_legacy:
+        legacy_plots, legacy_radar = table.legacy()
+        result = _reconstruct_single(legacy_plots, legacy_radar, config, deadline)
+    else:
+        from .refine import refine_table
+
+        if config.method == "sliding":
+            raise InputError(("method",), "sliding takes the plots of one radar at the origin "
+                             "of a flat plane (the request's `radar`); use refined for sensors "
+                             "on the earth or several sensors")
+        if len(table) < 3:
+            raise InputError(("plots",), f"has {len(table)} plot(s); reconstructing from "
+                             "`sensors` needs at least 3")
+        result = refine_table(table, config, deadline=deadline)
+    if table.frame is not None:
+        for s in (result.at_plots, result.samples):
+            s.lat_deg, s.lon_deg = table.frame.to_geodetic(s.x, s.z)
+    result.diagnostics.elapsed_ms = (time.perf_counter() - start) * 1e3
+    return result
+
+
+def _reconstruct_single(plots: Plots, radar: Radar, config: ReconstructionConfig,
+                        deadline: float | None) -> Reconstruction:
+    """The seed's setting: refined with a sliding-window fallback, or sliding alone."""
+    from . import refine as refine_module
+    from .sliding import reconstruct_sliding
+
     result = None
     if config.method == "refined" and len(plots) >= 3:
         initial = (reconstruct_sliding(plots, radar, config)
                    if config.refine.init == "sliding" else None)
         try:
-            result = refine(plots, radar, config, initial)
+            result = refine_module.refine(plots, radar, config, initial, deadline)
         except (ArithmeticError, ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            if isinstance(exc, refine_module.DeadlineExceeded):
+                raise
             if "KeyboardInterrupt" in str(exc):
                 # CasADi reports a signal handler's exception (Ctrl-C, a time limit) this way:
                 # an interruption, not a numerical failure
@@ -51,5 +92,4 @@ def reconstruct(plots: Plots, radar: Radar,
                 f"refinement failed ({type(exc).__name__}: {exc}); sliding-window result")
     if result is None:
         result = reconstruct_sliding(plots, radar, config)
-    result.diagnostics.elapsed_ms = (time.perf_counter() - start) * 1e3
     return result

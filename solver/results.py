@@ -13,7 +13,9 @@ from .inputs import FloatArray
 class StateSeries:
     """Horizontal states at times ``t``: position ``(x, z)`` (m), velocity ``(vx, vz)`` (m/s).
 
-    ``cov``, when present, is the ``(n, 4, 4)`` covariance over ``(x, z, vx, vz)``.
+    ``cov``, when present, is the ``(n, 4, 4)`` covariance over ``(x, z, vx, vz)``; ``h`` and
+    ``h_sigma`` the estimated height (m) and its standard deviation where the altitude was
+    estimated; ``lat_deg``/``lon_deg`` the positions on WGS-84 when the plane has a frame.
     """
 
     t: FloatArray
@@ -22,6 +24,10 @@ class StateSeries:
     vx: FloatArray
     vz: FloatArray
     cov: FloatArray | None = None
+    h: FloatArray | None = None
+    h_sigma: FloatArray | None = None
+    lat_deg: FloatArray | None = None
+    lon_deg: FloatArray | None = None
 
     @property
     def speed(self) -> FloatArray:
@@ -82,14 +88,45 @@ class Diagnostics:
 
 
 @dataclass
+class SensorReport:
+    """One sensor's plots against the reconstruction: counts, the estimated systematic offsets
+    with their standard deviations (None when not estimated), and the residuals (measured minus
+    predicted from the track, after the offsets): mean, RMS and standard deviation in slant
+    range (m) and azimuth (rad) for a radar, the horizontal RMS (m) for a position sensor."""
+
+    id: str
+    kind: str
+    plots: int
+    plots_gated: int = 0
+    range_bias_m: float | None = None
+    range_bias_sigma_m: float | None = None
+    azimuth_bias_rad: float | None = None
+    azimuth_bias_sigma_rad: float | None = None
+    time_bias_s: float | None = None
+    time_bias_sigma_s: float | None = None
+    range_residual_mean_m: float | None = None
+    range_residual_rms_m: float | None = None
+    range_residual_sigma_m: float | None = None
+    azimuth_residual_mean_rad: float | None = None
+    azimuth_residual_rms_rad: float | None = None
+    azimuth_residual_sigma_rad: float | None = None
+    position_residual_rms_m: float | None = None
+
+
+@dataclass
 class Reconstruction:
     """Piecewise-constant-control trajectory: its segments, the state at every plot time (input
-    order), samples on a regular time step, and diagnostics."""
+    order), samples on a regular time step, and diagnostics; with several sensors or a frame on
+    the earth, one report per sensor, the frame, and the estimated altitude (time-weighted mean
+    height and its standard deviation) where it was estimated."""
 
     segments: list[Segment]
     at_plots: StateSeries
     samples: StateSeries
     diagnostics: Diagnostics
+    sensors: list[SensorReport] = field(default_factory=list)
+    altitude_m: float | None = None
+    altitude_sigma_m: float | None = None
 
 
 @dataclass

@@ -173,11 +173,13 @@ def test_solver_failure_is_reported_not_raised(monkeypatch):
     """If IPOPT fails in a block, the last iterate is kept and the failures are counted per
     solve."""
     import solver.refine as refine_module
+    from solver.refine import nlp
+    from solver.refine.layout import Variant
 
-    real = refine_module.block_solver
+    real = nlp.block_solver
 
-    def crippled(n, warm=False, tol=RefineSettings.ipopt_tol):
-        solver = real(n, warm, tol)
+    def crippled(n, variant=Variant(), warm=False, tol=RefineSettings.ipopt_tol):  # noqa: B008
+        solver = real(n, variant, warm, tol)
 
         class OneIteration:
             def __call__(self, **kw):
@@ -190,7 +192,7 @@ def test_solver_failure_is_reported_not_raised(monkeypatch):
 
         return OneIteration()
 
-    monkeypatch.setattr(refine_module, "block_solver", crippled)
+    monkeypatch.setattr(nlp, "block_solver", crippled)
     plots, radar, _ = _noisy(seed=7)
     rec = refine_module.refine(plots, radar, ReconstructionConfig())
     # every solve "fails": one block, solved twice (switch selection, then polish)

@@ -1,0 +1,130 @@
+"""Uncertainty of the refined track: the Laplace approximation at the solution.
+
+The L1 prior on control changes is replaced by a Gaussian of the same variance (a Laplace
+density ``exp(-lambda |Delta| / 2)`` has variance ``8 / lambda^2``, scaled by
+``covariance_scale``), the dynamics and the plots' residuals are linearised about the solution,
+and the Kalman filter and Rauch-Tung-Striebel smoother of :mod:`solver.estimation.kalman` over
+the nodes give the marginal covariance of the Gauss-Newton posterior. The state is the node
+solution ``(x, z, phi, v, u, w[, h, hd])`` followed by the estimated radar offsets, which are
+constant states (so their smoothed covariance is their posterior covariance, and the track's
+covariance includes their uncertainty). A residual down-weighted by the robust loss enters with
+its IRLS weight ``rho'(q) = 1 / sqrt(1 + q / delta^2)``.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import casadi as ca
+import numpy as np
+
+from .. import compiled
+from ..config import RefineSettings
+from ..estimation.kalman import predict, rts_smoother, update
+from ..inputs import Bounds, FloatArray
+from ..motion import motion_function
+from ..sensors import ALTITUDE_RANGE_M
+from .layout import BIAS_TERMS, HD_MAX, Variant
+from .nodes import NodeData, info_matrices
+
+NH = 6  # horizontal node state: x, z, phi, v, u, w
+
+
+@cache
+def motion_jacobian() -> ca.Function:
+    """``J(s6, dt) -> d s6(dt) / d s6``: the motion map's Jacobian with ``u, w`` in the state."""
+    s = ca.SX.sym("s", NH)
+    dt = ca.SX.sym("dt")
+    out = ca.vertcat(motion_function()(s[:4], s[4], s[5], dt), s[4], s[5])
+    return compiled.function("motion_jac", [s, dt], [ca.jacobian(out, s)], ["s", "dt"], ["jac"])
+
+
+def transitions(sol: np.ndarray, dt: FloatArray, variant: Variant) -> np.ndarray:
+    """``(m, nx, nx)`` state transitions over steps ``dt`` from node states ``sol`` (the motion
+    Jacobian; ``h += dt hd``; offsets constant)."""
+    m = dt.size
+    nx = state_size(variant)
+    Phi = np.zeros((m, nx, nx))
+    Phi[:, :NH, :NH] = compiled.columns(motion_jacobian(), sol[:, :NH].T, dt[None, :])[0]
+    Phi[:, range(NH, nx), range(NH, nx)] = 1.0
+    if variant.altitude:
+        Phi[:, NH, NH + 1] = dt
+    return Phi
+
+
+def state_size(variant: Variant) -> int:
+    return NH + 2 * variant.altitude + BIAS_TERMS * variant.biases
+
+
+def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, data: NodeData,
+                    variant: Variant, st: RefineSettings, delta: float, bounds: Bounds,
+                    hd_info: FloatArray, bias_sigma: FloatArray) -> np.ndarray:
+    """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets)."""
+    n = t_nodes.size
+    nx = state_size(variant)
+    dt = np.append(np.diff(t_nodes), 0.0)
+    Phi = transitions(sol, dt, variant)
+    Q = np.zeros((n, nx, nx))
+    qvar = st.covariance_scale * np.array([8 / st.switch_penalty_u**2,
+                                           8 / st.switch_penalty_w**2])
+    Q[:, 4, 4], Q[:, 5, 5] = qvar
+    if variant.altitude:  # the change into node k + 1 has variance 1 / hd_info[k + 1]
+        Q[:-1, NH + 1, NH + 1] = 1.0 / hd_info[1:]
+    H, Rinv = _plot_jacobians(sol, biases, data, variant, delta)
+    measured = (Rinv.any(axis=(1, 2))) & (data.weight > 0)
+    R = np.zeros_like(Rinv)
+    R[measured] = np.linalg.inv(Rinv[measured])
+    # weak prior: uniform within the bounds for heading, speed and the controls
+    span = np.array([bounds.v[1] - bounds.v[0], bounds.u[1] - bounds.u[0],
+                     bounds.w[1] - bounds.w[0]])
+    prior = [1e12, 1e12, np.pi**2 / 3, *(span**2 / 12)]
+    if variant.altitude:
+        prior += [(ALTITUDE_RANGE_M[1] - ALTITUDE_RANGE_M[0]) ** 2 / 12, HD_MAX**2 / 3]
+    prior += list(np.asarray(bias_sigma, float) ** 2)
+    xs = np.zeros(nx)
+    xf, xp = np.zeros((n, nx)), np.zeros((n, nx))
+    Pf, Pp = np.empty((n, nx, nx)), np.empty((n, nx, nx))
+    P = np.diag(prior)
+    nu2 = np.zeros(2)
+    alt_H = np.zeros((1, nx))
+    if variant.altitude:
+        alt_H[0, NH] = 1.0
+    for k in range(n):
+        if k:
+            _, P = predict(xs, P, Phi[k - 1], Q[k - 1])
+        Pp[k] = P
+        if measured[k]:
+            _, P, _, _ = update(xs, P, nu2, H[k], R[k])
+        if variant.altitude and data.alt_info[k] > 0:
+            _, P, _, _ = update(xs, P, np.zeros(1), alt_H, np.array([[1 / data.alt_info[k]]]))
+        Pf[k] = P
+    _, Ps = rts_smoother(xf, Pf, xp, Pp, Phi)
+    return Ps
+
+
+def _plot_jacobians(sol: np.ndarray, biases: np.ndarray, data: NodeData, variant: Variant,
+                    delta: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per node: the ``(2, nx)`` Jacobian of the plot's residual with respect to the state, and
+    the residual's information ``M rho'(q)`` (zero where no plot)."""
+    n = sol.shape[0]
+    nx = state_size(variant)
+    H = np.zeros((n, 2, nx))
+    H[:, 0, 0] = H[:, 1, 1] = 1.0
+    if variant.altitude:
+        H[:, :, NH] = -data.dcentre_dh(sol[:, NH])
+    if variant.biases:
+        phi, v = sol[:, 2], sol[:, 3]
+        e = np.column_stack([np.cos(phi), np.sin(phi)])
+        b = data.sensor @ biases  # (n, 3) offsets of each node's radar
+        H[:, :, 2] += -(b[:, 2] * v)[:, None] * np.column_stack([-np.sin(phi), np.cos(phi)])
+        H[:, :, 3] += -b[:, 2:3] * e
+        base = NH + 2 * variant.altitude
+        for j in range(variant.biases):
+            on = data.sensor[:, j][:, None]
+            H[:, :, base + 3 * j] = on * data.d_range
+            H[:, :, base + 3 * j + 1] = on * data.d_azimuth
+            H[:, :, base + 3 * j + 2] = on * -(v[:, None] * e)
+    q = data.quad(sol, biases, variant.altitude)
+    irls = 1.0 / np.sqrt(1 + q / delta**2)
+    Rinv = info_matrices(data.info) * (irls * data.weight)[:, None, None]
+    return H, Rinv

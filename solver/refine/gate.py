@@ -1,0 +1,70 @@
+"""The outlier gate and the bound diagnostics of the refinement.
+
+Plots further than ``outlier_gate`` sigmas from the first solution get no weight in the
+second, unless they are more than ``outlier_max_share`` of the plots or the first solution's
+speed sits at a bound of ``bounds.v`` for ``SPEED_MISFIT_SHARE`` of the track: then the bounds
+or the sigmas, not a few wild plots, are what does not fit, and a warning says so.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import RefineSettings
+from ..inputs import Bounds, FloatArray
+from ..results import Diagnostics
+
+SPEED_MISFIT_SHARE = 0.1
+"""The speed at a bound of ``bounds.v`` for this share of the track or more means the bounds do
+not fit the aircraft (warned; no plot is then taken for a wild one)."""
+COLUMN = {"v": 3, "u": 4, "w": 5}  # columns of a node solution
+
+
+def wild_plots(quad_at_plots: FloatArray, t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
+               st: RefineSettings, diag: Diagnostics) -> np.ndarray:
+    """Indexes (into ``quad_at_plots``) of the plots to give no weight, with the warning when
+    far plots are not taken for wild ones."""
+    if st.outlier_gate is None:
+        return np.array([], dtype=int)
+    far = np.flatnonzero(quad_at_plots > st.outlier_gate**2)
+    n = quad_at_plots.size
+    text = f"{far.size} of {n} plots are more than {st.outlier_gate:g} sigma from the track"
+    if far.size and max(at_bounds(t_nodes, sol, bounds, "v")) >= SPEED_MISFIT_SHARE:
+        diag.warnings.append(f"{text}, whose speed sits at a bound of bounds.v: the bounds, not "
+                             "wild plots, keep them far; none was given zero weight")
+        return np.array([], dtype=int)
+    if far.size > st.outlier_max_share * n:
+        diag.warnings.append(f"{text}: too many to be wild plots (do the bounds and the "
+                             "sensors' sigmas fit this aircraft?); none was given zero weight")
+        return np.array([], dtype=int)
+    return far
+
+
+def at_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds, name: str
+              ) -> tuple[float, float]:
+    """Shares of the track's time with ``name`` (``v``, ``u`` or ``w``) at its lower and at its
+    upper bound (within 1e-4 of the bound range)."""
+    dt = np.diff(t_nodes)
+    total = dt.sum()
+    if total <= 0:  # every plot at one instant
+        return 0.0, 0.0
+    lo, hi = getattr(bounds, name)
+    tol = 1e-4 * (hi - lo)
+    val = sol[:-1, COLUMN[name]]
+    return float(dt[val <= lo + tol].sum() / total), float(dt[val >= hi - tol].sum() / total)
+
+
+def report_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
+                  diag: Diagnostics) -> None:
+    """Share of the track's time with ``v``, ``u``, ``w`` at a bound (``extra``), and a warning
+    when the speed sits at one for ``SPEED_MISFIT_SHARE`` of it or more: the plots then ask for
+    an aircraft the bounds do not allow (the turn and acceleration bounds are met in hard
+    manoeuvres)."""
+    shares = {name: at_bounds(t_nodes, sol, bounds, name) for name in "vuw"}
+    for name, (at_lo, at_hi) in shares.items():
+        diag.extra[f"{name}_at_bound_share"] = at_lo + at_hi
+    for share, side, value in zip(shares["v"], ("lower", "upper"), bounds.v, strict=True):
+        if share >= SPEED_MISFIT_SHARE:
+            diag.warnings.append(
+                f"speed at its {side} bound ({value:g} m/s) for {100 * share:.0f} % of "
+                "the track: the plots ask for an aircraft that bounds.v does not allow")

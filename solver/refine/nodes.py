@@ -1,0 +1,283 @@
+"""The node grid of the refinement and what each node knows: its plot's fix, the initial guess.
+
+Nodes: every plot time in time order (plots of different sensors at one instant get nodes
+joined by zero-length intervals, ``F(s, u, w, 0) = s``), plus equal subdivisions of gaps longer
+than ``max_node_step_s``. One plot per node at most, so every plot keeps its own weight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..estimation.cv_rts import smoothed_means
+from ..inputs import Bounds, FloatArray
+from ..plots import PlotTable
+from ..results import Reconstruction, StateSeries
+from ..sensors import ALTITUDE_FIT_DEGREE, ALTITUDE_RANGE_M, PlaneFixes, PositionSensor
+from ..trajectory import evaluate
+from .layout import HD_MAX, Variant
+
+INIT_SMOOTHER_Q = 30.0  # m^2/s^3: the CV smoother of the initial guess follows turns
+Q_VERTICAL = 0.5
+"""m^2/s^3: spectral density of vertical-rate changes (integrated random walk of the height):
+a level-off from 10 m/s within 30 s costs about 7 chi-square units."""
+MIN_NODE_DT = 1.0  # s: the vertical-rate change across a zero-length interval is weighted as 1 s
+ALTITUDE_GUESSES = np.arange(0.0, 14_001.0, 1000.0)  # m: constant heights tried for the start
+
+
+def node_grid(t_plots: FloatArray, max_step: float) -> tuple[FloatArray, np.ndarray]:
+    """Node times (every plot time, non-decreasing, plus equal subdivisions of long gaps) and
+    each (time-ordered) plot's node."""
+    gaps = np.diff(t_plots)
+    parts = np.maximum(np.ceil(gaps / max_step - 1e-9).astype(int), 1)
+    starts = np.concatenate([[0], np.cumsum(parts)])
+    frac = np.arange(starts[-1]) - np.repeat(starts[:-1], parts)
+    t_nodes = np.repeat(t_plots[:-1], parts) + frac * np.repeat(gaps / parts, parts)
+    return np.append(t_nodes, t_plots[-1]), starts
+
+
+@dataclass
+class NodeData:
+    """Per node (``n`` rows; zero where the node has no plot): the plot's fix (centre, R2
+    entries ``(a, b, c)`` of its one-sigma ellipse, weight), and for the variants the centre's
+    altitude dependence and height bounds, measured altitudes, and bias derivatives."""
+
+    centre: FloatArray  # (n, 2)
+    info: FloatArray  # (n, 3)
+    weight: FloatArray  # (n,)
+    centre_h: FloatArray  # (n, 2, DEG): coefficients of s^1..s^DEG
+    ray: FloatArray  # (n, 2)
+    slant: FloatArray  # (n,)
+    site_h: FloatArray
+    h_mid: FloatArray
+    h_half: FloatArray
+    h_lo: FloatArray
+    h_hi: FloatArray
+    alt: FloatArray
+    alt_info: FloatArray
+    d_range: FloatArray  # (n, 2)
+    d_azimuth: FloatArray  # (n, 2)
+    sensor: FloatArray  # (n, biases) one-hot
+    free: np.ndarray  # (n,) bool: the centre depends on the height
+
+    @classmethod
+    def assemble(cls, table: PlotTable, fixes: PlaneFixes, n: int, plot_node: np.ndarray,
+                 variant: Variant, bias_sensors: list[int]) -> NodeData:
+        """Scatter the plots' fixes (table rows) to their nodes."""
+        def scatter(values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+            out = np.full((n, *values.shape[1:]), fill, dtype=float)
+            out[plot_node] = values
+            return out
+
+        e = fixes.ellipses
+        free = np.zeros(n, bool)
+        free[plot_node] = fixes.altitude_free
+        # heights each node may take: the plot's reach for a free centre, else the general range
+        h_lo = np.full(n, ALTITUDE_RANGE_M[0])
+        hi_plot = np.where(fixes.altitude_free, fixes.h_mid + fixes.h_half, ALTITUDE_RANGE_M[1])
+        h_hi = scatter(hi_plot, ALTITUDE_RANGE_M[1])
+        alt_sigma = np.array([s.altitude_sigma_m if isinstance(s, PositionSensor)
+                              else ALTITUDE_SIGMA_RADAR_M for s in table.sensors])[table.sensor]
+        known = np.isfinite(table.altitude_m)
+        onehot = np.zeros((len(table), variant.biases))
+        for j, k in enumerate(bias_sensors):
+            onehot[table.sensor == k, j] = 1.0
+        return cls(
+            # a free centre is the fit's constant term plus its height terms
+            centre=scatter(np.where(fixes.altitude_free[:, None], fixes.poly[:, :, 0],
+                                    np.column_stack([e.cx, e.cz]))),
+            info=scatter(e.weights()),
+            weight=scatter(np.ones(len(table))),
+            centre_h=scatter(fixes.poly[:, :, 1:]),
+            ray=scatter(fixes.ray),
+            slant=scatter(np.where(fixes.altitude_free, fixes.slant, 1e7)),
+            site_h=scatter(fixes.site_h),
+            h_mid=scatter(fixes.h_mid),
+            h_half=scatter(fixes.h_half, 1.0),
+            h_lo=h_lo,
+            h_hi=h_hi,
+            alt=scatter(np.where(known, table.altitude_m, 0.0)),
+            alt_info=scatter(np.where(known, 1.0 / alt_sigma**2, 0.0)),
+            d_range=scatter(fixes.d_range),
+            d_azimuth=scatter(fixes.d_azimuth),
+            sensor=scatter(onehot),
+            free=free,
+        )
+
+    def without(self, nodes: np.ndarray) -> NodeData:
+        """A copy with no weight on the plots at ``nodes`` (gated as wild)."""
+        weight = self.weight.copy()
+        weight[nodes] = 0.0
+        return replace(self, weight=weight)
+
+    def centre_at(self, h: FloatArray | None) -> FloatArray:
+        """``(n, 2)`` plot centres at node heights ``h`` (None: the fixed centres)."""
+        if h is None:
+            return self.centre
+        sh = (h - self.h_mid) / self.h_half
+        c = self.centre.copy()
+        for j in range(ALTITUDE_FIT_DEGREE):
+            c += self.centre_h[:, :, j] * sh[:, None] ** (j + 1)
+        ground = np.sqrt(np.maximum(self.slant**2 - (h - self.site_h) ** 2, 0.0))
+        return c + self.ray * ground[:, None]
+
+    def dcentre_dh(self, h: FloatArray) -> FloatArray:
+        """``(n, 2)`` derivative of the centres with respect to the height."""
+        sh = (h - self.h_mid) / self.h_half
+        d = np.zeros_like(self.centre)
+        for j in range(ALTITUDE_FIT_DEGREE):
+            d += self.centre_h[:, :, j] * (j + 1) * sh[:, None] ** j / self.h_half[:, None]
+        dh = h - self.site_h
+        ground = np.sqrt(np.maximum(self.slant**2 - dh**2, 1e-6))
+        return d - self.ray * (dh / ground)[:, None]
+
+    def residuals(self, sol: np.ndarray, biases: FloatArray | None, altitude: bool
+                  ) -> FloatArray:
+        """``(n, 2)`` plane residuals ``d = p - c(h)`` of the node solution (0 where no plot)."""
+        p = sol[:, :2].copy()
+        if biases is not None and biases.size:
+            b = self.sensor @ biases  # (n, 3) offsets of each node's radar
+            vel = sol[:, 3:4] * np.column_stack([np.cos(sol[:, 2]), np.sin(sol[:, 2])])
+            p += -b[:, 2:3] * vel + self.d_range * b[:, 0:1] + self.d_azimuth * b[:, 1:2]
+        c = self.centre_at(sol[:, 6] if altitude else None)
+        return np.where((self.info[:, 0] != 0)[:, None], p - c, 0.0)
+
+    def quad(self, sol: np.ndarray, biases: FloatArray | None, altitude: bool) -> FloatArray:
+        """R2 terms ``d^T M d`` of the node solution (0 where no plot)."""
+        d = self.residuals(sol, biases, altitude)
+        a, b, c = self.info.T
+        return a * d[:, 0] ** 2 + 2 * b * d[:, 0] * d[:, 1] + c * d[:, 1] ** 2
+
+
+ALTITUDE_SIGMA_RADAR_M = 30.0
+"""m: a radar plot's reported altitude (Mode C: 100-ft steps, 25 ft with Mode S; pressure,
+not geometric, altitude) as a measurement of the height in the altitude-estimating variant."""
+
+
+def hd_information(t_nodes: FloatArray) -> FloatArray:
+    """Information ``1 / (q_h max(dt, 1 s))`` of the vertical-rate change into each node (node 0:
+    0, set per block)."""
+    dt = np.maximum(np.diff(t_nodes), MIN_NODE_DT)
+    return np.concatenate([[0.0], 1.0 / (Q_VERTICAL * dt)])
+
+
+# ------------------------------------------------------------------------- initial guess
+
+
+GUESS_MIN_GAP_S = 1.0
+"""Plots closer in time than this are fused into one point for the initial guess only: the CV
+smoother's ``Q^-1 ~ 12 / (q T^3)`` loses positive definiteness in float64 for steps of
+hundredths of a second (seen with two radars' asynchronous scans); the merged point is off by at
+most half a second of flight, which the NLP removes."""
+
+
+def fused_points(t: FloatArray, centre: FloatArray, info: FloatArray
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Plots within ``GUESS_MIN_GAP_S`` of each other (e.g. several sensors at one instant)
+    fused into one point (information-weighted, at the group's mean time): times, centres
+    ``(m, 2)`` and information ``(m, 2, 2)``."""
+    order = np.argsort(t, kind="stable")
+    ts = t[order]
+    group_sorted = np.concatenate([[0], np.cumsum(np.diff(ts) >= GUESS_MIN_GAP_S)])
+    inverse = np.empty(t.size, dtype=int)
+    inverse[order] = group_sorted
+    m = int(group_sorted[-1]) + 1
+    times = np.bincount(inverse, weights=t, minlength=m) / np.bincount(inverse, minlength=m)
+    I = np.zeros((times.size, 2, 2))
+    np.add.at(I, inverse, info)
+    b = np.zeros((times.size, 2))
+    np.add.at(b, inverse, np.einsum("kij,kj->ki", info, centre))
+    return times, np.linalg.solve(I, b[:, :, None])[:, :, 0], I
+
+
+def info_matrices(info3: FloatArray) -> FloatArray:
+    """``(n, 2, 2)`` from R2 entries ``(a, b, c)``."""
+    return np.stack([info3[:, [0, 1]], info3[:, [1, 2]]], axis=1)
+
+
+def smoother_guess(t_plot: FloatArray, centre: FloatArray, info3: FloatArray, t_nodes: FloatArray,
+                   bounds: Bounds) -> tuple[np.ndarray, float]:
+    """Node guess from the constant-velocity smoother's means at the plots (one banded solve),
+    and the smoother's weighted residual sum (to compare altitude hypotheses)."""
+    times, c, I = fused_points(t_plot, centre, info_matrices(info3))
+    if times.size < 2:  # every plot at one instant: a point at rest
+        s = np.zeros((2, 4))
+        s[:, :2] = c[0]
+        times = np.array([times[0], times[0] + 1.0])
+        return nodes_from_states(StateSeries(times, *s.T), t_nodes, bounds), 0.0
+    smooth = smoothed_means(times, c, I, INIT_SMOOTHER_Q)
+    d = smooth[:, :2] - c
+    cost = float(np.einsum("ki,kij,kj->", d, I, d))
+    return nodes_from_states(StateSeries(times, *smooth.T), t_nodes, bounds), cost
+
+
+def altitude_guess(table: PlotTable, data: NodeData, plot_node: np.ndarray, t_nodes: FloatArray,
+                   bounds: Bounds) -> tuple[np.ndarray, FloatArray]:
+    """Start of the altitude variant: heights interpolated from the plots' altitudes where any
+    carry one, else the constant height (of 0, 1, ..., 14 km) whose plot centres the CV smoother
+    fits best; the horizontal guess from the smoother at those heights."""
+    known = np.isfinite(table.altitude_m)
+    order = np.argsort(table.t[known], kind="stable")
+    if known.any():
+        h = np.interp(t_nodes, table.t[known][order], table.altitude_m[known][order])
+        candidates = [h]
+    else:
+        candidates = [np.full(t_nodes.size, h0) for h0 in ALTITUDE_GUESSES]
+    best: tuple[float, np.ndarray, FloatArray] | None = None
+    for h in candidates:
+        h = np.clip(h, data.h_lo, data.h_hi)
+        c = data.centre_at(h)[plot_node]
+        guess, cost = smoother_guess(table.t, c, data.info[plot_node], t_nodes, bounds)
+        if best is None or cost < best[0]:
+            best = (cost, guess, h)
+    assert best is not None
+    return best[1], best[2]
+
+
+def nodes_from_segments(initial: Reconstruction, t_nodes: FloatArray,
+                        bounds: Bounds) -> np.ndarray:
+    """Node guess ``(x, z, phi, v, u, w)`` from the sliding-window segments."""
+    series = evaluate(initial.segments, t_nodes)
+    starts = np.array([s.t_start for s in initial.segments])
+    idx = np.clip(np.searchsorted(starts, t_nodes, side="right") - 1, 0, len(starts) - 1)
+    u = np.array([initial.segments[i].u for i in idx])
+    w = np.array([initial.segments[i].w for i in idx])
+    return _node_array(series, u, w, bounds)
+
+
+def nodes_from_states(states: StateSeries, t_nodes: FloatArray, bounds: Bounds) -> np.ndarray:
+    """Node guess from smoothed states at the plot times (e.g. a CV smoother):
+    states interpolated linearly to the nodes, ``u = v dphi/dt``, ``w = dv/dt``."""
+    cols = [np.interp(t_nodes, states.t, c) for c in (states.x, states.z, states.vx, states.vz)]
+    series = StateSeries(t_nodes, *cols)
+    phi = np.unwrap(series.heading)
+    v = series.speed
+    dt = np.diff(t_nodes)
+    ok = dt > 1e-9
+    u = np.zeros(t_nodes.size)
+    w = np.zeros(t_nodes.size)
+    u[:-1][ok] = v[:-1][ok] * np.diff(phi)[ok] / dt[ok]
+    w[:-1][ok] = np.diff(v)[ok] / dt[ok]
+    return _node_array(series, u, w, bounds)
+
+
+def _node_array(series: StateSeries, u: FloatArray, w: FloatArray, bounds: Bounds) -> np.ndarray:
+    out = np.empty((series.t.size, 6))
+    out[:, 0], out[:, 1] = series.x, series.z
+    out[:, 2] = np.unwrap(series.heading)
+    out[:, 3] = np.clip(series.speed, *bounds.v)
+    out[:, 4] = np.clip(u, *bounds.u)
+    out[:, 5] = np.clip(w, *bounds.w)
+    return out
+
+
+def with_altitude(guess: np.ndarray, h: FloatArray, t_nodes: FloatArray) -> np.ndarray:
+    """Append the height and vertical-rate columns to a horizontal node guess."""
+    dt = np.diff(t_nodes)
+    hd = np.zeros(t_nodes.size)
+    ok = dt > 1e-9
+    hd[:-1][ok] = np.diff(h)[ok] / dt[ok]
+    return np.column_stack([guess, h, np.clip(hd, -HD_MAX, HD_MAX)])
+

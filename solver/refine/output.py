@@ -1,0 +1,131 @@
+"""From the node solution to the answer: constant-control segments, states with covariances
+at any times, and per-sensor statistics of the plots against the track."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import compiled
+from ..inputs import Bounds, FloatArray
+from ..motion import propagate
+from ..plots import PlotTable
+from ..results import Segment, SensorReport, StateSeries
+from ..sensors import RadarSensor
+from .covariance import NH, motion_jacobian, state_size
+from .layout import BIAS_TERMS, Variant
+
+
+def segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segment]:
+    """Merge node intervals whose controls agree (to 1e-6 of the bound range) into segments
+    (zero-length intervals between plots at one instant never start a segment)."""
+    n = t_nodes.size
+    keep = np.append(np.diff(t_nodes) > 0, True) if n > 1 else np.ones(1, bool)
+    idx = np.flatnonzero(keep)
+    if idx[-1] != n - 1:
+        idx = np.append(idx, n - 1)
+    t_n, s_n = t_nodes[idx], sol[idx]
+    m = t_n.size
+    ctl = s_n[: m - 1, 4:6] if m > 1 else s_n[:, 4:6]
+    tol = 1e-6 * np.array([bounds.u[1] - bounds.u[0], bounds.w[1] - bounds.w[0]])
+    change = np.any(np.abs(np.diff(ctl, axis=0)) > tol, axis=1)
+    starts = np.concatenate([[0], np.flatnonzero(change) + 1])
+    ends = np.append(starts[1:], m - 1)
+    segs = []
+    for a, b in zip(starts, ends, strict=True):
+        sel = ctl[a:b] if b > a else ctl[a: a + 1]
+        u, w = np.mean(sel, axis=0)
+        segs.append(Segment(float(t_n[a]), float(t_n[b]), float(s_n[a, 0]), float(s_n[a, 1]),
+                            float(np.mod(s_n[a, 2], 2 * math.pi)), float(s_n[a, 3]), float(u),
+                            float(w)))
+    return segs
+
+
+def series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray, t: FloatArray,
+           variant: Variant) -> StateSeries:
+    """States and ``(x, z, vx, vz)`` covariances at times ``t`` from the node solution (the
+    last node at or before each time; at equal node times the later one).
+
+    Between nodes the control is constant, so the state at ``tau`` is a deterministic function
+    of the node state: ``P(tau) = A(tau) P_k A(tau)^T`` exactly for the linearised model.
+    """
+    k = np.clip(np.searchsorted(t_nodes, t, side="right") - 1, 0, t_nodes.size - 1)
+    tau = t - t_nodes[k]
+    s = sol[k]
+    x, z, phi, v = propagate(s[:, 0], s[:, 1], s[:, 2], s[:, 3], s[:, 4], s[:, 5], tau)
+    m = t.size
+    nx = state_size(variant)
+    A = np.zeros((m, nx, nx))
+    A[:, :NH, :NH] = compiled.columns(motion_jacobian(), s[:, :NH].T, tau[None, :])[0]
+    A[:, range(NH, nx), range(NH, nx)] = 1.0
+    if variant.altitude:
+        A[:, NH, NH + 1] = tau
+    P = A @ cov_nodes[k] @ A.transpose(0, 2, 1)
+    T = np.zeros((m, 4, nx))
+    T[:, 0, 0] = T[:, 1, 1] = 1.0
+    c, sn = np.cos(phi), np.sin(phi)
+    T[:, 2, 2], T[:, 2, 3] = -v * sn, c
+    T[:, 3, 2], T[:, 3, 3] = v * c, sn
+    cov = T @ P @ T.transpose(0, 2, 1)
+    out = StateSeries(t.copy(), x, z, v * c, v * sn, cov)
+    if variant.altitude:
+        out.h = s[:, NH] + tau * s[:, NH + 1]
+        out.h_sigma = np.sqrt(np.maximum(P[:, NH, NH], 0.0))
+    return out
+
+
+def sensor_reports(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
+                   biases: np.ndarray, bias_cov: np.ndarray, bias_sensors: list[int]
+                   ) -> list[SensorReport]:
+    """Per sensor: plots, plots gated as wild, the estimated offsets with their sigmas, and the
+    residuals of its plots against the track (measured minus predicted from the track, after
+    the estimated offsets): mean, RMS and standard deviation in range and azimuth (radars) or
+    the horizontal RMS (position sensors)."""
+    reports = []
+    wild = np.zeros(len(table), bool)
+    wild[gated] = True
+    for k, sensor in enumerate(table.sensors):
+        rows = np.flatnonzero(table.sensor == k)
+        rep = SensorReport(id=sensor.id, kind=sensor.kind, plots=int(rows.size),
+                           plots_gated=int(wild[rows].sum()))
+        keep = rows[~wild[rows]]
+        if isinstance(sensor, RadarSensor):
+            b = np.zeros(BIAS_TERMS)
+            if k in bias_sensors:
+                j = bias_sensors.index(k)
+                b = biases[j]
+                sig = np.sqrt(np.maximum(np.diag(bias_cov)[3 * j: 3 * j + 3], 0.0))
+                rep.range_bias_m, rep.azimuth_bias_rad, rep.time_bias_s = map(float, b)
+                (rep.range_bias_sigma_m, rep.azimuth_bias_sigma_rad,
+                 rep.time_bias_sigma_s) = map(float, sig)
+            if keep.size:
+                x = at_plots.x[keep] - b[2] * at_plots.vx[keep]
+                z = at_plots.z[keep] - b[2] * at_plots.vz[keep]
+                h = _heights(table, at_plots, keep, sensor)
+                r, az = sensor.measure(table.frame, x, z, h)
+                dr = table.range_m[keep] - r - b[0]
+                da = np.mod(table.azimuth_rad[keep] - az - b[1] + np.pi, 2 * np.pi) - np.pi
+                rep.range_residual_mean_m = float(dr.mean())
+                rep.range_residual_rms_m = float(np.sqrt(np.mean(dr**2)))
+                rep.range_residual_sigma_m = float(dr.std())
+                rep.azimuth_residual_mean_rad = float(da.mean())
+                rep.azimuth_residual_rms_rad = float(np.sqrt(np.mean(da**2)))
+                rep.azimuth_residual_sigma_rad = float(da.std())
+        elif keep.size and table.frame is not None:
+            px, pz = table.frame.to_plane(table.lat_deg[keep], table.lon_deg[keep])
+            d2 = (px - at_plots.x[keep]) ** 2 + (pz - at_plots.z[keep]) ** 2
+            rep.position_residual_rms_m = float(np.sqrt(np.mean(d2)))
+        reports.append(rep)
+    return reports
+
+
+def _heights(table: PlotTable, at_plots: StateSeries, rows: np.ndarray,
+             sensor: RadarSensor) -> FloatArray:
+    """The aircraft's height at radar plots: reported, else estimated, else the convention of a
+    single radar (the radar's own height: slant range taken for ground range)."""
+    alt = table.altitude_m[rows]
+    if at_plots.h is not None:
+        return np.where(np.isfinite(alt), alt, at_plots.h[rows])
+    site_h = 0.0 if table.frame is None else sensor.site_in(table.frame)[2]
+    return np.where(np.isfinite(alt), alt, site_h)
