@@ -1,9 +1,12 @@
 """Recursive state estimators ("filtered state estimates", spec filters.md).
 
-``run_filter(name, plots, radar, **params)`` runs one estimator on the plots and returns the
-state ``(x, z, vx, vz)`` with its covariance at every plot (input order); ``run_filters`` runs
-several. Measurement noise is the radar's ``sigma_r`` / ``sigma_psi``; a plot with a known
-altitude is used with its ground range ``sqrt(r^2 - h^2)``. Any step size works (missed plots);
+``run_filter(name, table_or_plots, radar=None, **params)`` runs one estimator on the plots (a
+:class:`~solver.plots.PlotTable` of one or several sensors, or the single radar's ``Plots`` with
+its ``Radar``) and returns the state ``(x, z, vx, vz)`` with its covariance at every plot (input
+order); ``run_filters`` runs several. Several sensors: every plot at its own time with its own
+sensor's model (:class:`~.measurements.SensorPlots`). Measurement noise is the radar's
+``sigma_r`` / ``sigma_psi``; a plot with a known altitude is used with its ground range
+``sqrt(r^2 - h^2)``. Any step size works (missed plots);
 one or two plots give a defined (broad) estimate.
 """
 
@@ -15,17 +18,21 @@ from typing import Any
 import numpy as np
 
 from ..inputs import Plots, Radar
+from ..plots import PlotTable
 from ..results import FilterEstimate
 from .alpha_beta import run_alpha_beta
 from .common import SIGMA_V0, estimate
 from .cv_rts import run_cv_rts
+from .fusion import run_fusion_a, run_fusion_b, run_fusion_c
 from .fuzzy import run_fuzzy
 from .imm import run_imm
-from .measurements import PolarPlots
+from .imm_smoother import run_imm_smoother
+from .measurements import PolarPlots, SensorPlots
 from .quasi_optimal import run_quasi_optimal
 from .singer import run_singer
 
-FILTER_NAMES: tuple[str, ...] = ("singer", "quasi_optimal", "fuzzy", "alpha_beta", "cv_rts", "imm")
+FILTER_NAMES: tuple[str, ...] = ("singer", "quasi_optimal", "fuzzy", "alpha_beta", "cv_rts", "imm",
+                                 "imm_smoother", "fusion_a", "fusion_b", "fusion_c")
 
 _RUNNERS: dict[str, Callable[..., FilterEstimate]] = {
     "singer": run_singer,
@@ -34,10 +41,51 @@ _RUNNERS: dict[str, Callable[..., FilterEstimate]] = {
     "alpha_beta": run_alpha_beta,
     "cv_rts": run_cv_rts,
     "imm": run_imm,
+    "imm_smoother": run_imm_smoother,
+    "fusion_a": run_fusion_a,
+    "fusion_b": run_fusion_b,
+    "fusion_c": run_fusion_c,
 }
+FUSION_NAMES: tuple[str, ...] = ("fusion_a", "fusion_b", "fusion_c")
+"""Seed 004's fusion variants: defined for exactly two sensors (``ValueError`` otherwise)."""
+SINGLE_SENSOR_NAMES: tuple[str, ...] = tuple(n for n in FILTER_NAMES if n not in FUSION_NAMES)
+"""The filters that run on any number of sensors, one included."""
+_PER_MEASUREMENT = frozenset({"nis", "gains", "gain_level"})
+"""``info`` arrays that describe each measurement (not the state after it)."""
 
 
-def _fallback(name: str, meas: PolarPlots, reason: str) -> FilterEstimate:
+def measurements(data: PlotTable | Plots, radar: Radar | None = None
+                 ) -> PolarPlots | SensorPlots:
+    """The filters' measurements: ``PolarPlots`` for the single radar at the origin of a flat
+    plane (``(plots, radar)`` or a legacy table: today's filters unchanged), else
+    ``SensorPlots`` in time order."""
+    if isinstance(data, PlotTable):
+        if radar is not None:
+            raise TypeError("give the radar inside the PlotTable, not beside it")
+        if data.is_legacy:
+            return PolarPlots.from_plots(*data.legacy())
+        return SensorPlots.from_table(data)
+    if radar is None:
+        raise TypeError("plots need their radar: run_filter(name, plots, radar)")
+    return PolarPlots.from_plots(data, radar)
+
+
+def _in_table_order(est: FilterEstimate, meas: SensorPlots) -> FilterEstimate:
+    """Time-ordered output of a runner to table rows; plots at one instant all get the state
+    after the last of them (per-measurement diagnostics keep their own values)."""
+    n = len(meas)
+    inv = np.empty(n, dtype=int)
+    inv[meas.rows] = np.arange(n)
+    sel = meas.same_instant()[inv]
+    st = est.states
+    assert st.cov is not None
+    info = {k: (v[inv] if k in _PER_MEASUREMENT else v[sel])
+            if isinstance(v, np.ndarray) and v.shape[:1] == (n,) else v
+            for k, v in est.info.items()}
+    return estimate(est.name, meas.t[inv], st.states[sel], st.cov[sel], **info)
+
+
+def _fallback(name: str, meas: PolarPlots | SensorPlots, reason: str) -> FilterEstimate:
     """Plot points with their converted covariance and an unknown velocity; variances beyond
     the float range (absurd radar sigmas) are capped at 1e300."""
     n = len(meas)
@@ -51,31 +99,36 @@ def _fallback(name: str, meas: PolarPlots, reason: str) -> FilterEstimate:
     return estimate(name, meas.t, s, P, warning=reason)
 
 
-def run_filter(name: str, plots: Plots, radar: Radar, **params: Any) -> FilterEstimate:
-    """Run estimator ``name`` (one of :data:`FILTER_NAMES`) with optional tuning ``params``.
+def run_filter(name: str, data: PlotTable | Plots, radar: Radar | None = None,
+               **params: Any) -> FilterEstimate:
+    """Run estimator ``name`` (one of :data:`FILTER_NAMES`) with optional tuning ``params`` on
+    a :class:`PlotTable` or on ``(plots, radar)``; one state per plot in input (table) order.
 
-    Raises ``KeyError`` for an unknown name and ``ValueError``/``TypeError`` for bad parameters.
-    Never returns non-finite numbers: if the recursion breaks down numerically, the plot points
-    with their measurement covariance are returned and ``info["warning"]`` says why.
+    Raises ``KeyError`` for an unknown name and ``ValueError``/``TypeError`` for bad parameters
+    (and for the fusion variants on other than two sensors). Never returns non-finite numbers:
+    if the recursion breaks down numerically, the plot points with their measurement covariance
+    are returned and ``info["warning"]`` says why.
     """
     if name not in _RUNNERS:
         raise KeyError(f"unknown filter {name!r}; choose from {', '.join(FILTER_NAMES)}")
-    meas = PolarPlots.from_plots(plots, radar)
+    meas = measurements(data, radar)
     try:
         with np.errstate(all="ignore"):
             est = _RUNNERS[name](meas, **params)
+        st = est.states
+        assert st.cov is not None
+        if not (np.all(np.isfinite(st.states)) and np.all(np.isfinite(st.cov))):
+            est = _fallback(name, meas, "non-finite estimate replaced by the plot points")
     except np.linalg.LinAlgError as exc:
-        return _fallback(name, meas, f"numerical failure: {exc}")
-    st = est.states
-    assert st.cov is not None
-    if not (np.all(np.isfinite(st.states)) and np.all(np.isfinite(st.cov))):
-        return _fallback(name, meas, "non-finite estimate replaced by the plot points")
-    return est
+        est = _fallback(name, meas, f"numerical failure: {exc}")
+    return _in_table_order(est, meas) if isinstance(meas, SensorPlots) else est
 
 
-def run_filters(names: Iterable[str], plots: Plots, radar: Radar) -> dict[str, FilterEstimate]:
+def run_filters(names: Iterable[str], data: PlotTable | Plots, radar: Radar | None = None
+                ) -> dict[str, FilterEstimate]:
     """Run each named estimator with its defaults."""
-    return {name: run_filter(name, plots, radar) for name in names}
+    return {name: run_filter(name, data, radar) for name in names}
 
 
-__all__ = ["FILTER_NAMES", "run_filter", "run_filters"]
+__all__ = ["FILTER_NAMES", "FUSION_NAMES", "SINGLE_SENSOR_NAMES", "measurements", "run_filter",
+           "run_filters"]

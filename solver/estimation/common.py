@@ -10,14 +10,14 @@ import numpy as np
 from ..inputs import FloatArray
 from ..results import FilterEstimate, StateSeries
 from .kalman import channel_filter
-from .measurements import PolarPlots, polar_state_to_cartesian
+from .measurements import PolarPlots, SensorPlots, polar_state_to_cartesian
 
 SIGMA_V0 = 300.0
 """Prior speed sigma (m/s) at the first plot: the default upper speed bound of the
 reconstruction (330 m/s) rounded; the second plot then fixes the velocity."""
 
 
-def cartesian_prior(meas: PolarPlots, per_axis: int, extra_var: tuple[float, ...] = ()
+def cartesian_prior(meas: PolarPlots | SensorPlots, per_axis: int, extra_var: tuple[float, ...] = ()
                     ) -> tuple[FloatArray, FloatArray]:
     """Prior for blocks ``[x, vx, (ax)], [z, vz, (az)]`` at plot 0: the plot point with its
     converted covariance, zero velocity with variance ``SIGMA_V0^2``, zero higher derivatives with
@@ -66,6 +66,42 @@ def polar_channels(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, prior_var: 
     P0[:, 0, 0] = R[0]
     xf, Pf, nus = channel_filter(x0, P0, Phi, Q, z, R, gain)
     return xf, Pf, nus, R
+
+
+def axis_channels(meas: SensorPlots, Phi: FloatArray, Q: FloatArray, prior_var: FloatArray,
+                  gain: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
+                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`polar_channels` for several sensors: the plane axes ``x`` (north) and ``z`` (east)
+    of the plot positions as ``B`` separate scalar channels (``B/2`` x-channels, then ``B/2``
+    z-channels), each plot with its marginal variance ``R_xx`` or ``R_zz`` (the x-z correlation
+    of a fix is not used: each channel is exact for its own axis). Same arguments and returns."""
+    B, m = prior_var.shape
+    half = B // 2
+    pts, cov = meas.points(), meas.converted_cov()
+    z = np.concatenate([np.repeat(pts[:, :1], half, 1), np.repeat(pts[:, 1:], half, 1)], axis=1)
+    R = np.concatenate([np.repeat(cov[:, 0, 0, None], half, 1),
+                        np.repeat(cov[:, 1, 1, None], half, 1)], axis=1)
+    x0 = np.zeros((B, m))
+    x0[:, 0] = z[0]
+    P0 = np.zeros((B, m, m))
+    idx = np.arange(m)
+    P0[:, idx, idx] = prior_var
+    P0[:, 0, 0] = R[0]
+    xf, Pf, nus = channel_filter(x0, P0, Phi, Q, z, R, gain)
+    return xf, Pf, nus, R
+
+
+def axes_to_cartesian(xf: FloatArray, Pf: FloatArray, b_x: int, b_z: int
+                      ) -> tuple[FloatArray, FloatArray]:
+    """``(x, z, vx, vz)`` and covariance from x-axis channel ``b_x`` and z-axis channel ``b_z``
+    (independent channels: no x-z covariance)."""
+    n = xf.shape[0]
+    s = np.column_stack([xf[:, b_x, 0], xf[:, b_z, 0], xf[:, b_x, 1], xf[:, b_z, 1]])
+    P = np.zeros((n, 4, 4))
+    ix, iz = [0, 2], [1, 3]
+    P[np.ix_(np.arange(n), ix, ix)] = Pf[:, b_x, :2, :2]
+    P[np.ix_(np.arange(n), iz, iz)] = Pf[:, b_z, :2, :2]
+    return s, P
 
 
 def channels_to_cartesian(xf: FloatArray, Pf: FloatArray, b_range: int, b_az: int

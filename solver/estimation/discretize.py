@@ -6,7 +6,8 @@
   small ``T`` unlike expanded closed forms.
 - :func:`taylor` : the second-order series ``Phi = I + F T + F^2 T^2 / 2`` and
   ``Gamma = (I T + F T^2 / 2 + F^2 T^3 / 6) G`` used by seed 001, with
-  ``Q = Gamma (qc / T) Gamma^T`` (a white sequence of variance ``qc / T`` held over the step).
+  ``Q = Gamma (qc / T) Gamma^T`` (a white sequence of variance ``qc / T`` held over the step;
+  ``Q = 0`` for ``T = 0``, its limit).
 
 Steps are rounded to 1e-9 s and each distinct step is computed once (scans repeat the same
 ``T``; a missed plot gives a multiple of it); :func:`van_loan` also keeps the last 256 distinct
@@ -75,5 +76,7 @@ def taylor(F: FloatArray, G: FloatArray, qc: float, dt: FloatArray
     I, F2 = np.eye(n), F @ F
     Phi = I + F * T + F2 * T**2 / 2
     Gamma = (I * T + F * T**2 / 2 + F2 * T**3 / 6) @ G
-    Q = Gamma @ np.transpose(Gamma, (0, 2, 1)) * (qc / T)
+    # a zero step (plots of two sensors at one instant): Gamma = 0, so Q = 0 (its limit)
+    Q = Gamma @ np.transpose(Gamma, (0, 2, 1)) * np.divide(qc, T, out=np.zeros_like(T),
+                                                            where=T > 0)
     return Phi, Q

@@ -16,8 +16,17 @@ comes from a Mamdani knowledge base instead of the Riccati equation:
 Track initiation: while the Kalman gain of the reported covariance still exceeds ``K_high``
 (the first two or three plots, broad prior) that Kalman gain is used.
 The covariance reported is the Joseph-form covariance of the gain actually used under the
-nominal Singer model (``sigma_m``). Inference is a few vectorised numpy lines
-(:class:`FuzzyGain`); scikit-fuzzy/simpful build a rule object per call and are far slower per step.
+nominal Singer model (``sigma_m``).
+
+Several sensors (or a geodetic frame: :class:`SensorPlots`): one channel per plane axis (``x``
+north, ``z`` east) on the plots' plane positions with their marginal variances. The gain bounds
+are then the *time-varying* Kalman gains of the quiet and manoeuvring models along the actual
+sequence of steps and plot variances (:func:`kalman_gains`): when sensors of different accuracy
+and rate alternate there is no steady state, and two plots at one instant (a zero step, whose
+steady gain is 0) must both count. On one regular sensor they converge to the steady gains.
+
+Inference is a few vectorised numpy lines (:class:`FuzzyGain`); scikit-fuzzy/simpful build a
+rule object per call and are far slower per step.
 """
 
 from __future__ import annotations
@@ -26,8 +35,15 @@ import numpy as np
 
 from ..inputs import FloatArray
 from ..results import FilterEstimate
-from .common import SIGMA_V0, channels_to_cartesian, estimate, polar_channels
-from .measurements import PolarPlots
+from .common import (
+    SIGMA_V0,
+    axes_to_cartesian,
+    axis_channels,
+    channels_to_cartesian,
+    estimate,
+    polar_channels,
+)
+from .measurements import PolarPlots, SensorPlots
 from .models import singer
 
 U_MAX = 3.0
@@ -112,10 +128,63 @@ def steady_gain(Phi: FloatArray, Q: FloatArray, R: FloatArray, iterations: int =
     return P[..., :, 0] / (P[..., 0, 0] + np.asarray(R))[..., None]
 
 
-def run_fuzzy(meas: PolarPlots, n_terms: int = N_TERMS, shape: str = SHAPE,
+def kalman_gains(P0: FloatArray, Phi: FloatArray, Q: FloatArray, R: FloatArray) -> FloatArray:
+    """``(n, B, m)`` Kalman gains of ``B`` scalar-measurement channels (``z = x_0 + v``) along
+    steps ``Phi``, ``Q`` ``(n-1, B, m, m)`` with variances ``R (n, B)`` from the prior ``P0``
+    at plot 0 (gain 0 there): ``P- = Phi P Phi^T + Q``, ``K = P-[:, 0] / (P-[0, 0] + R)``,
+    ``P = (I - K H) P-`` (the data do not enter)."""
+    n, (B, m) = R.shape[0], P0.shape[:2]
+    K = np.zeros((n, B, m))
+    P = P0.copy()
+    for k in range(1, n):
+        F = Phi[k - 1]
+        P = F @ P @ np.transpose(F, (0, 2, 1)) + Q[k - 1]
+        K[k] = P[:, :, 0] / (P[:, 0, 0] + R[k])[:, None]
+        P = P - K[k][:, :, None] * P[:, 0, None, :]
+        P = 0.5 * (P + np.transpose(P, (0, 2, 1)))
+    return K
+
+
+def _run_fuzzy_axes(meas: SensorPlots, kb: FuzzyGain, alpha: float, sigma_low: float,
+                    sigma_high: float, sigma_m: float) -> FilterEstimate:
+    """Per plane axis with time-varying gain bounds (module docstring)."""
+    n = len(meas)
+    dt = np.diff(meas.t)
+    cov = meas.converted_cov()
+    R = np.column_stack([cov[:, 0, 0], cov[:, 1, 1]])
+
+    def model(sigma: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        Phi, Q = singer(dt, alpha, sigma)
+        P0 = np.zeros((2, 3, 3))
+        P0[:, 0, 0], P0[:, 1, 1], P0[:, 2, 2] = R[0], SIGMA_V0**2, sigma**2
+        return np.stack([Phi, Phi], 1), np.stack([Q, Q], 1), P0
+
+    Phi_lo, Q_lo, P_lo = model(sigma_low)
+    _, Q_hi, P_hi = model(sigma_high)
+    K_lo = kalman_gains(P_lo, Phi_lo, Q_lo, R)
+    K_hi = kalman_gains(P_hi, Phi_lo, Q_hi, R)
+    levels = np.zeros((n, 2))
+
+    def gain(k: int, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
+        g = kb(u)
+        levels[k] = g
+        K = K_lo[k] + g[:, None] * (K_hi[k] - K_lo[k])
+        initiating = K_kalman[:, 0] > K_hi[k][:, 0]  # track initiation: prior still broad
+        return np.where(initiating[:, None], K_kalman, K)
+
+    Phi2, Q2, _ = model(sigma_m)
+    prior = np.array([[0.0, SIGMA_V0**2, sigma_m**2]] * 2)
+    xf, Pf, _, _ = axis_channels(meas, Phi2, Q2, prior, gain)
+    s, P = axes_to_cartesian(xf, Pf, 0, 1)
+    return estimate("fuzzy", meas.t, s, P, gain_level=levels)
+
+
+def run_fuzzy(meas: PolarPlots | SensorPlots, n_terms: int = N_TERMS, shape: str = SHAPE,
               crossover: float = CROSSOVER, alpha: float = ALPHA, sigma_low: float = SIGMA_LOW,
               sigma_high: float = SIGMA_HIGH, sigma_m: float = SIGMA_M) -> FilterEstimate:
     kb = FuzzyGain(n_terms, shape, crossover)
+    if isinstance(meas, SensorPlots):
+        return _run_fuzzy_axes(meas, kb, alpha, sigma_low, sigma_high, sigma_m)
     dt = np.diff(meas.t)
     d_ref = float(np.median(meas.d))
     r_metric = np.array([np.median(meas.sigma_d) ** 2, (d_ref * meas.sigma_psi) ** 2])

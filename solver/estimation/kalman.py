@@ -2,7 +2,8 @@
 
 - :func:`predict`, :func:`update` : one step of a linear Gaussian filter.
 - :func:`position_update` : update of a state whose position sits at indices ``pos`` from one
-  polar plot, as a converted measurement or an EKF update (see ``measurements.py``).
+  polar plot, as a converted measurement or an EKF update (see ``measurements.py``), or from a
+  linear position fix of another sensor.
 - :func:`filter_track` : a linear-model filter over a whole track (``Phi``, ``Q`` per step).
 - :func:`channel_filter` : many independent scalar-measurement filters at once (batch axis ``B``);
   used per radar coordinate; an optional gain rule replaces the Kalman gain.
@@ -16,7 +17,13 @@ from collections.abc import Callable
 import numpy as np
 
 from ..inputs import FloatArray
-from .measurements import PolarPlots, converted_cov, polar_innovation
+from .measurements import (
+    MEASUREMENT_MODES,
+    PolarPlots,
+    SensorPlots,
+    converted_cov,
+    polar_innovation,
+)
 
 
 def predict(x: FloatArray, P: FloatArray, Phi: FloatArray, Q: FloatArray
@@ -38,32 +45,40 @@ def update(x: FloatArray, P: FloatArray, nu: FloatArray, H: FloatArray, R: Float
     return x + K @ nu, P, float(nu @ Sinv @ nu), float(np.log(np.linalg.det(S)))
 
 
-def position_update(x: FloatArray, P: FloatArray, meas: PolarPlots, k: int, pos: tuple[int, int],
-                    mode: str) -> tuple[FloatArray, FloatArray, float, float]:
-    """Update with plot ``k``; ``mode`` ``"converted"`` or ``"ekf"``."""
+def position_update(x: FloatArray, P: FloatArray, meas: PolarPlots | SensorPlots, k: int,
+                    pos: tuple[int, int], mode: str) -> tuple[FloatArray, FloatArray, float, float]:
+    """Update with plot ``k``; ``mode`` ``"converted"`` or ``"ekf"`` (polar plots). A linear
+    position fix of :class:`SensorPlots` (``z = p + v``, ``v ~ N(0, R)``) is the same for both
+    modes: ``H`` selects ``pos``, ``R = meas.cov[k]``."""
+    if mode not in MEASUREMENT_MODES:
+        raise ValueError(f"unknown measurement mode {mode!r} (use 'converted' or 'ekf')")
     H = np.zeros((2, x.shape[0]))
     H[0, pos[0]] = H[1, pos[1]] = 1.0
     p = x[list(pos)]
+    if isinstance(meas, SensorPlots):
+        if not meas.polar[k]:
+            return update(x, P, meas.centre[k] - p, H, meas.cov[k])
+        sigma_psi = float(meas.sigma_psi[k])
+    else:
+        sigma_psi = meas.sigma_psi
+    d, psi, sigma_d = meas.d[k], meas.psi[k], meas.sigma_d[k]
     if mode == "converted":
-        d, psi = meas.d[k], meas.psi[k]
         z = np.array([d * np.cos(psi), d * np.sin(psi)])
-        R = converted_cov(np.hypot(p[0], p[1]), np.arctan2(p[1], p[0]), meas.sigma_d[k],
-                          meas.sigma_psi)
+        R = converted_cov(np.hypot(p[0], p[1]), np.arctan2(p[1], p[0]), sigma_d, sigma_psi)
         return update(x, P, z - p, H, R)
-    if mode == "ekf":
-        nu, J = polar_innovation(p, meas.d[k], meas.psi[k])
-        R = np.diag([meas.sigma_d[k] ** 2, meas.sigma_psi**2])
-        return update(x, P, nu, J @ H, R)
-    raise ValueError(f"unknown measurement mode {mode!r} (use 'converted' or 'ekf')")
+    nu, J = polar_innovation(p, d, psi)
+    R = np.diag([sigma_d**2, sigma_psi**2])
+    return update(x, P, nu, J @ H, R)
 
 
 def filter_track(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
-                 meas: PolarPlots, pos: tuple[int, int], mode: str
+                 meas: PolarPlots | SensorPlots, pos: tuple[int, int], mode: str
                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Filter plots ``1..n-1`` after the prior ``(x0, P0)`` at plot 0 (built from plot 0).
 
     Returns filtered ``xf (n, m)``, ``Pf (n, m, m)``, predicted ``xp``, ``Pp`` (index 0 = prior)
-    and the normalised innovations squared ``(n,)`` (0 at plot 0).
+    and the normalised innovations squared ``(n,)`` (0 at plot 0). Plots of several sensors at
+    one instant are sequential updates after a zero-length step (``Phi = I``, ``Q = 0``).
     """
     n, m = len(meas), x0.shape[0]
     xf, Pf = np.empty((n, m)), np.empty((n, m, m))

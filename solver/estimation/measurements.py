@@ -19,16 +19,30 @@ section 3). Same cost.
 
 and, for the per-coordinate filters, conversion of a polar state ``(d, d', psi, psi')`` to
 ``(x, z, vx, vz)`` with its covariance (:func:`polar_state_to_cartesian`).
+
+Several sensors (:class:`SensorPlots`, built from a :class:`~solver.plots.PlotTable`): the plots
+of every sensor in time order, each with its own measurement model, as Stone Soup's detections.
+A plot is either *polar* about the plane's origin (radars at the origin of the flat plane: the
+model above, unchanged) or a *linear position fix* ``z = p + v``, ``v ~ N(0, R)``: the plot's
+plane position from ``table.fixes()`` (a radar plot placed through the curved earth, an ADS-B
+position projected) with ``R = B^2 e_r e_r^T + A^2 e_c e_c^T``, ``e_r = (cos psi, sin psi)``,
+``e_c = (-sin psi, cos psi)`` from its one-sigma ellipse (``B`` along the sensor's ray, ``A``
+across). A radar plot without altitude is placed at its site's height (the slant range taken for
+the ground range, as for the single radar): the filters' 2-D states cannot estimate altitude.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..geometry import ground_range
 from ..inputs import FloatArray, Plots, Radar
+
+if TYPE_CHECKING:
+    from ..plots import PlotTable
 
 MEASUREMENT_MODES = ("converted", "ekf")
 
@@ -103,3 +117,99 @@ def polar_state_to_cartesian(m: FloatArray, P: FloatArray) -> tuple[FloatArray, 
     J[:, 2, 0], J[:, 2, 1], J[:, 2, 2], J[:, 2, 3] = -dpsi * s, c, -dd * s - d * dpsi * c, -d * s
     J[:, 3, 0], J[:, 3, 1], J[:, 3, 2], J[:, 3, 3] = dpsi * c, s, dd * c - d * dpsi * s, d * c
     return out, J @ P @ np.transpose(J, (0, 2, 1))
+
+
+@dataclass(frozen=True)
+class SensorPlots:
+    """The plots of one or several sensors in time order (ties: table order), each polar about
+    the plane's origin (``polar[k]``: ``d``, ``sigma_d``, ``psi``, ``sigma_psi`` per plot) or a
+    linear position fix (``centre[k]`` with covariance ``cov[k]``). ``rows[k]`` is the table row
+    of measurement ``k``, ``sensor[k]`` its sensor's index (``n_sensors`` sensors). For polar
+    plots ``centre`` is the plot point and ``cov`` its converted covariance at the plot.
+
+    Same interface as :class:`PolarPlots` for the Cartesian filters (``t``, ``points()``,
+    ``converted_cov()``, :func:`~.kalman.position_update`)."""
+
+    t: FloatArray
+    rows: np.ndarray
+    sensor: np.ndarray
+    n_sensors: int
+    polar: np.ndarray
+    d: FloatArray
+    sigma_d: FloatArray
+    psi: FloatArray
+    sigma_psi: FloatArray
+    centre: FloatArray
+    cov: FloatArray
+
+    @classmethod
+    def from_table(cls, table: PlotTable) -> SensorPlots:
+        """Measurements of every row of ``table`` in ``table.time_order()``; radar rows of a flat
+        table (no frame: radars at the origin) are polar, all others fixes (``table.fixes()``)."""
+        from ..sensors import RadarSensor
+
+        order = np.asarray(table.time_order())
+        n = len(table)
+        is_radar = np.asarray(table.radar_rows(), dtype=bool)
+        polar = is_radar & (table.frame is None)
+        r, h = table.range_m, table.altitude_m
+        d = np.where(np.isfinite(h), np.sqrt(np.maximum(r**2 - np.nan_to_num(h) ** 2, 0.0)), r)
+        sig_r = np.array([s.sigma_r if isinstance(s, RadarSensor) else np.nan
+                          for s in table.sensors])[table.sensor]
+        sig_psi = np.array([s.sigma_psi if isinstance(s, RadarSensor) else np.nan
+                            for s in table.sensors])[table.sensor]
+        sigma_d = np.where(polar, sig_r * r / np.where(polar, d, 1.0), np.nan)
+        d, psi = np.where(polar, d, np.nan), np.where(polar, table.azimuth_rad, np.nan)
+        sig_psi = np.where(polar, sig_psi, np.nan)
+        centre, cov = np.empty((n, 2)), np.empty((n, 2, 2))
+        if polar.any():
+            dp, pp = d[polar], psi[polar]
+            centre[polar] = np.column_stack([dp * np.cos(pp), dp * np.sin(pp)])
+            cov[polar] = converted_cov(dp, pp, sigma_d[polar], sig_psi[polar])
+        if not polar.all():
+            ell = table.fixes().ellipses
+            fix = ~polar
+            centre[fix] = np.column_stack([ell.cx, ell.cz])[fix]
+            cov[fix] = ellipse_cov(ell.psi[fix], ell.A[fix], ell.B[fix])
+        return cls(t=np.asarray(table.t, float)[order], rows=order,
+                   sensor=np.asarray(table.sensor)[order], n_sensors=len(table.sensors),
+                   polar=polar[order], d=d[order], sigma_d=sigma_d[order], psi=psi[order],
+                   sigma_psi=sig_psi[order], centre=centre[order], cov=cov[order])
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def points(self) -> FloatArray:
+        """``(n, 2)`` plot positions in the plane (fix centres, polar plot points)."""
+        return self.centre
+
+    def converted_cov(self, at: FloatArray | None = None) -> FloatArray:
+        """``(n, 2, 2)`` covariances of :meth:`points`; with positions ``at`` the polar plots'
+        Jacobian is taken there (fixes keep their own)."""
+        if at is None or not self.polar.any():
+            return self.cov
+        out = self.cov.copy()
+        p = self.polar
+        a = np.asarray(at)[p]
+        out[p] = converted_cov(np.hypot(a[:, 0], a[:, 1]), np.arctan2(a[:, 1], a[:, 0]),
+                               self.sigma_d[p], self.sigma_psi[p])
+        return out
+
+    def same_instant(self) -> np.ndarray:
+        """``(n,)`` index of the last measurement at the same time as each (ties grouped)."""
+        n = len(self)
+        last = np.flatnonzero(np.append(np.diff(self.t) > 0, True))
+        return last[np.searchsorted(last, np.arange(n))]
+
+
+def ellipse_cov(psi: FloatArray, A: FloatArray, B: FloatArray) -> FloatArray:
+    """``(n, 2, 2)`` covariance ``B^2 e_r e_r^T + A^2 e_c e_c^T`` of one-sigma ellipses (``B``
+    along ``e_r = (cos psi, sin psi)``, ``A`` across), the inverse of
+    :func:`solver.geometry.weight_entries`."""
+    c, s = np.cos(psi), np.sin(psi)
+    vr, vc = np.asarray(B, float) ** 2, np.asarray(A, float) ** 2
+    R = np.empty((*np.shape(c), 2, 2))
+    R[..., 0, 0] = c * c * vr + s * s * vc
+    R[..., 1, 1] = s * s * vr + c * c * vc
+    R[..., 0, 1] = R[..., 1, 0] = s * c * (vr - vc)
+    return R

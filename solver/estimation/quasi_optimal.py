@@ -8,6 +8,11 @@ state ``[q, q', r]``, ``w`` white with density ``2 alpha sigma_M^2`` (``r`` stat
 median ground range). Discretisation ``"exact"`` (matrix exponential, Van Loan) or ``"taylor"``
 (the paper's ``Phi = I + F T + F^2 T^2/2``, ``Q = Gamma (2 alpha sigma_M^2 / T) Gamma^T``).
 
+Several sensors (or a geodetic frame: :class:`SensorPlots`): the same model per plane axis
+(``x`` north, ``z`` east) on the plots' plane positions, each with its marginal variance, and
+``sigma_M`` in metres on both axes. There is no common polar origin then, and in plane axes a
+straight flight has no acceleration, which suits the model better than range and azimuth.
+
 ``lam="auto"`` picks ``Lambda`` per channel by the discrepancy principle (paper eq. 5): among
 ``LAMBDA_GRID`` the smallest (most smoothing) value whose discrepancy functional ``J`` does not
 exceed 1, the known (normalised) measurement variance, interpolated in ``log Lambda``; all grid
@@ -24,8 +29,15 @@ import numpy as np
 
 from ..inputs import FloatArray
 from ..results import FilterEstimate
-from .common import SIGMA_V0, channels_to_cartesian, estimate, polar_channels
-from .measurements import PolarPlots
+from .common import (
+    SIGMA_V0,
+    axes_to_cartesian,
+    axis_channels,
+    channels_to_cartesian,
+    estimate,
+    polar_channels,
+)
+from .measurements import PolarPlots, SensorPlots
 from .models import quasi_optimal
 
 LAMBDA = 1e-3
@@ -42,11 +54,14 @@ Lambda (1e-3 +- 30 %) and the same accuracy, at 5-8x the cost."""
 LAMBDA_GRID = np.logspace(-4, 0, 17)
 
 
-def _channels(meas: PolarPlots, lams: FloatArray, alpha: float, sigma_m: float, method: str,
-              criterion: str = "residual") -> tuple[FloatArray, FloatArray, FloatArray, float]:
-    """Run range and azimuth channels for every ``Lambda`` in ``lams`` (batch: ranges, azimuths)."""
+def _channels(meas: PolarPlots | SensorPlots, lams: FloatArray, alpha: float, sigma_m: float,
+              method: str, criterion: str = "residual"
+              ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """Run range and azimuth channels (plane axes x and z for :class:`SensorPlots`) for every
+    ``Lambda`` in ``lams`` (batch: ranges, azimuths)."""
     dt = np.diff(meas.t)
-    d_ref = float(np.median(meas.d))
+    axes = isinstance(meas, SensorPlots)
+    d_ref = 1.0 if axes else float(np.median(meas.d))
     G = lams.size
     Phi = np.empty((dt.size, 2 * G, 3, 3))
     Q = np.empty_like(Phi)
@@ -56,9 +71,17 @@ def _channels(meas: PolarPlots, lams: FloatArray, alpha: float, sigma_m: float, 
         Q[:, g], Q[:, G + g] = Qg, Qg / d_ref**2
     prior = np.array([[0.0, SIGMA_V0**2, sigma_m**2]] * G
                      + [[0.0, (SIGMA_V0 / d_ref) ** 2, (sigma_m / d_ref) ** 2]] * G)
-    xf, Pf, nus, R = polar_channels(meas, Phi, Q, prior)
+    if axes:
+        assert isinstance(meas, SensorPlots)
+        xf, Pf, nus, R = axis_channels(meas, Phi, Q, prior)
+    else:
+        xf, Pf, nus, R = polar_channels(meas, Phi, Q, prior)
     if criterion == "innovation":
         J = np.mean(nus[1:] ** 2, axis=0)
+    elif axes:
+        pts = meas.points()
+        z = np.concatenate([np.repeat(pts[:, :1], G, 1), np.repeat(pts[:, 1:], G, 1)], 1)
+        J = np.mean((z - xf[:, :, 0]) ** 2 / R, axis=0)
     else:
         z = np.concatenate([np.repeat(meas.d[:, None], G, 1),
                             np.repeat(meas.psi[:, None], G, 1)], 1)
@@ -79,8 +102,8 @@ def discrepancy_lambda(lams: FloatArray, J: FloatArray) -> float:
     return float(np.exp(np.log(lams[i - 1]) + f * (np.log(lams[i]) - np.log(lams[i - 1]))))
 
 
-def run_quasi_optimal(meas: PolarPlots, lam: float | str = LAMBDA, alpha: float = ALPHA,
-                      sigma_m: float = SIGMA_M, discretisation: str = "exact",
+def run_quasi_optimal(meas: PolarPlots | SensorPlots, lam: float | str = LAMBDA,
+                      alpha: float = ALPHA, sigma_m: float = SIGMA_M, discretisation: str = "exact",
                       criterion: str = "innovation") -> FilterEstimate:
     info: dict[str, FloatArray | float | str] = {"discretisation": discretisation}
     if isinstance(lam, str):
@@ -102,7 +125,10 @@ def run_quasi_optimal(meas: PolarPlots, lam: float | str = LAMBDA, alpha: float 
     xf, Pf, J, _ = _channels(meas, lams, alpha, sigma_m, discretisation)
     G = lams.size
     # range channel 0; azimuth channel: its own Lambda (index G + last) when chosen per channel
-    s, P = channels_to_cartesian(xf, Pf, 0, 2 * G - 1)
+    if isinstance(meas, SensorPlots):  # channels: x and z axes
+        s, P = axes_to_cartesian(xf, Pf, 0, 2 * G - 1)
+    else:
+        s, P = channels_to_cartesian(xf, Pf, 0, 2 * G - 1)
     info.update(lambda_range=float(lams[0]), lambda_azimuth=float(lams[-1]),
                 discrepancy_range=float(J[0]), discrepancy_azimuth=float(J[-1]))
     return estimate("quasi_optimal", meas.t, s, P, **info)

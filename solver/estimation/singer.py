@@ -3,7 +3,9 @@
 
 ``frame="cartesian"`` (default): north and east axes in one 6-state filter updated from each polar
 plot (converted measurement or EKF). ``frame="polar"``: ground range and azimuth filtered as
-separate channels, as in seed 001's comparison (azimuth manoeuvre sigma ``sigma_m / d``).
+separate channels, as in seed 001's comparison (azimuth manoeuvre sigma ``sigma_m / d``); it
+needs the single radar at the plane's origin (with several sensors or a geodetic frame there is
+no common polar origin: ``ValueError``).
 
 Defaults: ``alpha = 1/20 s^-1`` (manoeuvre time constant 20 s: Singer's "lazy turn" is 60 s,
 evasive 10-20 s) and ``sigma_m = 1 m/s^2``: the best pair of the sweep alpha in {1/60, 1/20,
@@ -25,14 +27,14 @@ from .common import (
     polar_channels,
 )
 from .kalman import filter_track
-from .measurements import PolarPlots
+from .measurements import PolarPlots, SensorPlots
 from .models import singer, two_axes
 
 ALPHA = 1 / 20
 SIGMA_M = 1.0
 
 
-def run_singer(meas: PolarPlots, alpha: float = ALPHA, sigma_m: float = SIGMA_M,
+def run_singer(meas: PolarPlots | SensorPlots, alpha: float = ALPHA, sigma_m: float = SIGMA_M,
                measurement: str = "ekf", frame: str = "cartesian") -> FilterEstimate:
     dt = np.diff(meas.t)
     if frame == "cartesian":
@@ -43,6 +45,10 @@ def run_singer(meas: PolarPlots, alpha: float = ALPHA, sigma_m: float = SIGMA_M,
         s, P = cartesian_output(xf, Pf, 3)
         return estimate("singer", meas.t, s, P, nis=nis)
     if frame == "polar":
+        if isinstance(meas, SensorPlots):
+            raise ValueError("frame='polar' filters range and azimuth of one radar at the "
+                             "plane's origin; with several sensors or a geodetic frame use "
+                             "frame='cartesian'")
         d_ref = float(np.median(meas.d))
         Phi_r, Q_r = singer(dt, alpha, sigma_m)
         Phi = np.stack([Phi_r, Phi_r], 1)
