@@ -58,6 +58,7 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
                              "`sensors` needs at least 3")
         result = refine_table(table, config, deadline=deadline)
     if table.frame is not None:
+        result.frame = table.frame
         for s in (result.at_plots, result.samples):
             s.lat_deg, s.lon_deg = table.frame.to_geodetic(s.x, s.z)
     result.diagnostics.elapsed_ms = (time.perf_counter() - start) * 1e3

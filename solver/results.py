@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .frames import LocalFrame
 from .inputs import FloatArray
 
 
@@ -125,6 +126,7 @@ class Reconstruction:
     samples: StateSeries
     diagnostics: Diagnostics
     sensors: list[SensorReport] = field(default_factory=list)
+    frame: LocalFrame | None = None
     altitude_m: float | None = None
     altitude_sigma_m: float | None = None
 

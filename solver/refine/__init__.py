@@ -162,8 +162,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     cov_nodes = node_covariance(t_nodes, sol, biases, data, variant, st, delta, bounds,
                                 pb.hd_info, bias_sigma)
     # each plot's own node (plots of several sensors may share an instant)
-    at_plots_own = series(t_nodes[plot_node], sol[plot_node], cov_nodes[plot_node],
-                          table.t, variant)
+    at_plots_own = series(t_nodes, sol, cov_nodes, table.t, variant, nodes=plot_node)
     samples = series(t_nodes, sol, cov_nodes,
                      sample_times(float(table.t.min()), float(table.t.max()),
                                   config.sample_step_s), variant)

@@ -43,14 +43,15 @@ def segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segme
 
 
 def series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray, t: FloatArray,
-           variant: Variant) -> StateSeries:
-    """States and ``(x, z, vx, vz)`` covariances at times ``t`` from the node solution (the
-    last node at or before each time; at equal node times the later one).
+           variant: Variant, nodes: np.ndarray | None = None) -> StateSeries:
+    """States and ``(x, z, vx, vz)`` covariances at times ``t`` from the node solution,
+    propagated from ``nodes`` (default: the last node at or before each time).
 
     Between nodes the control is constant, so the state at ``tau`` is a deterministic function
     of the node state: ``P(tau) = A(tau) P_k A(tau)^T`` exactly for the linearised model.
     """
-    k = np.clip(np.searchsorted(t_nodes, t, side="right") - 1, 0, t_nodes.size - 1)
+    k = (np.clip(np.searchsorted(t_nodes, t, side="right") - 1, 0, t_nodes.size - 1)
+         if nodes is None else nodes)
     tau = t - t_nodes[k]
     s = sol[k]
     x, z, phi, v = propagate(s[:, 0], s[:, 1], s[:, 2], s[:, 3], s[:, 4], s[:, 5], tau)

@@ -1,0 +1,161 @@
+"""Geodesy, sensor models and the plots table against independent references (pyproj's
+geocentric transformation and GeographicLib geodesics, closed forms)."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+from pyproj import Geod, Transformer
+
+from solver.frames import LocalFrame, radar_plot_position, slant_and_azimuth
+from solver.geometry import statistical_ellipses
+from solver.inputs import InputError, Plots, Radar
+from solver.plots import PlotTable
+from solver.sensors import PositionSensor, RadarSensor, Site
+
+SITE = (46.2237, 14.4576, 380.0)
+GEOD = Geod(ellps="WGS84")
+ECEF = Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+
+
+def _ecef(lat, lon, h):
+    return np.array(ECEF.transform(lon, lat, h))
+
+
+@pytest.mark.parametrize("dist, az, h", [(20e3, 10.0, 3000.0), (100e3, 123.4, 10_000.0),
+                                          (230e3, 301.0, 11_000.0), (5e3, 200.0, 380.0)])
+def test_slant_range_is_the_ecef_distance_and_azimuth_the_geodesic_one(dist, az, h):
+    lon, lat, _ = GEOD.fwd(SITE[1], SITE[0], az, dist)
+    r, psi, _ = slant_and_azimuth(SITE, np.array([lat]), np.array([lon]), np.array([h]))
+    assert r[0] == pytest.approx(np.linalg.norm(_ecef(lat, lon, h) - _ecef(*SITE)), abs=1e-6)
+    # the chord's azimuth in the site's tangent plane and the geodesic's differ by < 1e-6 rad
+    lon2, lat2, _ = GEOD.fwd(SITE[1], SITE[0], az, dist)
+    _, psi_same_h, _ = slant_and_azimuth(SITE, np.array([lat2]), np.array([lon2]),
+                                         np.array([SITE[2]]))
+    d = np.angle(np.exp(1j * (psi_same_h[0] - np.deg2rad(az))))
+    assert abs(d) < 1e-6
+
+
+def test_flat_earth_ground_range_error_is_what_the_issue_says():
+    """A 10-km-high aircraft 100 km (200 km) from a radar: the flat model's ground range
+    sqrt(r^2 - h^2) exceeds the geodesic distance by about 80 m (150 m)."""
+    for dist, lo, hi in ((100e3, 70.0, 90.0), (200e3, 140.0, 165.0)):
+        lon, lat, _ = GEOD.fwd(SITE[1], SITE[0], 45.0, dist)
+        r, _, _ = slant_and_azimuth(SITE, np.array([lat]), np.array([lon]),
+                                    np.array([10_000.0]))
+        flat = np.sqrt(r[0] ** 2 - (10_000.0 - SITE[2]) ** 2)
+        assert lo < flat - dist < hi
+
+
+def test_radar_plot_position_inverts_the_measurement():
+    rng = np.random.default_rng(0)
+    r = rng.uniform(3e3, 300e3, 200)
+    psi = rng.uniform(0, 2 * np.pi, 200)
+    h = rng.uniform(0, np.minimum(12_000.0, 0.8 * r))
+    lat, lon, _ = radar_plot_position(SITE, r, psi, h)
+    r2, psi2, _ = slant_and_azimuth(SITE, lat, lon, h)
+    assert np.abs(r2 - r).max() < 1e-4
+    assert np.abs(np.angle(np.exp(1j * (psi2 - psi)))).max() < 1e-9
+
+
+def test_local_frame_round_trip_orientation_and_pickling():
+    f = LocalFrame(46.0, 14.8)
+    lat = np.array([46.0, 46.9, 45.1])
+    lon = np.array([14.8, 14.8, 16.0])
+    x, z = f.to_plane(lat, lon)
+    assert x[0] == pytest.approx(0, abs=1e-6) and z[0] == pytest.approx(0, abs=1e-6)
+    assert x[1] > 99e3 and abs(z[1]) < 1.0  # due north on the central meridian
+    lat2, lon2 = f.to_geodetic(x, z)
+    assert np.abs(lat2 - lat).max() < 1e-10 and np.abs(lon2 - lon).max() < 1e-10
+    # distances in the plane equal geodesic distances to the projection's scale (< 3e-4)
+    _, _, d = GEOD.inv(lon[0], lat[0], lon[2], lat[2])
+    assert np.hypot(x[2], z[2]) == pytest.approx(d, rel=3e-4)
+    assert pickle.loads(pickle.dumps(f)).to_plane(lat, lon)[0] == pytest.approx(x)
+
+
+def test_flat_radar_fixes_are_the_statistical_ellipses():
+    rng = np.random.default_rng(1)
+    n = 40
+    alt = np.where(rng.random(n) < 0.5, rng.uniform(0, 4000, n), np.nan)
+    plots = Plots.from_arrays(np.arange(n) * 5.0, rng.uniform(5e3, 2e5, n),
+                              rng.uniform(0, 6.28, n), alt)
+    radar = Radar(150.0, np.deg2rad(0.24))
+    f = PlotTable.from_plots(plots, radar).fixes().ellipses
+    e = statistical_ellipses(plots, radar)
+    for name in ("cx", "cz", "A", "B"):
+        assert np.abs(getattr(f, name) - getattr(e, name)).max() < 1e-6
+    assert np.abs(np.angle(np.exp(1j * (f.psi - e.psi)))).max() < 1e-9
+
+
+@pytest.mark.parametrize("r, tol", [(6e3, 0.05), (12e3, 0.15), (30e3, 0.01), (100e3, 1e-3),
+                                    (250e3, 1e-4)])
+def test_unknown_altitude_centre_follows_the_exact_position(r, tol):
+    """c(h) of a radar plot without altitude: within 15 cm (close in, where the height range
+    is widest for the range; 1 cm from 30 km) of the exact curved-earth position over its whole
+    height range (a cubic remainder over the flat ground distance), against sigmas of metres."""
+    frame = LocalFrame(46.0, 14.8)
+    radar = RadarSensor(150.0, np.deg2rad(0.24), id="A", site=Site(*SITE))
+    psi = np.deg2rad(np.arange(0.0, 360.0, 30.0))
+    rr = np.full(psi.size, r)
+    fixes = radar.fixes(frame, rr, psi, np.full(psi.size, np.nan), estimate_altitude=True)
+    assert fixes.altitude_free.all()
+    for s in np.linspace(-1, 1, 21):
+        h = fixes.h_mid + s * fixes.h_half
+        exact = np.column_stack(radar.positions(frame, rr, psi, h))
+        assert np.abs(fixes.centre_at(h) - exact).max() < tol
+
+
+def test_position_sensor_fix_is_a_circle_at_the_plane_position():
+    frame = LocalFrame(46.0, 14.8)
+    f = PositionSensor("ADSB", 30.0).fixes(frame, np.array([46.1]), np.array([14.9]))
+    x, z = frame.to_plane(np.array([46.1]), np.array([14.9]))
+    assert f.ellipses.cx[0] == pytest.approx(x[0]) and f.ellipses.cz[0] == pytest.approx(z[0])
+    assert f.ellipses.A[0] == f.ellipses.B[0] == 30.0
+
+
+# ------------------------------------------------------------------------ the plots table
+
+RADAR_A = RadarSensor(150.0, np.deg2rad(0.24), id="A", site=Site(46.2, 14.4, 380.0))
+RADAR_B = RadarSensor(500.0, np.deg2rad(1.5), id="B", site=Site(45.5, 15.2, 900.0))
+ADSB = PositionSensor("ADSB", 30.0)
+
+
+def _table(**change):
+    cols = dict(t=[0.0, 0.0, 4.0, 5.0], sensor=["A", "B", "A", "ADSB"],
+                range_m=[50e3, 60e3, 51e3, np.nan], azimuth_rad=[1.0, 2.0, 1.01, np.nan],
+                lat_deg=[np.nan, np.nan, np.nan, 46.1], lon_deg=[np.nan, np.nan, np.nan, 14.9])
+    cols.update(change)
+    sensors = cols.pop("sensors", (RADAR_A, RADAR_B, ADSB))
+    return PlotTable.build(sensors, **cols)
+
+
+def test_table_allows_equal_times_across_sensors_and_sets_the_frame():
+    table = _table()
+    assert table.frame == LocalFrame(46.2, 14.4)  # the first radar's site
+    assert list(table.time_order()) == [0, 1, 2, 3]
+    assert table.estimate_altitude()
+
+
+@pytest.mark.parametrize("change, loc", [
+    (dict(sensor=["A", "C", "A", "ADSB"]), ("plots", 1, "sensor")),
+    (dict(sensor=["A", "A", "A", "ADSB"], t=[0.0, 1.0, 4.0, 5.0]), ("sensors", 1, "id")),
+    (dict(t=[0.0, 0.0, 0.0, 5.0]), ("plots", 2, "t")),
+    (dict(lat_deg=[np.nan, np.nan, np.nan, 91.0]), ("plots", 3, "lat_deg")),
+    (dict(range_m=[50e3, 60e3, 51e3, 1e3]), ("plots", 3, "range_m")),
+    (dict(azimuth_rad=[1.0, np.nan, 1.01, np.nan]), ("plots", 1, "azimuth_rad")),
+    (dict(lat_deg=[46.0, np.nan, np.nan, 46.1]), ("plots", 0, "lat_deg")),
+    (dict(sensors=(RADAR_A, RadarSensor(1.0, 0.01, id="A"), ADSB)), ("sensors", 1, "id")),
+    (dict(sensors=(RadarSensor(150.0, 0.004, id="A", site=Site(95.0, 14.0)), RADAR_B, ADSB)),
+     ("sensors", 0, "lat_deg")),
+])
+def test_table_rejects_bad_input_naming_the_field(change, loc):
+    with pytest.raises(InputError) as e:
+        _table(**change)
+    assert e.value.loc == loc, e.value
+
+
+def test_input_error_survives_pickling():
+    e = pickle.loads(pickle.dumps(InputError(("plots", 3, "sensor"), "is unknown")))
+    assert e.loc == ("plots", 3, "sensor") and e.message == "is unknown"

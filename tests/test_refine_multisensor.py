@@ -1,0 +1,206 @@
+"""The reconstruction over several sensors on the curved earth: fusion, altitude estimation,
+registration, and the single flat radar unchanged."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from solver.config import ReconstructionConfig, RefineSettings
+from solver.frames import LocalFrame
+from solver.inputs import InputError, Plots, Radar
+from solver.plots import PlotTable
+from solver.reconstruct import reconstruct
+from solver.results import Segment
+from solver.sensors import PositionSensor, RadarSensor, Site
+from solver.trajectory import evaluate
+
+FRAME = LocalFrame(46.0, 14.8)
+REFERENCE = Path(__file__).parent / "data" / "refine_single_radar_reference.npz"
+
+
+def _truth(t_end: float = 1200.0) -> list[Segment]:
+    """Straight, a right turn while accelerating, decelerating, a left turn, straight."""
+    segs: list[Segment] = []
+    x, z, phi, v, t0 = -60e3, -40e3, 0.7, 210.0, 0.0
+    for u, w, d in [(0, 0, 300), (2.0, 0.1, 200), (0, -0.2, 200), (-1.5, 0, 300), (0, 0, 200)]:
+        segs.append(Segment(t0, t0 + d, x, z, phi, v, u, w))
+        s = evaluate(segs, np.array([t0 + d]))
+        x, z, phi, v, t0 = s.x[0], s.z[0], s.heading[0], s.speed[0], t0 + d
+    return segs
+
+
+def _height(t: np.ndarray) -> np.ndarray:
+    """Climbs at 2 m/s from 9000 m for 600 s, then level."""
+    return 9000.0 + np.minimum(t, 600.0) * 2.0
+
+
+def _simulate(sensors, periods, noise: float, seed: int = 1, biases=None, mode_c=False,
+              t_end: float = 1200.0):
+    """Plots of every sensor (through the curved earth), rows sensor by sensor; returns the
+    table and the true (x, z, h) at each row."""
+    rng = np.random.default_rng(seed)
+    segs = _truth(t_end)
+    cols: dict[str, list] = {k: [] for k in ("t", "s", "r", "a", "lat", "lon", "alt", "x", "z",
+                                             "h")}
+    for k, (sensor, (period, offset)) in enumerate(zip(sensors, periods, strict=True)):
+        t = np.arange(offset, t_end, period)
+        st = evaluate(segs, t)
+        h = _height(t)
+        n = t.size
+        if isinstance(sensor, RadarSensor):
+            r, a = sensor.measure(FRAME, st.x, st.z, h)
+            b = (biases or {}).get(k, (0.0, 0.0, 0.0))
+            if b[2]:  # reported late by b_t: the aircraft is where it was b_t earlier
+                sb = evaluate(segs, t - b[2])
+                r, a = sensor.measure(FRAME, sb.x, sb.z, _height(t - b[2]))
+            r = r + b[0] + noise * rng.normal(0, sensor.sigma_r, n)
+            a = a + b[1] + noise * rng.normal(0, sensor.sigma_psi, n)
+            lat = lon = np.full(n, np.nan)
+            alt = h if mode_c else np.full(n, np.nan)
+        else:
+            xx = st.x + noise * rng.normal(0, sensor.position_sigma_m, n)
+            zz = st.z + noise * rng.normal(0, sensor.position_sigma_m, n)
+            lat, lon = FRAME.to_geodetic(xx, zz)
+            r = a = np.full(n, np.nan)
+            alt = h
+        for key, val in zip(cols, (t, [sensor.id] * n, r, a, lat, lon, alt, st.x, st.z, h),
+                            strict=True):
+            cols[key].append(np.asarray(val))
+    c = {k: np.concatenate(v) for k, v in cols.items()}
+    table = PlotTable.build(tuple(sensors), c["t"], c["s"], c["r"], c["a"], c["lat"], c["lon"],
+                            c["alt"], reference=FRAME)
+    return table, c["x"], c["z"], c["h"]
+
+
+SSR_A = RadarSensor(150.0, np.deg2rad(0.24), id="A", site=Site(46.2, 14.4, 380.0))
+SSR_B = RadarSensor(150.0, np.deg2rad(0.24), id="B", site=Site(45.5, 15.2, 900.0))
+
+
+def _rms(rec, x, z) -> float:
+    return float(np.sqrt(np.mean((rec.at_plots.x - x) ** 2 + (rec.at_plots.z - z) ** 2)))
+
+
+def test_two_radars_without_altitude_noise_free_within_5_m():
+    """Two radars at different sites, no Mode C: the height is estimated, and the track is
+    recovered within 5 m at every plot (one radar alone is hundreds of metres off: h^2/2r)."""
+    table, x, z, h = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=0.0)
+    rec = reconstruct(table)
+    err = np.hypot(rec.at_plots.x - x, rec.at_plots.z - z)
+    assert err.max() < 5.0, err.max()
+    assert rec.at_plots.h is not None and np.abs(rec.at_plots.h - h).max() < 50.0
+    assert rec.altitude_m == pytest.approx(np.mean(h), abs=300)
+    assert rec.diagnostics.extra["altitude_estimated"] == 1
+    assert not rec.diagnostics.warnings
+    # every state carries its position on the earth
+    lat, lon = FRAME.to_geodetic(x, z)
+    assert np.abs(rec.at_plots.lat_deg - lat).max() < 1e-4
+    assert rec.samples.lat_deg is not None and rec.samples.lat_deg.size == rec.samples.t.size
+    alone = reconstruct(PlotTable.build((SSR_A,), table.t[table.sensor == 0],
+                                        ["A"] * int((table.sensor == 0).sum()),
+                                        table.range_m[table.sensor == 0],
+                                        table.azimuth_rad[table.sensor == 0], reference=FRAME))
+    m = table.sensor == 0
+    assert _rms(alone, x[m], z[m]) > 100.0
+
+
+def test_two_noisy_radars_fused_beat_each_alone():
+    table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
+    fused = _rms(reconstruct(table), x, z)
+    for k, s in enumerate((SSR_A, SSR_B)):
+        m = table.sensor == k
+        one = PlotTable.build((s,), table.t[m], [s.id] * int(m.sum()), table.range_m[m],
+                              table.azimuth_rad[m], altitude_m=table.altitude_m[m],
+                              reference=FRAME)
+        assert fused < 0.5 * _rms(reconstruct(one), x[m], z[m])
+    assert fused < 60.0
+
+
+def test_registration_recovers_known_biases_within_3_sigma():
+    """Radar A reports ranges 150 m long, azimuths 0.2 deg clockwise and times 0.5 s late;
+    B is unbiased; both estimated, with an ADS-B reference."""
+    a = RadarSensor(150.0, np.deg2rad(0.24), id="A", site=Site(46.2, 14.4, 380.0),
+                    estimate_bias=True)
+    b = RadarSensor(150.0, np.deg2rad(0.24), id="B", site=Site(45.5, 15.2, 900.0),
+                    estimate_bias=True)
+    adsb = PositionSensor("ADSB", 30.0)
+    truth = {0: (150.0, np.deg2rad(0.2), 0.5)}
+    table, x, z, _ = _simulate((a, b, adsb), ((4.8, 0.3), (4.0, 1.1), (5.0, 2.0)), noise=1.0,
+                               seed=5, biases=truth, mode_c=True)
+    rec = reconstruct(table)
+    reps = {r.id: r for r in rec.sensors}
+    assert [r.id for r in rec.sensors] == ["A", "B", "ADSB"]
+    for sid, (br, ba, bt) in (("A", truth[0]), ("B", (0.0, 0.0, 0.0))):
+        r = reps[sid]
+        assert abs(r.range_bias_m - br) < 3 * r.range_bias_sigma_m, r
+        assert abs(r.azimuth_bias_rad - ba) < 3 * r.azimuth_bias_sigma_rad, r
+        assert abs(r.time_bias_s - bt) < 3 * r.time_bias_sigma_s, r
+        assert r.range_bias_sigma_m < 30 and r.azimuth_bias_sigma_rad < np.deg2rad(0.05)
+    # after the offsets, the residuals are the radars' noise
+    assert reps["A"].range_residual_sigma_m == pytest.approx(150 / 3, rel=0.3)
+    assert abs(reps["A"].range_residual_mean_m) < 15.0
+    assert reps["ADSB"].range_bias_m is None and reps["ADSB"].position_residual_rms_m < 60
+    assert _rms(rec, x, z) < 40.0
+
+
+def test_radar_and_adsb_with_a_gap():
+    """ADS-B with a 400-s gap beside a coarse radar: ADS-B accuracy where it reports, the
+    radar carries the gap."""
+    psr = RadarSensor(500.0, np.deg2rad(1.5), id="PSR", site=Site(46.2, 14.4, 380.0))
+    adsb = PositionSensor("ADSB", 30.0)
+    table, x, z, _ = _simulate((psr, adsb), ((10.0, 0.0), (1.0, 0.5)), noise=1.0, seed=7)
+    keep = ~((table.sensor == 1) & (table.t > 400) & (table.t < 800))
+    rows = np.flatnonzero(keep)
+    gap = PlotTable.build(table.sensors, table.t[rows], table.sensor[rows], table.range_m[rows],
+                          table.azimuth_rad[rows], table.lat_deg[rows], table.lon_deg[rows],
+                          table.altitude_m[rows], reference=FRAME)
+    rec = reconstruct(gap)
+    err = np.hypot(rec.at_plots.x - x[rows], rec.at_plots.z - z[rows])
+    on_adsb = gap.sensor == 1
+    assert np.sqrt(np.mean(err[on_adsb] ** 2)) < 25.0
+    assert np.sqrt(np.mean(err[~on_adsb] ** 2)) < 250.0
+
+
+def test_single_flat_radar_answers_are_unchanged():
+    """The seed's single radar gives the answers of the code before the sensor model (stored
+    from commit c45bd04: a noisy turning track, one with Mode C, one cut in 64-node blocks)."""
+    ref = np.load(REFERENCE)
+    radars = {"a": Radar(500.0, np.deg2rad(1.5)), "b": Radar(150.0, np.deg2rad(0.24)),
+              "c": Radar(150.0, np.deg2rad(0.24))}
+    configs = {"a": ReconstructionConfig(), "b": ReconstructionConfig(),
+               "c": ReconstructionConfig(refine=RefineSettings(block_nodes=64, overlap_nodes=32))}
+    for k in "abc":
+        alt = ref[f"{k}_altitude_m"] if f"{k}_altitude_m" in ref else None
+        plots = Plots.from_arrays(ref[f"{k}_t"], ref[f"{k}_range_m"], ref[f"{k}_azimuth_rad"],
+                                  alt)
+        rec = reconstruct(plots, radars[k], configs[k])
+        assert np.abs(rec.at_plots.states - ref[f"{k}_states"]).max() < 1e-3
+        assert np.allclose(rec.at_plots.cov, ref[f"{k}_cov"], rtol=1e-4, atol=1e-3)
+        assert rec.sensors == [] and rec.at_plots.lat_deg is None
+
+
+def test_sliding_takes_no_sensor_table_and_short_tables_are_refused():
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=0.0, t_end=30.0)
+    with pytest.raises(InputError) as e:
+        reconstruct(table, config=ReconstructionConfig(method="sliding"))
+    assert e.value.loc == ("method",)
+    rows = [0, 7]
+    short = PlotTable.build(table.sensors, table.t[rows], table.sensor[rows],
+                            table.range_m[rows], table.azimuth_rad[rows], reference=FRAME)
+    with pytest.raises(InputError) as e:
+        reconstruct(short)
+    assert e.value.loc == ("plots",)
+
+
+def test_deadline_stops_the_refinement():
+    import time
+
+    from solver.refine import DeadlineExceeded
+
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0)
+    start = time.monotonic()
+    with pytest.raises(DeadlineExceeded):
+        reconstruct(table, deadline=start + 0.05)
+    assert time.monotonic() - start < 1.5
