@@ -97,6 +97,7 @@ def test_two_radars_without_altitude_noise_free_within_5_m():
     # every state carries its position on the earth
     lat, lon = FRAME.to_geodetic(x, z)
     assert np.abs(rec.at_plots.lat_deg - lat).max() < 1e-4
+    assert np.abs(rec.at_plots.lon_deg - lon).max() < 1e-4
     assert rec.samples.lat_deg is not None and rec.samples.lat_deg.size == rec.samples.t.size
     alone = reconstruct(PlotTable.build((SSR_A,), table.t[table.sensor == 0],
                                         ["A"] * int((table.sensor == 0).sum()),
