@@ -11,10 +11,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from solver.config import ReconstructionConfig
+from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar
-from solver.results import Diagnostics, FilterEstimate, Reconstruction, StateSeries
+from solver.plots import PlotTable
+from solver.results import Diagnostics, FilterEstimate, Reconstruction, SensorReport, StateSeries
+from solver.sensors import PositionSensor, RadarSensor, Site
 
-from .models import ReconstructionRequest
+from .models import PositionSensorIn, RadarIn, ReconstructionRequest
 
 DEFAULT_WINDOW_PLOTS: int = ReconstructionConfig().window_plots
 
@@ -27,19 +30,30 @@ _RENAMED = {
 }
 
 
+
 def client_loc(loc: tuple[str | int, ...]) -> tuple[str | int, ...]:
     """The solver's field path in the request's terms (``azimuth_rad`` -> ``azimuth_deg``)."""
     return tuple(_RENAMED.get(p, p) if isinstance(p, str) else p for p in loc)
+
 
 
 @dataclass(frozen=True)
 class Job:
     """One validated reconstruction, ready to send to a worker (picklable)."""
 
-    plots: Plots
-    radar: Radar
+    table: PlotTable
     config: ReconstructionConfig
     filters: tuple[str, ...]
+
+    @property
+    def plots(self) -> Plots | PlotTable:
+        """What ``reconstruct`` and ``run_filters`` take first: the single flat radar's
+        :class:`Plots`, else the table (with ``radar`` None)."""
+        return self.table.legacy()[0] if self.table.is_legacy else self.table
+
+    @property
+    def radar(self) -> Radar | None:
+        return self.table.legacy()[1] if self.table.is_legacy else None
 
 
 def to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
@@ -59,21 +73,12 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
     n = len(req.plots)
     if n > max_plots:
         raise InputError(("plots",), f"has {n} plots; this service accepts at most {max_plots}")
-    r = req.radar
-    radar = Radar(
-        range_error_m=r.range_error_m,
-        azimuth_error_rad=np.deg2rad(r.azimuth_error_deg),
-        range_sigma_m=r.range_sigma_m,
-        azimuth_sigma_rad=None if r.azimuth_sigma_deg is None else np.deg2rad(r.azimuth_sigma_deg),
-        max_altitude_m=r.max_altitude_m,
-        max_elevation_rad=np.deg2rad(r.max_elevation_deg),
-    )
-    radar.validate()
-    cols = np.array([(p.t, p.range_m, p.azimuth_deg) for p in req.plots], dtype=float)
-    alt = None
-    if any(p.altitude_m is not None for p in req.plots):
-        alt = np.array([np.nan if p.altitude_m is None else p.altitude_m for p in req.plots])
-    plots = Plots.from_arrays(cols[:, 0], cols[:, 1], np.deg2rad(cols[:, 2]), alt)
+    if req.radar is not None and req.sensors is not None:
+        raise InputError(("sensors",), "cannot be given with `radar`: send the single radar "
+                         "as `radar` or every sensor in `sensors`")
+    if req.radar is None and req.sensors is None:
+        raise InputError(("radar",), "is required (or `sensors` for several sensors)")
+    table = _legacy_table(req) if req.radar is not None else _sensor_table(req)
     b = req.bounds
     config = ReconstructionConfig(
         bounds=Bounds(u=(b.u[0], b.u[1]), w=(b.w[0], b.w[1]), v=(b.v[0], b.v[1])),
@@ -88,23 +93,101 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
     if req.window.plots is not None and req.window.plots > n:
         raise InputError(("window", "plots"),
                          f"({config.window_plots}) is longer than the track ({n} plots)")
-    span = float(plots.t[-1] - plots.t[0])
+    span = float(table.t.max() - table.t.min())
     if span / config.sample_step_s >= max_samples:
         raise InputError(("sample_step_s",), f"({config.sample_step_s:g} s) gives more than "
                          f"{max_samples} samples over the {span:g}-s track; this service's "
                          "limit is max_samples")
-    return Job(plots, radar, config, tuple(dict.fromkeys(req.filters)))
+    if not table.is_legacy and config.method == "sliding":
+        raise InputError(("method",), "sliding takes the plots of one radar at the origin of a "
+                         "flat plane (`radar`); use refined with `sensors`")
+    if not table.is_legacy and n < 3:
+        raise InputError(("plots",), f"has {n} plot(s); reconstructing from `sensors` needs at "
+                         "least 3")
+    return Job(table, config, tuple(dict.fromkeys(req.filters)))
+
+
+def _radar(r: RadarIn) -> dict:
+    """The accuracies of a request radar in the solver's units."""
+    return {
+        "range_error_m": r.range_error_m,
+        "azimuth_error_rad": np.deg2rad(r.azimuth_error_deg),
+        "range_sigma_m": r.range_sigma_m,
+        "azimuth_sigma_rad": (None if r.azimuth_sigma_deg is None
+                              else np.deg2rad(r.azimuth_sigma_deg)),
+        "max_altitude_m": r.max_altitude_m,
+        "max_elevation_rad": np.deg2rad(r.max_elevation_deg),
+    }
+
+
+def _legacy_table(req: ReconstructionRequest) -> PlotTable:
+    """The single ``radar`` at the origin of a flat plane: plots carry range and azimuth."""
+    assert req.radar is not None
+    radar = Radar(**_radar(req.radar))
+    radar.validate()
+    for i, p in enumerate(req.plots):
+        for name in ("sensor", "lat_deg", "lon_deg"):
+            if getattr(p, name) is not None:
+                raise InputError(("plots", i, name), "is only allowed with `sensors` (this "
+                                 "request has the single `radar`)")
+        for name in ("range_m", "azimuth_deg"):
+            if getattr(p, name) is None:
+                raise InputError(("plots", i, name), "is required")
+    cols = np.array([(p.t, p.range_m, p.azimuth_deg) for p in req.plots], dtype=float)
+    alt = None
+    if any(p.altitude_m is not None for p in req.plots):
+        alt = np.array([np.nan if p.altitude_m is None else p.altitude_m for p in req.plots])
+    plots = Plots.from_arrays(cols[:, 0], cols[:, 1], np.deg2rad(cols[:, 2]), alt)
+    return PlotTable.from_plots(plots, radar)
+
+
+def _sensor_table(req: ReconstructionRequest) -> PlotTable:
+    """Several sensors on WGS-84: each plot names its sensor."""
+    assert req.sensors is not None
+    sensors: list[RadarSensor | PositionSensor] = []
+    for j, s in enumerate(req.sensors):
+        if isinstance(s, PositionSensorIn):
+            sensors.append(PositionSensor(s.id, s.position_sigma_m, s.altitude_sigma_m))
+            continue
+        if (s.lat_deg is None) != (s.lon_deg is None):
+            missing = "lat_deg" if s.lat_deg is None else "lon_deg"
+            raise InputError(("sensors", j, missing), "is required with the other site "
+                             "coordinate (or omit both to put the radar at `reference`)")
+        site = None if s.lat_deg is None else Site(s.lat_deg, s.lon_deg, s.height_m)  # type: ignore[arg-type]
+        sensors.append(RadarSensor(**_radar(s), id=s.id, site=site,
+                                   estimate_bias=s.estimate_bias))
+    for i, p in enumerate(req.plots):
+        if p.sensor is None:
+            raise InputError(("plots", i, "sensor"), "is required with `sensors`")
+    def col(name: str, scale: float = 1.0) -> np.ndarray:
+        return np.array([np.nan if getattr(p, name) is None else getattr(p, name) * scale
+                         for p in req.plots], dtype=float)
+
+    reference = None
+    if req.reference is not None:
+        reference = LocalFrame(req.reference.lat_deg, req.reference.lon_deg)
+        reference.validate()
+    return PlotTable.build(sensors, col("t"), [p.sensor for p in req.plots], col("range_m"),
+                           col("azimuth_deg", np.pi / 180), col("lat_deg"), col("lon_deg"),
+                           col("altitude_m"), reference=reference)
 
 
 # ----------------------------------------------------------------------------------- results
 
 
-def _states(s: StateSeries, with_heading: bool) -> list[dict]:
-    """Rows of a state series; ``cov`` as nested lists (or None)."""
+def _states(s: StateSeries, with_heading: bool, frame: LocalFrame | None = None) -> list[dict]:
+    """Rows of a state series; ``cov`` as nested lists (or None); latitude and longitude when
+    the plane has a frame; the estimated height where there is one."""
     cols = {"t": s.t, "x": s.x, "z": s.z, "vx": s.vx, "vz": s.vz}
     if with_heading:
         cols["heading_deg"] = np.rad2deg(s.heading)
         cols["speed"] = s.speed
+    if s.lat_deg is None and frame is not None:
+        s.lat_deg, s.lon_deg = frame.to_geodetic(s.x, s.z)
+    if s.lat_deg is not None and s.lon_deg is not None:
+        cols["lat_deg"], cols["lon_deg"] = s.lat_deg, s.lon_deg
+    if s.h is not None and s.h_sigma is not None:
+        cols["altitude_m"], cols["altitude_sigma_m"] = s.h, s.h_sigma
     names = list(cols)
     rows = [dict(zip(names, vals, strict=True))
             for vals in np.column_stack(list(cols.values())).tolist()]
@@ -139,12 +222,27 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate]) -> 
          "heading_deg": float(np.rad2deg(s.heading) % 360.0), "speed": s.speed}
         for s in rec.segments
     ]
+    trajectory: dict = {
+        "segments": segments,
+        "at_plots": _states(rec.at_plots, True),
+        "samples": _states(rec.samples, True),
+    }
+    if rec.altitude_m is not None:
+        trajectory["altitude_m"] = rec.altitude_m
+        trajectory["altitude_sigma_m"] = rec.altitude_sigma_m
     return {
-        "trajectory": {
-            "segments": segments,
-            "at_plots": _states(rec.at_plots, True),
-            "samples": _states(rec.samples, True),
-        },
-        "filters": {name: {"states": _states(e.states, False)} for name, e in estimates.items()},
+        "trajectory": trajectory,
+        "filters": {name: {"states": _states(e.states, False, rec.frame)}
+                    for name, e in estimates.items()},
+        "sensors": [_sensor(r) for r in rec.sensors],
         "diagnostics": _diagnostics(rec.diagnostics),
     }
+
+
+def _sensor(r: SensorReport) -> dict:
+    """A sensor report in the request's units (degrees)."""
+    out = {k: v for k, v in vars(r).items() if not k.endswith("_rad")}
+    for k, v in vars(r).items():
+        if k.endswith("_rad"):
+            out[k[:-4] + "_deg"] = None if v is None else float(np.rad2deg(v))
+    return out

@@ -9,9 +9,9 @@ and come back as the same 422 error body.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_serializer
 
 from solver.estimation import FILTER_NAMES
 
@@ -55,19 +55,79 @@ class RadarIn(_In):
         "the unknown-altitude correction. 0 = no correction.", examples=[60.0])
 
 
-class PlotIn(_In):
-    """One radar plot (one detection of the aircraft)."""
+class SiteFields(_In):
+    """A sensor's site on WGS-84."""
 
-    t: float = Field(description="Time (s, any origin); strictly increasing along `plots`.",
-                     examples=[0.0])
-    range_m: float = Field(description="Slant range (m, > 0).", examples=[81234.5])
-    azimuth_deg: float = Field(
-        description="Azimuth (degrees, clockwise from north); any real value, normalised to "
-        "[0, 360).", examples=[123.4])
+    lat_deg: float | None = Field(
+        None, description="Site latitude (degrees, WGS-84, [-90, 90]). Omit (with `lon_deg`) "
+        "to put the radar at the `reference` point.", examples=[46.2237])
+    lon_deg: float | None = Field(None, description="Site longitude (degrees, WGS-84).",
+                                  examples=[14.4576])
+    height_m: float = Field(0.0, description="Site height above the WGS-84 ellipsoid (m).",
+                            examples=[380.0])
+
+
+class RadarSensorIn(RadarIn, SiteFields):
+    """A radar of `sensors`: its accuracies (as the single `radar`) and its site."""
+
+    id: str = Field(min_length=1, max_length=64, description="Unique sensor id; "
+                    "`plots[].sensor` names it.", examples=["LJLJ-PSR"])
+    kind: Literal["radar"] = Field(description="`radar`: plots carry slant range and azimuth "
+                                   "(clockwise from the site's true north).")
+    estimate_bias: bool = Field(
+        False, description="Estimate this radar's range offset (m), azimuth offset (deg) and "
+        "time offset (s) with the trajectory (priors: 300 m, 0.5 deg, 1 s); reported in "
+        "`sensors`.")
+
+
+class PositionSensorIn(_In):
+    """A position sensor of `sensors` (ADS-B, WAM): plots carry latitude and longitude."""
+
+    id: str = Field(min_length=1, max_length=64, description="Unique sensor id.",
+                    examples=["ADSB"])
+    kind: Literal["position"] = Field(description="`position`: plots carry `lat_deg`, "
+                                      "`lon_deg` and optionally `altitude_m`.")
+    position_sigma_m: float = Field(description="Horizontal standard deviation per axis (m, "
+                                    "> 0).", examples=[30.0])
+    altitude_sigma_m: float = Field(15.0, description="Standard deviation of the plots' "
+                                    "`altitude_m` (m, > 0).", examples=[15.0])
+
+
+SensorIn = Annotated[RadarSensorIn | PositionSensorIn, Field(discriminator="kind")]
+
+
+class ReferenceIn(_In):
+    """The tangent point of the local plane of the answer (`x` north, `z` east)."""
+
+    lat_deg: float = Field(description="Latitude (degrees, WGS-84).", examples=[46.0])
+    lon_deg: float = Field(description="Longitude (degrees, WGS-84).", examples=[14.8])
+
+
+class PlotIn(_In):
+    """One plot (one detection of the aircraft)."""
+
+    t: float = Field(description="Time (s, any origin); strictly increasing along `plots` "
+                     "within one sensor (several sensors may share a time).", examples=[0.0])
+    sensor: str | None = Field(
+        None, description="Id of the plot's sensor in `sensors` (required with `sensors`, "
+        "refused with the single `radar`).", examples=[None])
+    range_m: float | None = Field(
+        None, description="Slant range (m, > 0); required on radar plots.", examples=[81234.5])
+    azimuth_deg: float | None = Field(
+        None, description="Azimuth (degrees, clockwise from north); any real value, normalised "
+        "to [0, 360); required on radar plots.", examples=[123.4])
+    lat_deg: float | None = Field(None, description="Latitude (degrees, WGS-84); position "
+                                  "plots only.", examples=[None])
+    lon_deg: float | None = Field(None, description="Longitude (degrees, WGS-84); position "
+                                  "plots only.", examples=[None])
     altitude_m: float | None = Field(
-        None, description="Known altitude (m, 0 <= value < range_m), e.g. Mode C from a "
-        "secondary radar: the plot's ground position then uses it exactly instead of the "
-        "unknown-altitude ellipse correction. Omit or null when unknown.", examples=[None])
+        None, description="Known altitude (m), e.g. Mode C from a secondary radar: the plot's "
+        "ground position then uses it exactly instead of the unknown-altitude ellipse "
+        "correction. With the single `radar`: height above the radar, 0 <= value < range_m; "
+        "with `sensors`: height above the WGS-84 ellipsoid. A Mode C flight level FL is a "
+        "pressure altitude, `FL * 30.48` m, taken as the height (its difference from the "
+        "geometric height, tens to hundreds of metres, moves a plot by about that times "
+        "h / r). Omit or null when unknown.", examples=[None])
 
 
 Pair = list[float]
@@ -122,11 +182,20 @@ _EXAMPLE_REQUEST = {
 
 
 class ReconstructionRequest(_In):
-    """A batch of plots of one aircraft from one radar, and how to reconstruct it."""
+    """A batch of plots of one aircraft from one radar (`radar`) or several sensors on the
+    earth (`sensors`), and how to reconstruct it."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [_EXAMPLE_REQUEST]})
 
-    radar: RadarIn
+    radar: RadarIn | None = Field(
+        None, description="The single radar at the origin of a flat plane (api.md). Exactly "
+        "one of `radar` and `sensors`.")
+    sensors: list[SensorIn] | None = Field(  # type: ignore[valid-type]
+        None, min_length=1, max_length=64, description="Several sensors on WGS-84 "
+        "(sensors.md): radars at their sites and position sensors; every plot names one.")
+    reference: ReferenceIn | None = Field(
+        None, description="Tangent point of the answer's local plane (with `sensors`). "
+        "Default: the first radar's site, else the first position plot.")
     plots: list[PlotIn] = Field(
         min_length=1, description="The aircraft's plots in time order (at least one; the "
         "service's `max_plots` setting caps the count).")
@@ -159,7 +228,29 @@ _COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2. I
         "carry (a constant altitude is not observable from 2-D plots)")
 
 
-class StateOut(_Out):
+_GEO_FIELDS = ("lat_deg", "lon_deg", "altitude_m", "altitude_sigma_m")
+
+
+class _GeoOut(_Out):
+    """A state that carries its latitude and longitude (and estimated altitude) when known:
+    those fields are left out of the JSON, not null, where they do not apply (the single
+    `radar` on its flat plane), so those answers keep their size."""
+
+    lat_deg: float | None = Field(None, description="Latitude (degrees, WGS-84); with "
+                                  "`sensors` only.")
+    lon_deg: float | None = Field(None, description="Longitude (degrees, WGS-84); with "
+                                  "`sensors` only.")
+
+    @model_serializer(mode="wrap")
+    def _drop_absent(self, handler: Any) -> dict[str, Any]:
+        out = handler(self)
+        for key in _GEO_FIELDS:
+            if out.get(key, 0) is None:
+                del out[key]
+        return out
+
+
+class StateOut(_GeoOut):
     """Reconstructed state at one time."""
 
     t: float = Field(description="Time (s, the request's origin).")
@@ -170,6 +261,10 @@ class StateOut(_Out):
     heading_deg: float = Field(description="Heading (degrees clockwise from north, [0, 360)).")
     speed: float = Field(description="Ground speed (m/s).")
     cov: Cov | None = Field(None, description=f"{_COV}; null when the method gives none.")
+    altitude_m: float | None = Field(None, description="Estimated height above the "
+                                     "ellipsoid (m), where the altitude was estimated from "
+                                     "several sensors.")
+    altitude_sigma_m: float | None = Field(None, description="Its standard deviation (m).")
 
 
 class SegmentOut(_Out):
@@ -192,9 +287,41 @@ class TrajectoryOut(_Out):
     at_plots: list[StateOut] = Field(description="State at every plot time, in input order, "
                                      "one per plot.")
     samples: list[StateOut] = Field(description="States every `sample_step_s` over the track.")
+    altitude_m: float | None = Field(
+        None, description="Where the altitude was estimated from several sensors: the "
+        "time-weighted mean height above the ellipsoid (m); per state in `altitude_m`.")
+    altitude_sigma_m: float | None = Field(None, description="Its standard deviation (m).")
 
 
-class FilterStateOut(_Out):
+class SensorOut(_Out):
+    """One sensor's plots against the reconstruction (the radar assessment of SASS-C/TRES)."""
+
+    id: str = Field(description="Sensor id.")
+    kind: str = Field(description="`radar` or `position`.")
+    plots: int = Field(description="Plots of this sensor.")
+    plots_gated: int = Field(description="Of those, plots given no weight as wild.")
+    range_bias_m: float | None = Field(description="Estimated range offset (m; reported "
+                                       "minus true); null unless `estimate_bias`.")
+    range_bias_sigma_m: float | None = Field(description="Its standard deviation (m).")
+    azimuth_bias_deg: float | None = Field(description="Estimated azimuth offset (deg).")
+    azimuth_bias_sigma_deg: float | None = Field(description="Its standard deviation (deg).")
+    time_bias_s: float | None = Field(description="Estimated time offset (s; reported minus "
+                                      "true time).")
+    time_bias_sigma_s: float | None = Field(description="Its standard deviation (s).")
+    range_residual_mean_m: float | None = Field(
+        description="Mean of measured minus predicted slant range (m), after the estimated "
+        "offset; radars only.")
+    range_residual_rms_m: float | None = Field(description="RMS of those residuals (m).")
+    range_residual_sigma_m: float | None = Field(description="Their standard deviation (m).")
+    azimuth_residual_mean_deg: float | None = Field(description="Mean azimuth residual (deg).")
+    azimuth_residual_rms_deg: float | None = Field(description="RMS azimuth residual (deg).")
+    azimuth_residual_sigma_deg: float | None = Field(description="Standard deviation of the "
+                                                     "azimuth residuals (deg).")
+    position_residual_rms_m: float | None = Field(
+        description="Horizontal RMS of the plots against the track (m); position sensors.")
+
+
+class FilterStateOut(_GeoOut):
     """One recursive estimate."""
 
     t: float = Field(description="Plot time (s).")
@@ -239,6 +366,9 @@ class ReconstructionResponse(_Out):
     trajectory: TrajectoryOut
     filters: dict[str, FilterOut] = Field(
         default_factory=dict, description="Estimates of the requested filters, by name.")
+    sensors: list[SensorOut] = Field(
+        default_factory=list, description="With `sensors`: one entry per sensor, in request "
+        "order (empty for the single `radar`).")
     diagnostics: DiagnosticsOut
 
 

@@ -1,0 +1,138 @@
+"""POST /v1/reconstructions with several sensors on the earth (spec sensors.md), in process."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.settings import Settings
+from solver.frames import LocalFrame
+from solver.results import Segment
+from solver.sensors import RadarSensor, Site
+from solver.trajectory import evaluate
+
+FRAME = LocalFrame(46.0, 14.8)
+SITES = {"LJLJ": Site(46.2237, 14.4576, 380.0), "SSR2": Site(45.5, 15.2, 900.0)}
+
+
+def _body(mode_c: bool = False, estimate_bias: bool = False) -> dict:
+    """Two radars (a PSR without altitude and an SSR) and ADS-B on one turning track."""
+    segs = [Segment(0.0, 300.0, -40e3, -30e3, 0.6, 220.0, 1.0, 0.0)]
+    rng = np.random.default_rng(2)
+    sensors = [
+        {"id": "LJLJ", "kind": "radar", "lat_deg": 46.2237, "lon_deg": 14.4576,
+         "height_m": 380.0, "range_error_m": 150.0, "azimuth_error_deg": 0.24,
+         "estimate_bias": estimate_bias},
+        {"id": "SSR2", "kind": "radar", "lat_deg": 45.5, "lon_deg": 15.2, "height_m": 900.0,
+         "range_error_m": 150.0, "azimuth_error_deg": 0.24},
+        {"id": "ADSB", "kind": "position", "position_sigma_m": 30.0},
+    ]
+    plots = []
+    for sid, period, offset in (("LJLJ", 4.8, 0.0), ("SSR2", 4.0, 0.0), ("ADSB", 2.0, 1.0)):
+        t = np.arange(offset, 300.0, period)
+        st = evaluate(segs, t)
+        h = np.full(t.size, 10_000.0)
+        if sid == "ADSB":
+            lat, lon = FRAME.to_geodetic(st.x + rng.normal(0, 30, t.size),
+                                         st.z + rng.normal(0, 30, t.size))
+            plots += [{"t": float(a), "sensor": sid, "lat_deg": float(b), "lon_deg": float(c),
+                       "altitude_m": 10_000.0} for a, b, c in zip(t, lat, lon, strict=True)]
+            continue
+        radar = RadarSensor(150.0, np.deg2rad(0.24), id=sid, site=SITES[sid])
+        r, az = radar.measure(FRAME, st.x, st.z, h)
+        r = r + rng.normal(0, 50, t.size)
+        az = np.rad2deg(az) + rng.normal(0, 0.08, t.size)
+        for a, b, c in zip(t, r, az, strict=True):
+            plot = {"t": float(a), "sensor": sid, "range_m": float(b), "azimuth_deg": float(c)}
+            if mode_c and sid == "SSR2":
+                plot["altitude_m"] = 10_000.0
+            plots.append(plot)
+    return {"sensors": sensors, "reference": {"lat_deg": 46.0, "lon_deg": 14.8},
+            "plots": plots, "filters": []}
+
+
+@pytest.fixture(scope="module")
+def client():
+    app = create_app(Settings(workers=1, max_plots=2000, max_samples=20_000,
+                              max_body_bytes=1_000_000, warmup=False))
+    with TestClient(app) as c:
+        for _ in range(600):
+            if c.get("/readyz").status_code == 200:
+                break
+            import time
+
+            time.sleep(0.1)
+        yield c
+
+
+def test_two_radars_and_adsb_answer_on_the_earth(client):
+    body = _body()
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 200, res.text
+    out = res.json()
+    at = out["trajectory"]["at_plots"]
+    assert len(at) == len(body["plots"])
+    for state in (at[0], out["trajectory"]["samples"][-1]):
+        assert {"lat_deg", "lon_deg", "altitude_m", "altitude_sigma_m"} <= set(state)
+    # positions on the earth agree with the plane positions through the reference's frame
+    lat, lon = FRAME.to_geodetic(np.array([at[5]["x"]]), np.array([at[5]["z"]]))
+    assert at[5]["lat_deg"] == pytest.approx(lat[0], abs=1e-9)
+    assert at[5]["lon_deg"] == pytest.approx(lon[0], abs=1e-9)
+    assert [s["id"] for s in out["sensors"]] == ["LJLJ", "SSR2", "ADSB"]
+    ljlj = out["sensors"][0]
+    assert ljlj["plots"] == sum(p["sensor"] == "LJLJ" for p in body["plots"])
+    assert ljlj["range_bias_m"] is None
+    assert 20 < ljlj["range_residual_rms_m"] < 100
+    assert 0.03 < ljlj["azimuth_residual_rms_deg"] < 0.2
+    assert out["trajectory"]["altitude_m"] == pytest.approx(10_000, abs=200)
+
+
+def test_bias_estimates_are_reported_in_degrees(client):
+    res = client.post("/v1/reconstructions", json=_body(mode_c=True, estimate_bias=True))
+    assert res.status_code == 200, res.text
+    s = res.json()["sensors"][0]
+    assert s["range_bias_sigma_m"] > 0 and s["azimuth_bias_sigma_deg"] > 0
+    assert abs(s["azimuth_bias_deg"]) < 3 * s["azimuth_bias_sigma_deg"] + 1e-3
+
+
+def test_single_radar_answer_has_no_earth_fields(client):
+    body = {"radar": {"range_error_m": 150.0, "azimuth_error_deg": 0.24},
+            "plots": [{"t": 5.0 * k, "range_m": 50e3 + 1000.0 * k, "azimuth_deg": 30.0}
+                      for k in range(10)]}
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 200, res.text
+    out = res.json()
+    assert "lat_deg" not in out["trajectory"]["at_plots"][0]
+    assert out["sensors"] == []
+
+
+LAST = len(_body()["plots"]) - 1  # an ADS-B plot
+
+
+@pytest.mark.parametrize("change, loc", [
+    (lambda b: b["plots"][3].update(sensor="NOPE"), ["plots", 3, "sensor"]),
+    (lambda b: b["sensors"][0].update(lat_deg=95.0), ["sensors", 0, "lat_deg"]),
+    (lambda b: b["plots"][3].update(t=b["plots"][1]["t"]), ["plots", 3, "t"]),
+    (lambda b: b["plots"][-1].update(range_m=1000.0), ["plots", LAST, "range_m"]),
+    (lambda b: b["plots"][0].pop("azimuth_deg"), ["plots", 0, "azimuth_deg"]),
+    (lambda b: b["plots"][0].pop("sensor"), ["plots", 0, "sensor"]),
+    (lambda b: b.update(radar={"range_error_m": 1.0, "azimuth_error_deg": 1.0}), ["sensors"]),
+    (lambda b: b.update(method="sliding"), ["method"]),
+    (lambda b: b["sensors"].append({"id": "SPARE", "kind": "position",
+                                    "position_sigma_m": 10.0}), ["sensors", 3, "id"]),
+    (lambda b: b["sensors"][1].update(id="LJLJ"), ["sensors", 1, "id"]),
+    (lambda b: b["sensors"][0].update(azimuth_error_deg=-1.0),
+     ["sensors", 0, "azimuth_error_deg"]),
+    (lambda b: b["reference"].update(lat_deg=-91.0), ["reference", "lat_deg"]),
+])
+def test_bad_sensor_input_gets_a_422_naming_the_field(client, change, loc):
+    body = copy.deepcopy(_body())
+    change(body)
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 422, res.text
+    err = res.json()
+    assert err["detail"][0]["loc"] == loc, err
