@@ -17,7 +17,9 @@ noise; a position sensor's are the truth's latitude and longitude after a Gaussi
 displacement in the plane. Scan times ``t0 + phase + k T``; each plot kept with probability
 ``Pd`` and outside the sensor's gaps. A time offset ``dt`` means a plot stamped ``t`` measured
 the aircraft at ``t - dt`` (the stamp is late by ``dt``). Every draw comes from
-``default_rng((seed, crc32(truth), crc32(profile), crc32(sensor)))``.
+``default_rng((seed, crc32(truth), crc32(profile), crc32(sensor)))`` (the offsets from the
+stream of ``sensor + "/bias"``, so that a profile with offsets has the same scans and noise as
+one without).
 """
 
 from __future__ import annotations
@@ -230,7 +232,8 @@ def simulate_sensor(et: EarthTruth, spec: SensorSpec, profile: str, seed: int,
     truth = et.truth
     rng = rng_for(truth.name, profile, spec.id, seed)
     t_end = truth.t[-1] if t_max is None else min(truth.t[-1], truth.t[0] + t_max)
-    bias = spec.bias.draw(rng) if spec.kind == "radar" else Bias()
+    bias_rng = rng_for(truth.name, profile, spec.id + "/bias", seed)  # its own stream: the
+    bias = spec.bias.draw(bias_rng) if spec.kind == "radar" else Bias()  # same plots otherwise
     phase = rng.uniform(0.0, spec.scan_s)
     t = np.arange(truth.t[0] + phase + max(bias.time_s, 0.0), t_end + min(bias.time_s, 0.0),
                   spec.scan_s)
