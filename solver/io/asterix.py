@@ -1,0 +1,527 @@
+"""ASTERIX recordings (raw files and pcap captures) -> plot rows.
+
+Records are parsed by libasterix (pure Python, MIT, EUROCONTROL specifications generated from
+the asterix-specs definitions; it also encodes, so the tests write their recordings with it).
+Nothing of the ASTERIX record structure is decoded by hand here: this module walks the
+data blocks (to know byte offsets and to resynchronise after damage), reads the pcap container,
+and maps the decoded items to plot rows (:class:`solver.io.tables.PlotRows`).
+
+Containers (:func:`read_recording` tells them apart by the first bytes):
+
+- raw: data blocks ``CAT (1 byte) | LEN (2 bytes, big-endian, including these 3) | records``
+  one after the other, as recorders write them;
+- pcap (classic libpcap, micro- or nanosecond, either byte order; link types Ethernet with
+  802.1Q tags, raw IP, Linux cooked v1/v2, BSD loopback): every UDP payload over IPv4/IPv6 is
+  a datagram of data blocks. pcapng is refused with a clear error (convert it with
+  ``editcap -F pcap``); IP fragments are reported, not reassembled.
+
+Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=`` picks others):
+
+- CAT048 target reports: I010 SAC/SIC -> sensor (sensor file), I140 time of day, I040 measured
+  slant range (1/256 NM -> m) and azimuth (360/2^16 deg), I090 flight level (1/4 FL) ->
+  ``flight_level`` and the pressure altitude ``altitude_m = FL * 30.48`` (used only when its
+  V and G bits say validated and not garbled), I220 Mode S address, I070 Mode 3/A (validated,
+  not garbled), I161 track number. Reports flagged simulated or test (I020 SIM, TST) or from a
+  fixed transponder (RAB) are not aircraft: counted as ``not_aircraft`` and left out.
+- CAT021 ADS-B: I010 SAC/SIC (ground station) -> sensor, time of applicability for position
+  I071 (else time of message reception I073), position I131 (high resolution) or I130,
+  flight level I145 (pressure altitude as above) or else geometric height I140 (ft -> m),
+  target address I080, Mode 3/A I070, track number I161. SIM/TST flagged reports are left out
+  (counted).
+- CAT034 service messages: per sensor the count of messages, north markers and sector
+  crossings and the antenna rotation period I041 (:class:`ServiceStats`).
+
+Times: the time of day (1/128 s) becomes ``t``, seconds since the UTC midnight before the
+first record, monotonic across midnight (:func:`solver.io.tables.unwrap_time_of_day`, in
+recording order); ``time_of_day_s`` keeps the recorded value.
+
+Damage: every problem is recorded (:class:`solver.io.problems.Problems`) with its byte offset
+in the file and the rest is still read: a truncated block (its declared length runs past the
+end of the file or past the start of the next valid block: the reader resynchronises on the
+next block whose header, records and successor all check out), an unparsable record (the rest
+of its block is skipped), unrecognised bytes between blocks, a category that is not decoded
+(CAT062 ...), an unknown SAC/SIC, a record without position or time.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import asterix.generated as ast
+import numpy as np
+from asterix.base import Bits, ParsingMode
+
+from ..inputs import InputError
+from ..sensors import PositionSensor, RadarSensor
+from .problems import Problems
+from .sensors_file import SensorSet
+from .tables import FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
+
+NM_M = 1852.0
+DEFAULT_EDITIONS: dict[int, Any] = {48: ast.Cat_048_1_32, 21: ast.Cat_021_2_7,
+                                    34: ast.Cat_034_1_29}
+KNOWN_CATEGORIES = frozenset(ast.manifest["CATS"])
+"""Categories libasterix knows (used only to recognise block headers when resynchronising)."""
+
+_PCAP_MAGIC = {b"\xd4\xc3\xb2\xa1": ("<", 1e-6), b"\xa1\xb2\xc3\xd4": (">", 1e-6),
+               b"\x4d\x3c\xb2\xa1": ("<", 1e-9), b"\xa1\xb2\x3c\x4d": (">", 1e-9)}
+_PCAPNG_MAGIC = b"\x0a\x0d\x0d\x0a"
+
+
+@dataclass
+class ServiceStats:
+    """What a sensor's CAT034 service messages say: counts, and the antenna rotation period
+    (I034/041, s) last reported (None when never)."""
+
+    messages: int = 0
+    north_markers: int = 0
+    sector_crossings: int = 0
+    rotation_period_s: float | None = None
+
+
+@dataclass
+class Recording:
+    """A decoded recording: the plot rows (``origin``: byte offset of each row's record in the
+    file), the problems, CAT034 statistics per sensor id, and counts (data blocks per
+    category, records, bytes, pcap packets)."""
+
+    rows: PlotRows
+    problems: Problems
+    service: dict[str, ServiceStats] = field(default_factory=dict)
+    blocks: dict[int, int] = field(default_factory=dict)
+    records: int = 0
+    bytes: int = 0
+    packets: int = 0
+
+
+def read_recording(source: str | Path | bytes, sensors: SensorSet, *,
+                   editions: Mapping[int, Any] | None = None) -> Recording:
+    """Decode a raw ASTERIX file or a pcap capture of it (see the module docstring)."""
+    data = source if isinstance(source, bytes) else Path(source).read_bytes()
+    decoder = _Decoder(sensors, editions or DEFAULT_EDITIONS)
+    if data[:4] == _PCAPNG_MAGIC:
+        raise InputError(("recording",), "is a pcapng capture; only classic pcap is read "
+                         "(convert it: editcap -F pcap in.pcapng out.pcap)")
+    if data[:4] in _PCAP_MAGIC:
+        for offset, payload in iter_pcap_payloads(data, decoder.problems):
+            decoder.packets += 1
+            decoder.feed(payload, offset)
+    else:
+        decoder.feed(data, 0)
+    return decoder.finish(len(data))
+
+
+def decode_blocks(data: bytes, sensors: SensorSet, *,
+                  editions: Mapping[int, Any] | None = None) -> Recording:
+    """Decode data blocks one after the other (a raw file's bytes or one datagram)."""
+    decoder = _Decoder(sensors, editions or DEFAULT_EDITIONS)
+    decoder.feed(data, 0)
+    return decoder.finish(len(data))
+
+
+# ---------------------------------------------------------------------------------- pcap
+
+
+def iter_pcap_payloads(data: bytes, problems: Problems) -> Iterator[tuple[int, bytes]]:
+    """``(byte offset in the file, payload)`` of every UDP datagram of a classic pcap capture;
+    other packets, fragments and packets cut by the capture's snap length are reported."""
+    if len(data) < 24 or data[:4] not in _PCAP_MAGIC:
+        raise InputError(("recording",), "is not a pcap capture (no pcap magic number)")
+    endian, _ = _PCAP_MAGIC[data[:4]]
+    linktype = struct.unpack_from(endian + "I", data, 20)[0] & 0x0FFFFFFF
+    if linktype not in (0, 1, 101, 113, 228, 229, 276):
+        raise InputError(("recording",), f"pcap link type {linktype} is not read (Ethernet, "
+                         "raw IP, Linux cooked capture and loopback are)")
+    pos, number = 24, 0
+    while pos < len(data):
+        number += 1
+        if len(data) - pos < 16:
+            problems.add("truncated_packet", f"byte {pos}", f"pcap packet {number}: "
+                         f"{len(data) - pos} bytes left, a packet header has 16")
+            return
+        _, _, incl, orig = struct.unpack_from(endian + "IIII", data, pos)
+        start = pos + 16
+        if start + incl > len(data):
+            problems.add("truncated_packet", f"byte {pos}", f"pcap packet {number} declares "
+                         f"{incl} bytes, only {len(data) - start} remain")
+            return
+        packet = data[start:start + incl]
+        pos = start + incl
+        if incl < orig:
+            problems.add("truncated_packet", f"byte {start - 16}", f"pcap packet {number} was "
+                         f"captured with {incl} of its {orig} bytes (snap length); skipped",
+                         key="snaplen")
+            continue
+        found = _udp_payload(packet, linktype)
+        if isinstance(found, str):
+            problems.add("not_asterix_packet", f"byte {start - 16}",
+                         f"pcap packet {number}: {found}", key=found)
+            continue
+        offset, payload = found
+        yield start + offset, payload
+
+
+def _udp_payload(p: bytes, linktype: int) -> tuple[int, bytes] | str:
+    """(offset, UDP payload) of one link-layer frame, or why there is none."""
+    off = 0
+    if linktype == 1:  # Ethernet, with 802.1Q / QinQ tags
+        if len(p) < 14:
+            return "short Ethernet frame"
+        etype, off = struct.unpack_from(">H", p, 12)[0], 14
+        while etype in (0x8100, 0x88A8) and len(p) >= off + 4:
+            etype, off = struct.unpack_from(">H", p, off + 2)[0], off + 4
+    elif linktype == 113:  # Linux cooked v1
+        if len(p) < 16:
+            return "short Linux cooked header"
+        etype, off = struct.unpack_from(">H", p, 14)[0], 16
+    elif linktype == 276:  # Linux cooked v2
+        if len(p) < 20:
+            return "short Linux cooked v2 header"
+        etype, off = struct.unpack_from(">H", p, 0)[0], 20
+    elif linktype == 0:  # BSD loopback: host-order address family
+        if len(p) < 4:
+            return "short loopback header"
+        fam = struct.unpack_from("<I", p, 0)[0]
+        fam = fam if fam < 65536 else struct.unpack_from(">I", p, 0)[0]
+        etype, off = (0x0800 if fam == 2 else 0x86DD), 4
+    else:  # raw IP (101, 228 IPv4, 229 IPv6)
+        etype = 0x0800 if p[:1] and p[0] >> 4 == 4 else 0x86DD
+    if etype == 0x0800:
+        if len(p) < off + 20:
+            return "short IPv4 header"
+        ihl = (p[off] & 0x0F) * 4
+        proto = p[off + 9]
+        frag = struct.unpack_from(">H", p, off + 6)[0]
+        total = struct.unpack_from(">H", p, off + 2)[0]
+        if proto != 17:
+            return f"IP protocol {proto}, not UDP"
+        if frag & 0x3FFF:
+            return "IPv4 fragment (not reassembled)"
+        end = min(len(p), off + total) if total else len(p)
+        off += ihl
+    elif etype == 0x86DD:
+        if len(p) < off + 40:
+            return "short IPv6 header"
+        if p[off + 6] != 17:
+            return f"IPv6 next header {p[off + 6]}, not UDP (extension headers are not read)"
+        end = min(len(p), off + 40 + struct.unpack_from(">H", p, off + 4)[0])
+        off += 40
+    else:
+        return f"ethertype 0x{etype:04x}, not IP"
+    if end < off + 8:
+        return "short UDP header"
+    udp_len = struct.unpack_from(">H", p, off + 4)[0]
+    stop = min(end, off + udp_len) if udp_len >= 8 else end
+    return off + 8, p[off + 8:stop]
+
+
+# ---------------------------------------------------------------------------------- blocks
+
+
+class _Decoder:
+    """Data blocks -> row columns; one instance per recording."""
+
+    def __init__(self, sensors: SensorSet, editions: Mapping[int, Any]):
+        self.sensors = sensors
+        self.editions = dict(editions)
+        if not set(self.editions) <= {21, 34, 48}:
+            raise ValueError(f"editions: categories {sorted(self.editions)}; only 21, 34 and "
+                             "48 are decoded")
+        self.problems = Problems()
+        self.cols: dict[str, list] = {k: [] for k in (
+            "time_of_day_s", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
+            "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number", "origin")}
+        self.service: dict[str, ServiceStats] = {}
+        self.blocks: dict[int, int] = {}
+        self.records = 0
+        self.packets = 0
+
+    # ------------------------------------------------------------------ block walking
+
+    @staticmethod
+    def _plausible(data: bytes, p: int) -> bool:
+        """A block header could start at ``p``: a category libasterix knows and a length of at
+        least 3 (the block may still run past the end: that is reported when it is read)."""
+        return (len(data) - p >= 3 and data[p] in KNOWN_CATEGORIES
+                and ((data[p + 1] << 8) | data[p + 2]) >= 3)
+
+    def _parse(self, cat: int, data: bytes, start: int, stop: int
+               ) -> tuple[list[tuple[Any, int]], tuple[int, str] | None]:
+        """Records of ``data[start:stop]`` with their byte offsets, and where and why parsing
+        stopped early (None: every byte was read)."""
+        spec = self.editions.get(cat)
+        if spec is None:
+            return [], None
+        bits = Bits(data, start * 8, stop * 8)
+        out: list[tuple[Any, int]] = []
+        while len(bits):
+            at = bits.bit_offset1 // 8
+            r = spec.cv_uap.cv_record.parse(ParsingMode.StrictParsing, bits)
+            if isinstance(r, ValueError):
+                return out, (at, str(r))
+            out.append((r[0], at))
+            bits = r[1]
+        return out, None
+
+    def _valid_start(self, data: bytes, q: int) -> bool:
+        """Whether a block that checks out starts at ``q``: a decoded category, a length of at
+        least 4 within the data, records that parse and a plausible successor (or the end).
+        Blocks of other categories are not resynchronised on (their records cannot be checked,
+        and bytes inside records often look like their headers)."""
+        if data[q] not in self.editions or not self._plausible(data, q):
+            return False
+        nxt = q + ((data[q + 1] << 8) | data[q + 2])
+        if nxt - q < 4 or nxt > len(data):
+            return False
+        if nxt != len(data) and not self._plausible(data, nxt):
+            return False
+        return self._parse(data[q], data, q + 3, nxt)[1] is None
+
+    def _resync(self, data: bytes, start: int) -> int | None:
+        for q in range(start, len(data)):
+            if self._valid_start(data, q):
+                return q
+        return None
+
+    def feed(self, data: bytes, base: int) -> None:
+        """Decode the data blocks of ``data``, whose first byte is at file offset ``base``."""
+        pos, end = 0, len(data)
+        problems = self.problems
+        while pos < end:
+            if end - pos < 3:
+                problems.add("truncated_block", f"byte {base + pos}", f"{end - pos} byte(s) "
+                             "left at the end, a block header has 3: skipped")
+                return
+            cat, length = data[pos], (data[pos + 1] << 8) | data[pos + 2]
+            if length < 3:
+                q = self._resync(data, pos + 1)
+                problems.add("corrupt_block", f"byte {base + pos}", f"block header declares a "
+                             f"length of {length} (< 3); {(q or end) - pos} bytes skipped up "
+                             "to " + (f"the next block at byte {base + q}" if q is not None
+                                      else "the end"))
+                if q is None:
+                    return
+                pos = q
+                continue
+            nxt = pos + length
+            stop = min(nxt, end)
+            records, err = self._parse(cat, data, pos + 3, stop)
+            if nxt <= end and err is None and (nxt == end or self._plausible(data, nxt)):
+                self._handle(cat, records, pos, base)  # the usual case
+                pos = nxt
+                continue
+            # something is wrong: find where the stream goes on
+            q = self._resync(data, pos + 1)
+            if q is not None and q < stop:  # this block was cut short at q
+                records, _ = self._parse(cat, data, pos + 3, q)
+                self._handle(cat, records, pos, base)
+                problems.add("truncated_block", f"byte {base + pos}", f"CAT{cat:03d} block "
+                             f"declares {length} bytes but the next block starts at byte "
+                             f"{base + q} ({q - pos} bytes on); {len(records)} whole "
+                             "record(s) read from it")
+                pos = q
+                continue
+            self._handle(cat, records, pos, base)
+            if nxt > end:
+                problems.add("truncated_block", f"byte {base + pos}", f"CAT{cat:03d} block "
+                             f"declares {length} bytes, only {end - pos} remain; "
+                             f"{len(records)} whole record(s) read from it")
+                return
+            if err is not None:
+                problems.add("bad_record", f"byte {base + err[0]}", f"CAT{cat:03d} record "
+                             f"does not parse ({err[1]}); the rest of its block "
+                             f"({nxt - err[0]} bytes) skipped")
+            if nxt == end or self._plausible(data, nxt):
+                pos = nxt
+                continue
+            problems.add("unrecognised_bytes", f"byte {base + nxt}", f"{(q or end) - nxt} "
+                         "bytes that are no data block skipped")
+            if q is None:
+                return
+            pos = q
+
+    def _handle(self, cat: int, records: list[tuple[Any, int]], pos: int, base: int) -> None:
+        """Rows from parsed records (``pos``: the block's offset in ``data``)."""
+        self.blocks[cat] = self.blocks.get(cat, 0) + 1
+        if cat not in self.editions:
+            self.problems.add("unknown_category", f"byte {base + pos}",
+                              f"CAT{cat:03d} data block(s) skipped (decoded: "
+                              + ", ".join(f"CAT{c:03d}" for c in sorted(self.editions)) + ")",
+                              key=str(cat))
+            return
+        handler = {48: self._cat048, 21: self._cat021, 34: self._cat034}[cat]
+        for rec, at in records:
+            self.records += 1
+            try:
+                handler(rec, base + at)
+            except Exception as e:  # a record libasterix parses but we cannot read
+                self.problems.add("bad_record", f"byte {base + at}",
+                                  f"CAT{cat:03d} record not readable: {e!r}", dropped=1)
+
+    # ------------------------------------------------------------------ records
+
+    def _sensor(self, rec: Any, cat: int, at: int, kind: type) -> str | None:
+        i010 = rec.get_item("010")
+        if i010 is None:
+            self.problems.add("missing_item", f"byte {at}", f"CAT{cat:03d} record without "
+                              "I010 (SAC/SIC): left out", key=f"{cat}:010", dropped=1)
+            return None
+        sac = i010.variation.get_item("SAC").as_uint()
+        sic = i010.variation.get_item("SIC").as_uint()
+        sensor = self.sensors.by_code(sac, sic)
+        if sensor is None:
+            self.problems.add("unknown_sensor", f"byte {at}", f"SAC {sac} / SIC {sic} "
+                              f"(CAT{cat:03d}) is not in the sensor file: its records are "
+                              "left out", key=f"{sac}/{sic}", dropped=int(cat != 34))
+            return None
+        if kind is not None and not isinstance(sensor, kind):
+            self.problems.add("wrong_sensor_kind", f"byte {at}", f"SAC {sac} / SIC {sic} is "
+                              f"{sensor.kind} sensor {sensor.id!r} in the sensor file but sends "
+                              f"CAT{cat:03d}: left out", key=f"{sac}/{sic}/{cat}", dropped=1)
+            return None
+        return sensor.id
+
+    def _flagged(self, item: Any, names: tuple[str, ...], sensor: str, at: int, cat: int
+                 ) -> bool:
+        if item is None:
+            return False
+        for name in names:
+            sub = item.variation.get_item(name)
+            if sub is not None and sub.as_uint():
+                self.problems.add("not_aircraft", f"byte {at}", f"CAT{cat:03d} report of "
+                                  f"{sensor!r} flagged {name}: left out",
+                                  key=f"{sensor}/{name}", dropped=1)
+                return True
+        return False
+
+    def _missing(self, cat: int, item: str, sensor: str, at: int) -> None:
+        self.problems.add("missing_item", f"byte {at}", f"CAT{cat:03d} report of {sensor!r} "
+                          f"without I{cat:03d}/{item}: left out", key=f"{cat}:{item}:{sensor}",
+                          dropped=1)
+
+    def _append(self, **row: Any) -> None:
+        for k, col in self.cols.items():
+            col.append(row.get(k, np.nan if k in ("range_m", "azimuth_deg", "lat_deg",
+                                                  "lon_deg", "altitude_m", "flight_level")
+                               else NO_INT))
+
+    def _code(self, item: Any, name: str, sensor: str, at: int, cat: int) -> int:
+        """A Mode 3/A code, -1 when absent, not validated or garbled (counted)."""
+        if item is None:
+            return NO_INT
+        v = item.variation
+        for flag in ("V", "G"):
+            sub = v.get_item(flag) if flag in _names(v) else None
+            if sub is not None and sub.as_uint():
+                self.problems.add("invalid_code", f"byte {at}", f"CAT{cat:03d} Mode 3/A of "
+                                  f"{sensor!r} not validated or garbled: not used",
+                                  key=f"{sensor}/3a")
+                return NO_INT
+        return int(v.get_item(name).as_uint())
+
+    def _cat048(self, rec: Any, at: int) -> None:
+        sensor = self._sensor(rec, 48, at, RadarSensor)
+        if sensor is None:
+            return
+        if self._flagged(rec.get_item("020"), ("SIM", "TST", "RAB"), sensor, at, 48):
+            return
+        i140, i040 = rec.get_item("140"), rec.get_item("040")
+        if i140 is None:
+            return self._missing(48, "140", sensor, at)
+        if i040 is None:
+            return self._missing(48, "040", sensor, at)
+        rho = i040.variation.get_item("RHO").variation.content.as_quantity("NM")
+        theta = i040.variation.get_item("THETA").variation.content.as_quantity("°")
+        fl = np.nan
+        i090 = rec.get_item("090")
+        if i090 is not None:
+            v = i090.variation
+            if v.get_item("V").as_uint() or v.get_item("G").as_uint():
+                self.problems.add("invalid_code", f"byte {at}", f"CAT048 flight level of "
+                                  f"{sensor!r} not validated or garbled: not used",
+                                  key=f"{sensor}/fl")
+            else:
+                fl = v.get_item("FL").variation.content.as_quantity("FL")
+        i220, i161 = rec.get_item("220"), rec.get_item("161")
+        self._append(
+            time_of_day_s=i140.variation.content.as_quantity("s"), sensor=sensor,
+            range_m=rho * NM_M, azimuth_deg=theta, flight_level=fl, altitude_m=fl * FL_M,
+            mode_s=NO_INT if i220 is None else int(i220.as_uint()),
+            mode_3a=self._code(rec.get_item("070"), "MODE3A", sensor, at, 48),
+            track_number=NO_INT if i161 is None else int(
+                i161.variation.get_item("TRN").as_uint()),
+            origin=at)
+
+    def _cat021(self, rec: Any, at: int) -> None:
+        sensor = self._sensor(rec, 21, at, PositionSensor)
+        if sensor is None:
+            return
+        if self._flagged(rec.get_item("040"), ("SIM", "TST"), sensor, at, 21):
+            return
+        time = rec.get_item("071") or rec.get_item("073")
+        if time is None:
+            return self._missing(21, "071", sensor, at)
+        pos = rec.get_item("131") or rec.get_item("130")
+        if pos is None:
+            return self._missing(21, "130", sensor, at)
+        lat = pos.variation.get_item("LAT").variation.content.as_quantity("°")
+        lon = pos.variation.get_item("LON").variation.content.as_quantity("°")
+        fl, alt = np.nan, np.nan
+        i145, i140 = rec.get_item("145"), rec.get_item("140")
+        if i145 is not None:
+            fl = i145.variation.content.as_quantity("FL")
+            alt = fl * FL_M
+        elif i140 is not None:
+            alt = i140.variation.content.as_quantity("ft") * FT_M
+        i080, i161 = rec.get_item("080"), rec.get_item("161")
+        self._append(
+            time_of_day_s=time.variation.content.as_quantity("s"), sensor=sensor,
+            lat_deg=lat, lon_deg=lon, flight_level=fl, altitude_m=alt,
+            mode_s=NO_INT if i080 is None else int(i080.as_uint()),
+            mode_3a=self._code(rec.get_item("070"), "MODE3A", sensor, at, 21),
+            track_number=NO_INT if i161 is None else int(
+                i161.variation.get_item("TRNUM").as_uint()),
+            origin=at)
+
+    def _cat034(self, rec: Any, at: int) -> None:
+        sensor = self._sensor(rec, 34, at, None)  # type: ignore[arg-type]
+        if sensor is None:
+            return
+        stats = self.service.setdefault(sensor, ServiceStats())
+        stats.messages += 1
+        i000, i041 = rec.get_item("000"), rec.get_item("041")
+        kind = None if i000 is None else i000.as_uint()
+        stats.north_markers += int(kind == 1)
+        stats.sector_crossings += int(kind == 2)
+        if i041 is not None:
+            stats.rotation_period_s = float(i041.variation.content.as_quantity("s"))
+
+    # ------------------------------------------------------------------ result
+
+    def finish(self, size: int) -> Recording:
+        c = self.cols
+        tod = np.asarray(c["time_of_day_s"], dtype=float)
+        n = tod.size
+        rows = PlotRows.from_columns(
+            n, "byte", t=unwrap_time_of_day(tod), time_of_day_s=tod,
+            sensor=np.array(c["sensor"], dtype=object).reshape(n),
+            **{k: np.asarray(c[k], dtype=float) for k in (
+                "range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m", "flight_level")},
+            **{k: np.asarray(c[k], dtype=np.int64) for k in (
+                "mode_s", "mode_3a", "track_number", "origin")})
+        return Recording(rows, self.problems, self.service, self.blocks, self.records, size,
+                         self.packets)
+
+
+def _names(variation: Any) -> set[str]:
+    items = getattr(type(variation), "cv_items_list", [])
+    out = set()
+    for it in items:
+        ns = getattr(it[0], "cv_non_spare", None) if it else None
+        if ns is not None:
+            out.add(ns.cv_name)
+    return out

@@ -1,0 +1,416 @@
+"""The plot table of a whole recording: one plot per row, every aircraft and sensor mixed.
+
+:class:`PlotRows` holds it as columns (numpy arrays); :func:`read_table` reads it from CSV or
+Parquet, :func:`write_table` writes it. Both the ASTERIX decoder (:mod:`solver.io.asterix`) and
+a user's own table end here; :mod:`solver.io.split` cuts it into one
+:class:`solver.plots.PlotTable` per aircraft.
+
+File format (``../shared/spec/recordings.md``; units in the names; CSV with a header line, or
+Parquet with these column names):
+
+==================  =======================================================================
+column              meaning
+==================  =======================================================================
+``t``               time (s, any epoch), or instead
+``time_of_day_s``   seconds since UTC midnight, wrapping at 86400: made monotonic in row
+                    order (:func:`unwrap_time_of_day`); ``t`` is then seconds since the UTC
+                    midnight before the first row (with both, ``t`` is used and
+                    ``time_of_day_s`` kept beside it, as :func:`write_table` writes them)
+``sensor``          sensor id (of the sensor file), required
+``range_m``         slant range (m) and ...
+``azimuth_deg``     ... azimuth (degrees clockwise from true north): a radar plot, or
+``lat_deg``         WGS-84 latitude and ...
+``lon_deg``         ... longitude (degrees): a position (ADS-B) plot
+``altitude_m``      optional: altitude (m; geometric or pressure altitude as the source gives it)
+``flight_level``    optional: Mode C / barometric flight level (100 ft); without ``altitude_m``
+                    it gives the pressure altitude ``altitude_m = FL * 30.48``
+``mode_s``          optional: 24-bit ICAO aircraft address, hex (``4CA2D1``)
+``mode_3a``         optional: Mode 3/A code, 4 octal digits (``7000``)
+``track_number``    optional: the sensor's track number (integer >= 0)
+``aircraft``        optional: an aircraft key the user already has (overrides the others)
+==================  =======================================================================
+
+Empty cells (CSV) and nulls (Parquet) are missing values. A row needs a time, a sensor and
+either ``range_m`` + ``azimuth_deg`` or ``lat_deg`` + ``lon_deg``. A missing required column
+raises :class:`solver.InputError` naming it; a bad value (unparsable, non-finite, out of range)
+is reported as a problem naming the row (1-based data row; in CSV files line = row + 1) and
+column, the row is skipped and counted, and the rest of the table is read (``strict=True``
+raises instead).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+from ..inputs import FloatArray, InputError
+from .problems import Problems
+
+DAY_S = 86_400.0
+FT_M = 0.3048
+FL_M = 30.48  # one flight level (100 ft) in metres
+NO_INT = -1  # missing mode_s / mode_3a / track_number
+
+FLOAT_COLUMNS = ("range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m", "flight_level")
+INT_COLUMNS = ("mode_s", "mode_3a", "track_number")
+STR_COLUMNS = ("sensor", "aircraft")
+
+
+@dataclass(frozen=True)
+class PlotRows:
+    """A recording's plots as columns (rows in recording order).
+
+    ``t``: s, monotonic across midnight when it came from a time of day; ``time_of_day_s``: the
+    time of day as recorded (NaN when the source gave ``t``). Float columns are NaN where
+    missing, ``mode_s`` / ``mode_3a`` / ``track_number`` -1 (``mode_3a`` holds the code's
+    value, ``0o7000``), ``aircraft`` ``""``. ``origin`` locates each row in its source:
+    ``origin_unit`` ``"byte"`` (offset of the row's ASTERIX record in the file) or ``"row"``
+    (1-based data row of a table).
+    """
+
+    t: FloatArray
+    time_of_day_s: FloatArray
+    sensor: np.ndarray  # str objects
+    range_m: FloatArray
+    azimuth_deg: FloatArray
+    lat_deg: FloatArray
+    lon_deg: FloatArray
+    altitude_m: FloatArray
+    flight_level: FloatArray
+    mode_s: np.ndarray  # int64
+    mode_3a: np.ndarray  # int64
+    track_number: np.ndarray  # int64
+    aircraft: np.ndarray  # str objects
+    origin: np.ndarray  # int64
+    origin_unit: str = "row"
+
+    @classmethod
+    def from_columns(cls, n: int, origin_unit: str = "row", **cols: object) -> PlotRows:
+        """Rows from column arrays; absent columns are missing values."""
+        out: dict[str, object] = {}
+        for f in fields(cls):
+            if f.name == "origin_unit":
+                continue
+            v = cols.pop(f.name, None)
+            if f.name in INT_COLUMNS or f.name == "origin":
+                arr = (np.full(n, NO_INT, np.int64) if v is None
+                       else np.asarray(v, dtype=np.int64))
+                if f.name == "origin" and v is None:
+                    arr = np.arange(1, n + 1, dtype=np.int64)
+            elif f.name in STR_COLUMNS:
+                arr = (np.full(n, "", dtype=object) if v is None
+                       else np.asarray(v, dtype=object))
+            else:
+                arr = np.full(n, np.nan) if v is None else np.asarray(v, dtype=float)
+            if arr.shape != (n,):
+                raise ValueError(f"column {f.name} has shape {arr.shape}, expected ({n},)")
+            out[f.name] = arr
+        if cols:
+            raise TypeError(f"unknown columns {sorted(cols)}")
+        return cls(origin_unit=origin_unit, **out)  # type: ignore[arg-type]
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def take(self, idx: np.ndarray) -> PlotRows:
+        """The rows ``idx`` (indexes or a boolean mask)."""
+        return replace(self, **{f.name: getattr(self, f.name)[idx] for f in fields(self)
+                                if f.name != "origin_unit"})
+
+    @staticmethod
+    def concat(parts: Sequence[PlotRows]) -> PlotRows:
+        """Rows of several parts (same ``origin_unit``) one after the other."""
+        if not parts:
+            return PlotRows.from_columns(0)
+        units = {p.origin_unit for p in parts}
+        if len(units) > 1:
+            raise ValueError(f"cannot concatenate rows of origins {sorted(units)}")
+        return replace(parts[0], **{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                                    for f in fields(PlotRows) if f.name != "origin_unit"})
+
+    def where(self, i: int) -> str:
+        """Where row ``i`` came from, in the user's terms (``"byte 1234"``, ``"row 17"``)."""
+        return f"{self.origin_unit} {int(self.origin[i])}"
+
+    def is_radar(self) -> np.ndarray:
+        """Rows carrying a slant range and an azimuth."""
+        return np.isfinite(self.range_m) & np.isfinite(self.azimuth_deg)
+
+    # ------------------------------------------------------------------------ arrow
+
+    def to_arrow(self) -> pa.Table:
+        """The documented table: ``t``, ``time_of_day_s`` (when known), measurements, and the
+        keys with nulls where missing (``mode_s`` hex, ``mode_3a`` octal strings)."""
+        def floats(a: FloatArray) -> pa.Array:
+            return pa.array(a, type=pa.float64(), from_pandas=True)  # NaN -> null
+
+        def ints(a: np.ndarray) -> pa.Array:
+            return pa.array(a, type=pa.int64(), mask=a < 0)
+
+        cols: dict[str, pa.Array] = {"t": pa.array(self.t, pa.float64())}
+        if np.isfinite(self.time_of_day_s).any():
+            cols["time_of_day_s"] = floats(self.time_of_day_s)
+        cols["sensor"] = pa.array(self.sensor.tolist(), pa.string())
+        for name in FLOAT_COLUMNS:
+            cols[name] = floats(getattr(self, name))
+        cols["mode_s"] = pa.array([f"{v:06X}" if v >= 0 else None for v in self.mode_s.tolist()],
+                                  pa.string())
+        cols["mode_3a"] = pa.array([f"{v:04o}" if v >= 0 else None
+                                    for v in self.mode_3a.tolist()], pa.string())
+        cols["track_number"] = ints(self.track_number)
+        cols["aircraft"] = pa.array([a or None for a in self.aircraft.tolist()], pa.string())
+        return pa.table(cols)
+
+
+# ---------------------------------------------------------------------------- time of day
+
+
+def unwrap_time_of_day(tod: FloatArray) -> FloatArray:
+    """Seconds since the UTC midnight before the first value, from times of day in recording
+    order: each value is put on the day that brings it closest to the value before it, so the
+    times grow across midnight (86399.9 then 0.1 -> 86400.1) while a late report from just
+    before midnight, arriving after one from just after, stays on its own day (jumps of less
+    than 12 h either way are taken as they are)."""
+    tod = np.asarray(tod, dtype=float)
+    out = np.empty_like(tod)
+    day = 0.0
+    prev = np.nan
+    for i, v in enumerate(tod.tolist()):
+        if np.isfinite(prev):
+            day = np.round((prev - v) / DAY_S)
+        out[i] = v + day * DAY_S
+        if np.isfinite(out[i]):
+            prev = out[i]
+    return out
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+def read_table(path: str | Path, *, strict: bool = False, problems: Problems | None = None
+               ) -> tuple[PlotRows, Problems]:
+    """Read a plot table (``.parquet`` / ``.pq`` as Parquet, anything else as CSV).
+
+    Returns the good rows and the problems (bad rows named and counted). Raises
+    :class:`InputError` at ``(column,)`` for a missing required column, or (``strict``) at
+    ``("rows", N, column)`` for the first bad value.
+    """
+    path = Path(path)
+    if path.suffix.lower() in (".parquet", ".pq"):
+        try:
+            table = pq.read_table(path)
+        except (pa.ArrowException, OSError) as e:
+            raise InputError(("file",), f"{path.name} is not a readable Parquet file: {e}"
+                             ) from None
+        return rows_from_arrow(table, strict=strict, problems=problems, csv_lines=False)
+    return read_csv(path.read_bytes(), strict=strict, problems=problems)
+
+
+def read_csv(data: bytes, *, strict: bool = False, problems: Problems | None = None
+             ) -> tuple[PlotRows, Problems]:
+    """Read a CSV plot table from bytes (every column read as text, then converted here so a
+    bad value is named by its row)."""
+    first = data.split(b"\n", 1)[0].decode("utf-8-sig", errors="replace")
+    header = next(csv.reader(io.StringIO(first)), [])
+    if not header or not any(h.strip() for h in header):
+        raise InputError(("file",), "has no header line")
+    try:
+        table = pacsv.read_csv(
+            io.BytesIO(data),
+            convert_options=pacsv.ConvertOptions(
+                column_types={h: pa.string() for h in header}, strings_can_be_null=True,
+                null_values=[""], quoted_strings_can_be_null=True))
+    except pa.ArrowInvalid as e:
+        raise InputError(("file",), f"is not a readable CSV table: {e}") from None
+    return rows_from_arrow(table, strict=strict, problems=problems, csv_lines=True)
+
+
+def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems | None = None,
+                    csv_lines: bool = False) -> tuple[PlotRows, Problems]:
+    """Convert and check an Arrow table of the documented columns (see the module docstring)."""
+    problems = problems if problems is not None else Problems()
+    names = [n.strip() for n in table.column_names]
+    table = table.rename_columns(names)
+    known = {"t", "time_of_day_s", *STR_COLUMNS, *FLOAT_COLUMNS, *INT_COLUMNS}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise InputError((unknown[0],), f"is not a column of the plot table (columns: "
+                         f"{', '.join(sorted(known))})")
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise InputError((dup,), "appears twice in the header")
+    for group in (("t", "time_of_day_s"),):
+        if not any(g in names for g in group):
+            raise InputError(("t",), "is missing: the table needs a `t` or a `time_of_day_s` "
+                             f"column (columns: {', '.join(names)})")
+    if "sensor" not in names:
+        raise InputError(("sensor",), f"is missing (columns: {', '.join(names)})")
+    radar_cols = [c for c in ("range_m", "azimuth_deg") if c in names]
+    pos_cols = [c for c in ("lat_deg", "lon_deg") if c in names]
+    if len(radar_cols) == 1 or len(pos_cols) == 1:
+        have = (radar_cols or pos_cols)[0]
+        other = {"range_m": "azimuth_deg", "azimuth_deg": "range_m", "lat_deg": "lon_deg",
+                 "lon_deg": "lat_deg"}[have]
+        raise InputError((other,), f"is missing (it goes with `{have}`)")
+    if not radar_cols and not pos_cols:
+        raise InputError(("range_m",), "is missing: the table needs `range_m` + `azimuth_deg` "
+                         "(radar plots) or `lat_deg` + `lon_deg` (position plots)")
+
+    n = table.num_rows
+    bad = np.zeros(n, dtype=bool)
+
+    def report(rows: np.ndarray, column: str, message: str) -> None:
+        new = rows[~bad[rows]]
+        for i in new.tolist():
+            where = f"row {i + 1}" + (f" (line {i + 2})" if csv_lines else "")
+            if strict:
+                raise InputError(("rows", i + 1, column), message)
+            problems.add("bad_value", where, f"{column}: {message}", dropped=1)
+        bad[new] = True
+
+    def floats(name: str) -> FloatArray:
+        if name not in names:
+            return np.full(n, np.nan)
+        col = table.column(name)
+        if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+            col = pc.utf8_trim_whitespace(col)
+            text = np.asarray(col.to_numpy(zero_copy_only=False), dtype=object)
+            out = np.full(n, np.nan)
+            for i, s in enumerate(text.tolist()):
+                if s is None or s == "":
+                    continue
+                try:
+                    out[i] = float(s)
+                except ValueError:
+                    report(np.array([i]), name, f"{s!r} is not a number")
+            values = out
+        elif pa.types.is_integer(col.type) or pa.types.is_floating(col.type):
+            values = np.asarray(pc.cast(col, pa.float64()).to_numpy(zero_copy_only=False),
+                                dtype=float)
+            values = np.where(np.asarray(col.is_null().to_numpy(zero_copy_only=False)),
+                              np.nan, values)
+        else:
+            raise InputError((name,), f"has type {col.type}, expected numbers")
+        inf = np.flatnonzero(np.isinf(values))
+        if inf.size:
+            report(inf, name, "must be finite")
+            values[inf] = np.nan
+        return values
+
+    def strings(name: str) -> list[str | None]:
+        if name not in names:
+            return [None] * n
+        col = table.column(name)
+        if not (pa.types.is_string(col.type) or pa.types.is_large_string(col.type)):
+            col = pc.cast(col, pa.string())
+        return [None if v is None else str(v).strip() or None for v in col.to_pylist()]
+
+    time_name = "t" if "t" in names else "time_of_day_s"
+    time = floats(time_name)
+    tod = floats("time_of_day_s") if time_name == "t" else time
+    missing = np.flatnonzero(np.isnan(time) & ~bad)
+    if missing.size:
+        report(missing, time_name, "is missing")
+    if time_name == "time_of_day_s":
+        out_of_day = np.flatnonzero((time < 0) | (time >= DAY_S))
+        if out_of_day.size:
+            report(out_of_day, time_name, "must be in [0, 86400) s")
+
+    sensor = strings("sensor")
+    no_sensor = np.array([i for i, s in enumerate(sensor) if s is None], dtype=int)
+    if no_sensor.size:
+        report(no_sensor, "sensor", "is missing")
+
+    cols = {c: floats(c) for c in FLOAT_COLUMNS}
+    has_r = np.isfinite(cols["range_m"])
+    has_a = np.isfinite(cols["azimuth_deg"])
+    has_lat = np.isfinite(cols["lat_deg"])
+    has_lon = np.isfinite(cols["lon_deg"])
+    for a, b, an, bn in ((has_r, has_a, "range_m", "azimuth_deg"),
+                         (has_lat, has_lon, "lat_deg", "lon_deg")):
+        half = np.flatnonzero(a & ~b)
+        if half.size:
+            report(half, bn, f"is missing (the row has `{an}`)")
+        half = np.flatnonzero(b & ~a)
+        if half.size:
+            report(half, an, f"is missing (the row has `{bn}`)")
+    both = np.flatnonzero((has_r | has_a) & (has_lat | has_lon))
+    if both.size:
+        report(both, "lat_deg", "a row is either a radar plot (range_m, azimuth_deg) or a "
+               "position plot (lat_deg, lon_deg), not both")
+    neither = np.flatnonzero(~(has_r | has_a | has_lat | has_lon))
+    if neither.size:
+        report(neither, "range_m", "the row has no measurement (range_m + azimuth_deg or "
+               "lat_deg + lon_deg)")
+    for name, lo, hi in (("range_m", 0.0, 1e7), ("lat_deg", -90.0, 90.0),
+                         ("lon_deg", -180.0, 360.0), ("altitude_m", -1000.0, 100_000.0),
+                         ("flight_level", -20.0, 1000.0)):
+        v = cols[name]
+        out = np.flatnonzero(np.isfinite(v) & ((v < lo) | (v > hi) | (v == 0.0 if
+                                                                        name == "range_m"
+                                                                        else False)))
+        if out.size:
+            report(out, name, f"must be in {'(' if name == 'range_m' else '['}{lo:g}, {hi:g}]")
+
+    ints: dict[str, np.ndarray] = {}
+    for name, base, top, what in (("mode_s", 16, 0xFFFFFF, "a 24-bit hex address (4CA2D1)"),
+                                  ("mode_3a", 8, 0o7777, "4 octal digits (7000)"),
+                                  ("track_number", 10, 2**31 - 1, "an integer >= 0")):
+        values = np.full(n, NO_INT, dtype=np.int64)
+        if name in names and pa.types.is_integer(table.column(name).type) and base != 8:
+            col = table.column(name)
+            arr = col.to_numpy(zero_copy_only=False)
+            null = np.asarray(col.is_null().to_numpy(zero_copy_only=False))
+            values = np.where(null, NO_INT, np.nan_to_num(arr, nan=NO_INT)).astype(np.int64)
+            out = np.flatnonzero(~null & ((values < 0) | (values > top)))
+            if out.size:
+                report(out, name, f"must be {what}")
+                values[out] = NO_INT
+        else:
+            for i, s in enumerate(strings(name)):
+                if s is None:
+                    continue
+                try:
+                    v = int(s.removeprefix("0x").removeprefix("0X"), base)
+                    if not 0 <= v <= top or (base == 8 and len(s) > 4):
+                        raise ValueError
+                    values[i] = v
+                except ValueError:
+                    report(np.array([i]), name, f"{s!r} is not {what}")
+        ints[name] = values
+    aircraft = np.array(["" if a is None else a for a in strings("aircraft")], dtype=object)
+
+    altitude = cols["altitude_m"]
+    fl = cols["flight_level"]
+    altitude = np.where(np.isnan(altitude), fl * FL_M, altitude)
+    keep = ~bad
+    t = time if time_name == "t" else unwrap_time_of_day(np.where(keep, time, np.nan))
+    rows = PlotRows.from_columns(
+        n, "row", t=t, time_of_day_s=tod,
+        sensor=np.array(["" if s is None else s for s in sensor], dtype=object),
+        range_m=cols["range_m"], azimuth_deg=cols["azimuth_deg"], lat_deg=cols["lat_deg"],
+        lon_deg=cols["lon_deg"], altitude_m=altitude, flight_level=fl, aircraft=aircraft,
+        origin=np.arange(1, n + 1), **ints)
+    return rows.take(keep), problems
+
+
+# ---------------------------------------------------------------------------- writing
+
+
+def write_table(rows: PlotRows, path: str | Path) -> None:
+    """Write the documented table (``.parquet`` / ``.pq``: Parquet, else CSV)."""
+    path = Path(path)
+    table = rows.to_arrow()
+    if path.suffix.lower() in (".parquet", ".pq"):
+        pq.write_table(table, path)
+    else:
+        pacsv.write_csv(table, path, pacsv.WriteOptions(quoting_style="needed"))
