@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from solver.config import ReconstructionConfig
+from solver.estimation import FUSION_NAMES
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar
 from solver.plots import PlotTable
@@ -104,6 +105,10 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
     if not table.is_legacy and n < 3:
         raise InputError(("plots",), f"has {n} plot(s); reconstructing from `sensors` needs at "
                          "least 3")
+    for i, name in enumerate(req.filters):
+        if name in FUSION_NAMES and len(table.sensors) != 2:
+            raise InputError(("filters", i), f"{name} is seed 004's fusion of exactly two "
+                             f"sensors; this request has {len(table.sensors)}")
     return Job(table, config, tuple(dict.fromkeys(req.filters)))
 
 

@@ -91,6 +91,36 @@ def test_two_radars_and_adsb_answer_on_the_earth(client):
     assert out["trajectory"]["altitude_m"] == pytest.approx(10_000, abs=200)
 
 
+def test_filters_take_every_sensor_and_answer_on_the_earth(client):
+    body = _body()
+    body["filters"] = ["cv_rts", "imm"]
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 200, res.text
+    out = res.json()
+    for name in ("cv_rts", "imm"):
+        states = out["filters"][name]["states"]
+        assert len(states) == len(body["plots"])
+        assert {"lat_deg", "lon_deg"} <= set(states[0])
+        x = np.array([s["x"] for s in states])
+        ref = np.array([s["x"] for s in out["trajectory"]["at_plots"]])
+        assert np.sqrt(np.mean((x - ref) ** 2)) < 150.0
+
+
+def test_fusion_filters_need_exactly_two_sensors(client):
+    body = _body()
+    body["filters"] = ["cv_rts", "fusion_c"]
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 422
+    assert res.json()["detail"][0]["loc"] == ["filters", 1]
+    two = _body()
+    two["sensors"] = two["sensors"][1:]
+    two["plots"] = [p for p in two["plots"] if p["sensor"] != "LJLJ"]
+    two["filters"] = ["fusion_a", "fusion_b", "fusion_c"]
+    res = client.post("/v1/reconstructions", json=two)
+    assert res.status_code == 200, res.text
+    assert set(res.json()["filters"]) == {"fusion_a", "fusion_b", "fusion_c"}
+
+
 def test_bias_estimates_are_reported_in_degrees(client):
     res = client.post("/v1/reconstructions", json=_body(mode_c=True, estimate_bias=True))
     assert res.status_code == 200, res.text
