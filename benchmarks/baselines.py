@@ -13,8 +13,11 @@ is below 10 m).
   ``KalmanUpdater``, and ``KalmanSmoother`` (Rauch-Tung-Striebel) for the smoothed track.
 - ``fp_imm``: Stone Soup 1.9 has no IMM, so FilterPy's ``IMMEstimator`` mixes two filters on the
   state ``(x, vx, z, vz, omega)``: nearly constant velocity (``omega`` held at 0) and a coordinated
-  turn with unknown rate (EKF prediction, ``omega`` a random walk). No smoothed IMM: neither
-  library has one.
+  turn with unknown rate (EKF prediction, ``omega`` a random walk).
+- ``imm_smoother``: the strongest smoother a surveillance engineer can build from the textbook,
+  and neither library has one, so it is the product's own ``solver.estimation.imm_smoother`` (IMM
+  of constant velocity and right/left coordinated turns, EKF polar update, backward pass per mode
+  pair) with the per-profile tuning below instead of the product's single default.
 
 Both start from a diffuse prior updated with the first plot (velocity 0 +- 300 m/s per axis).
 Tuning values per profile come from ``python -m benchmarks.tune`` (a grid search on the dev set,
@@ -23,7 +26,7 @@ see :data:`TUNED`) and are frozen here.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from datetime import datetime, timedelta
 
 import numpy as np
@@ -48,14 +51,28 @@ class ImmTuning:
 
 
 @dataclass(frozen=True)
+class ImmSmootherTuning:
+    """IMM smoother tuning (``solver.estimation.imm_smoother`` parameters): CV and turn
+    white-acceleration densities (m^2/s^3), the turn models' rate (deg/s), mean sojourn times in
+    CV and in a turn (s). Defaults: the product's."""
+
+    q_cv: float = 10.0
+    q_ct: float = 30.0
+    omega_deg: float = 2.0
+    tau_cv: float = 200.0
+    tau_ct: float = 60.0
+
+
+@dataclass(frozen=True)
 class Tuning:
     """Frozen tuning of the baselines for one radar profile: white-acceleration densities
     ``q`` (m^2/s^3) of the CV filter and of the CV smoother (tuned separately: the smoother
-    affords a stiffer model), and the IMM's."""
+    affords a stiffer model), the IMM's and the IMM smoother's."""
 
     q_kf: float = 30.0
     q_rts: float = 30.0
     imm: ImmTuning = ImmTuning()
+    imm_smoother: ImmSmootherTuning = ImmSmootherTuning()
 
 
 # Frozen by `python -m benchmarks.tune` (dev set: the six ADS-B tracks; see the report).
@@ -243,6 +260,14 @@ def filterpy_imm(plots: Plots, radar: Radar, tuning: ImmTuning | None = None) ->
         imm.update(z[i].reshape(-1, 1))
         means[i], covs[i] = imm.x.ravel(), imm.P
     return _series(t, means[:, :4], covs[:, :4, :4])
+
+
+def imm_smoother(plots: Plots, radar: Radar, tuning: ImmSmootherTuning | None = None
+                 ) -> StateSeries:
+    """The product's IMM fixed-interval smoother with a baseline's tuning (per profile)."""
+    from solver.estimation import run_filter
+
+    return run_filter("imm_smoother", plots, radar, **asdict(tuning or ImmSmootherTuning())).states
 
 
 def _markov(dt: float, sojourn_s: float) -> FloatArray:

@@ -1,7 +1,8 @@
 """Every estimator the benchmark compares, behind one signature: plots + radar -> estimate.
 
 Names: ``raw`` (the plot points); baselines ``ss-cv-kf``, ``ss-cv-rts`` (Stone Soup), ``fp-imm``
-(FilterPy); the product's filters ``filter-<name>`` (``solver.estimation.run_filter``); the
+(FilterPy), ``imm-smoother`` (IMM fixed-interval smoother tuned per profile; neither library has
+one); the product's filters ``filter-<name>`` (``solver.estimation.run_filter``); the
 product's reconstruction ``recon-<method>-m<window>-<criterion>`` (``solver.reconstruct``), e.g.
 ``recon-refined-m3-R2``. A ``+alt`` suffix runs the estimator on plots that carry the true
 altitude (an SSR's Mode C); those run on the ``ssr`` profile only.
@@ -19,7 +20,8 @@ from solver.results import Reconstruction, StateSeries
 
 from . import baselines
 
-FILTER_NAMES_FALLBACK = ("singer", "quasi_optimal", "fuzzy", "alpha_beta", "cv_rts", "imm")
+FILTER_NAMES_FALLBACK = ("singer", "quasi_optimal", "fuzzy", "alpha_beta", "cv_rts", "imm",
+                         "imm_smoother")
 ALTITUDE_PROFILES = ("ssr",)
 
 
@@ -61,6 +63,11 @@ def _fp_imm(plots: Plots, radar: Radar, profile: str) -> StateSeries:
                                                                     baselines.Tuning()).imm)
 
 
+def _imm_smoother(plots: Plots, radar: Radar, profile: str) -> StateSeries:
+    return baselines.imm_smoother(plots, radar, baselines.TUNED.get(
+        profile, baselines.Tuning()).imm_smoother)
+
+
 def _filter(name: str):
     def run(plots: Plots, radar: Radar, profile: str) -> Estimate:
         from solver.estimation import run_filter
@@ -82,10 +89,11 @@ def recon_runner(config: ReconstructionConfig):
 
 
 def filter_names() -> tuple[str, ...]:
-    """The product's filters (``solver.estimation.FILTER_NAMES`` once it exists)."""
+    """The product's filters that run on one radar (``solver.estimation.SINGLE_SENSOR_NAMES``;
+    the fusion variants need two sensors)."""
     try:
-        from solver.estimation import FILTER_NAMES
-        return tuple(FILTER_NAMES)
+        from solver.estimation import SINGLE_SENSOR_NAMES
+        return tuple(SINGLE_SENSOR_NAMES)
     except ImportError:
         return FILTER_NAMES_FALLBACK
 
@@ -97,6 +105,7 @@ def registry() -> dict[str, Estimator]:
         Estimator("ss-cv-kf", "baseline", _baseline(_ss_cv(False))),
         Estimator("ss-cv-rts", "baseline", _baseline(_ss_cv(True))),
         Estimator("fp-imm", "baseline", _baseline(_fp_imm)),
+        Estimator("imm-smoother", "baseline", _baseline(_imm_smoother)),
         Estimator("ss-cv-rts+alt", "baseline", _baseline(_ss_cv(True)), with_altitude=True),
     ]
     est += [Estimator(f"filter-{n}", "filter", _filter(n)) for n in filter_names()]
@@ -112,13 +121,14 @@ def registry() -> dict[str, Estimator]:
 
 
 DEFAULT_SET = (
-    "raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "ss-cv-rts+alt", "filter-*",
+    "raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "imm-smoother", "ss-cv-rts+alt", "filter-*",
     "recon-refined-m3-R2", "recon-sliding-m3-R2", "recon-refined-m3-R2+alt",
 )
 """The full run's estimators: every baseline and filter, the reconstruction's default and the
 seed's method. The other windows and criteria (``recon-*``) cost a full reconstruction each; their
 comparison is the tuning table (``python -m benchmarks.tune recon``)."""
-QUICK_SET = ("raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "filter-*", "recon-refined-m3-R2",
+QUICK_SET = ("raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "imm-smoother", "filter-*",
+             "recon-refined-m3-R2",
              "recon-sliding-m3-R2")
 
 

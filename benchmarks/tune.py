@@ -6,6 +6,8 @@
     python -m benchmarks.tune refine        # the refinement's penalties (one factor at a time
                                             # around RefineSettings(), also with altitude)
     python -m benchmarks.tune refine --grid # the two turn penalties together (REFINE_GRID)
+    python -m benchmarks.tune imm_smoother  # the IMM smoother's grid (IMM_SMOOTHER_GRID): the
+                                            # product's defaults and the per-profile baseline
 
 Tuning seeds (100, 101 by default) are disjoint from the benchmark's seeds (0, 1, ...), so the
 frozen values are not fitted to the very noise they are scored on; the tracks are the same (the
@@ -31,6 +33,10 @@ from .truth import SYNTHETIC, truth_names
 Q_GRID = (1.0, 3.0, 10.0, 30.0, 100.0, 300.0)
 IMM_GRID = {"q_cv": (0.3, 3.0), "q_ct": (10.0, 30.0, 100.0), "q_omega": (1e-6, 1e-5, 1e-4),
             "sojourn_s": (60.0, 300.0)}
+IMM_SMOOTHER_GRID = {"q_cv": (1.0, 3.0, 10.0, 30.0), "q_ct": (10.0, 30.0, 100.0),
+                     "omega_deg": (1.0, 2.0, 3.0), "sojourn": ((60.0, 30.0), (200.0, 60.0))}
+"""``solver.estimation.imm_smoother``: white-acceleration densities of the CV and turn models
+(m^2/s^3), the turn models' rate (deg/s), and the mean sojourn times ``(tau_cv, tau_ct)`` (s)."""
 RECON_DEFAULT = {"window_plots": 3, "trial_step_s": 5.0, "criterion": "R2",
                  "nlp_solver": "sqpmethod"}
 RECON_AXES = {"window_plots": (3, 4, 5), "trial_step_s": (2.5, 5.0, 10.0, 20.0),
@@ -92,6 +98,49 @@ def tune_baselines(profiles: list[str], seeds: list[int]) -> dict:
         imm_scores = {i: scores[_imm(t).name] for i, t in enumerate(imm_points)}
         best["imm"] = asdict(imm_points[min(imm_scores, key=imm_scores.get)])
         out["profiles"][p] = {"scores": scores, "best": best}
+    return out
+
+
+def imm_smoother_points() -> list[dict]:
+    """Every point of :data:`IMM_SMOOTHER_GRID` as ``run_imm_smoother`` keyword arguments."""
+    pts = []
+    for q_cv, q_ct, om, (tau_cv, tau_ct) in itertools.product(*IMM_SMOOTHER_GRID.values()):
+        pts.append({"q_cv": q_cv, "q_ct": q_ct, "omega_deg": om, "tau_cv": tau_cv,
+                    "tau_ct": tau_ct})
+    return pts
+
+
+def _imm_smoother(params: dict) -> Estimator:
+    from solver.estimation import run_filter
+
+    name = "imm-smoother " + "/".join(f"{v:g}" for v in params.values())
+    return Estimator(name, "baseline", lambda p, r, _: Estimate(
+        run_filter("imm_smoother", p, r, **params).states))
+
+
+def tune_imm_smoother(profiles: list[str], seeds: list[int]) -> dict:
+    """Pooled RMS position and speed errors of every grid point per profile; the best point per
+    profile (the benchmark's ``imm-smoother`` baseline) and the point with the lowest mean over
+    the profiles of RMS / the profile's best RMS (the product's defaults)."""
+    points = imm_smoother_points()
+    ests = [_imm_smoother(pt) for pt in points]
+    res = run_benchmark(dev_set(), profiles, seeds, ests, figure_cases=())
+    overall, _ = summaries(res)
+    out: dict = {"seeds": seeds, "tracks": dev_set(), "grid": IMM_SMOOTHER_GRID,
+                 "points": points, "profiles": {}}
+    rel = [0.0] * len(points)
+    for p in profiles:
+        rows = [{k: overall[p][e.name][k] for k in ("rms_pos", "rms_speed", "rms_pos_man",
+                                                    "coverage95", "plots_per_cpu_s")}
+                for e in ests]
+        best = min(range(len(points)), key=lambda i: rows[i]["rms_pos"])
+        for i, r in enumerate(rows):
+            rel[i] += r["rms_pos"] / rows[best]["rms_pos"] / len(profiles)
+        out["profiles"][p] = {"rows": rows, "best": points[best]}
+    common = min(range(len(points)), key=lambda i: rel[i])
+    out["mean_relative_rms"] = rel
+    out["common"] = points[common]
+    out["failures"] = [f.__dict__ for f in res.failures]
     return out
 
 
@@ -190,10 +239,42 @@ def render(out_dir: Path) -> str:
         rec = out_dir / f"tuning_recon_{method}.json"
         if rec.exists():
             md += _render_recon(json.loads(rec.read_text()))
+    if (out_dir / "tuning_imm_smoother.json").exists():
+        md += _render_imm_smoother(json.loads((out_dir / "tuning_imm_smoother.json").read_text()))
     for name in ("tuning_refine.json", "tuning_refine_grid.json"):
         if (out_dir / name).exists():
             md += _render_refine(json.loads((out_dir / name).read_text()))
     return "\n".join(md)
+
+
+def _render_imm_smoother(r: dict) -> list[str]:
+    """The best grid points per profile and the common one (the product's defaults)."""
+    profiles = list(r["profiles"])
+    pts = r["points"]
+    grid = "; ".join(f"{k} {list(v)}" for k, v in r["grid"].items())
+    md = [f"IMM smoother (`python -m benchmarks.tune imm_smoother`): {len(pts)} points of "
+          f"{grid}; the six ADS-B tracks, seeds {r['seeds']}. RMS position error (m), RMS speed "
+          "error (m/s), 95 % ellipse coverage. Rows: the best point of each profile (frozen per "
+          "profile in `baselines.TUNED`, estimator `imm-smoother`) and the point with the lowest "
+          "mean RMS relative to each profile's best (the defaults of "
+          "`solver.estimation.imm_smoother`, `filter-imm_smoother`).", "",
+          "| point (q_cv/q_ct/omega_deg/tau_cv/tau_ct) | chosen for | " + " | ".join(profiles)
+          + " | mean RMS / best |", "|---|---|" + "---|" * len(profiles) + "---:|"]
+    chosen: dict[int, list[str]] = {}
+    for p in profiles:
+        chosen.setdefault(pts.index(r["profiles"][p]["best"]), []).append(p)
+    chosen.setdefault(pts.index(r["common"]), []).append("defaults")
+    for i, why in chosen.items():
+        cells = []
+        for p in profiles:
+            m = r["profiles"][p]["rows"][i]
+            cells.append(f"{m['rms_pos']:.1f} m, {m['rms_speed']:.2f} m/s, "
+                         f"{100 * m['coverage95']:.0f} %")
+        label = "/".join(f"{v:g}" for v in pts[i].values())
+        md.append(f"| {label} | {', '.join(why)} | " + " | ".join(cells)
+                  + f" | {r['mean_relative_rms'][i]:.3f} |")
+    md.append("")
+    return md
 
 
 def _render_refine(r: dict) -> list[str]:
@@ -245,7 +326,7 @@ def _render_recon(r: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.tune", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("part", choices=("baselines", "recon", "refine", "render"))
+    ap.add_argument("part", choices=("baselines", "recon", "refine", "imm_smoother", "render"))
     ap.add_argument("--profiles", nargs="+", default=["seed000", "seed001", "ssr"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101])
     ap.add_argument("--t-max", type=float, default=None)
@@ -274,6 +355,12 @@ def main(argv: list[str] | None = None) -> int:
             old["failures"] += data["failures"]
             data = old
         path.write_text(json.dumps(data, indent=1))
+    elif args.part == "imm_smoother":
+        data = tune_imm_smoother(args.profiles, args.seeds)
+        (args.out / "tuning_imm_smoother.json").write_text(json.dumps(data, indent=1))
+        for p, d in data["profiles"].items():
+            print(f'    "{p}": {d["best"]},')
+        print("defaults:", data["common"])
     elif args.part == "refine":
         data = tune_refine(args.profiles, args.seeds, args.t_max, args.grid)
         name = "tuning_refine_grid.json" if args.grid else "tuning_refine.json"

@@ -27,6 +27,8 @@ the profile's best grid point. See :data:`DEFAULTS`.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..inputs import FloatArray
@@ -34,7 +36,7 @@ from ..results import FilterEstimate
 from .common import SIGMA_V0, estimate
 from .discretize import van_loan
 from .kalman import position_update
-from .measurements import PolarPlots
+from .measurements import PolarPlots, SensorPlots
 
 N_MODES = 3
 MODE_NAMES = ("cv", "right", "left")
@@ -46,6 +48,7 @@ DEFAULTS = {"q_cv": Q_CV, "q_ct": Q_CT, "omega_deg": OMEGA_DEG, "tau_cv": TAU_CV
 sojourn times ``tau_cv``, ``tau_ct`` (s)."""
 
 _POS = (0, 1)
+_DIAG = np.arange(4)
 
 
 def switching_matrices(dt: FloatArray, tau_cv: float, tau_ct: float) -> FloatArray:
@@ -114,7 +117,7 @@ def transitions(dt: FloatArray, q_cv: float, q_ct: float, omega: float
     return Phi, Q
 
 
-def _prior(meas: PolarPlots) -> tuple[FloatArray, FloatArray]:
+def _prior(meas: PolarPlots | SensorPlots) -> tuple[FloatArray, FloatArray]:
     """The first plot point with its converted covariance, velocity 0 +- ``SIGMA_V0``."""
     x0 = np.zeros(4)
     x0[:2] = meas.points()[0]
@@ -124,9 +127,25 @@ def _prior(meas: PolarPlots) -> tuple[FloatArray, FloatArray]:
     return x0, P0
 
 
-def imm_forward(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray,
-                mu0: FloatArray, measurement: str = "ekf"
-                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+class ForwardPass(NamedTuple):
+    """What the forward IMM leaves for the backward pass (``n`` plots, 3 modes, 4 states)."""
+
+    x: FloatArray
+    """``(n, 3, 4)`` mode-conditioned filtered states ``E[x_k | m_k = i, Z^k]``."""
+    P: FloatArray
+    """``(n, 3, 4, 4)`` their covariances."""
+    mu: FloatArray
+    """``(n, 3)`` mode probabilities ``P(m_k = i | Z^k)``."""
+    W: FloatArray
+    """``(n - 1, 3, 3)`` mixing weights ``W[k, i, j] = P(m_k = i | m_{k+1} = j, Z^k)``."""
+    xp: FloatArray
+    """``(n - 1, 3, 4)`` mixed predictions ``E[x_{k+1} | m_{k+1} = j, Z^k]``."""
+    Pp: FloatArray
+    """``(n - 1, 3, 4, 4)`` their covariances."""
+
+
+def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray,
+                mu0: FloatArray, measurement: str = "ekf") -> ForwardPass:
     """The forward IMM (Blom and Bar-Shalom 1988). Per step ``k`` (``T = t_k - t_{k-1}``):
 
     - predicted mode probabilities ``c_j = sum_i Pi_ij mu_i``, mixing weights
@@ -137,9 +156,7 @@ def imm_forward(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray
       ``L_j = exp(-(nu^T S^-1 nu + log det S) / 2)``;
     - ``mu_j = c_j L_j / sum_l c_l L_l``.
 
-    Returns the mode-conditioned filtered states ``(n, 3, 4)``, covariances ``(n, 3, 4, 4)``, the
-    mode probabilities ``(n, 3)`` and the mixing weights ``W (n - 1, 3, 3)`` (what the backward pass
-    needs). A mode with ``c_j = 0`` (absorbing chain) is mixed with ``mu`` and keeps probability 0.
+    A mode with ``c_j = 0`` (absorbing chain) is mixed with ``mu`` and keeps probability 0.
     """
     n = len(meas)
     x0, P0 = _prior(meas)
@@ -147,6 +164,8 @@ def imm_forward(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray
     Pf = np.empty((n, N_MODES, 4, 4))
     mu = np.empty((n, N_MODES))
     W = np.empty((max(n - 1, 0), N_MODES, N_MODES))
+    XP = np.empty((max(n - 1, 0), N_MODES, 4))
+    PP = np.empty((max(n - 1, 0), N_MODES, 4, 4))
     xf[0], Pf[0], mu[0] = x0, P0, mu0
     PhiT = np.swapaxes(Phi, -1, -2)
     loglik = np.empty(N_MODES)
@@ -166,6 +185,7 @@ def imm_forward(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray
             + (d * wt[:, :, None]).transpose(0, 2, 1) @ d
         xp = (Phi[k - 1] @ xm[:, :, None])[:, :, 0]
         Pp = Phi[k - 1] @ Pm @ PhiT[k - 1] + Q[k - 1]
+        XP[k - 1], PP[k - 1] = xp, Pp
         x, P = xf[k], Pf[k]
         for j in range(N_MODES):
             x[j], P[j], nis, logdet = position_update(xp[j], Pp[j], meas, k, _POS, measurement)
@@ -173,26 +193,40 @@ def imm_forward(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray
         post = c * np.exp(loglik - loglik.max())
         total = post.sum()
         m = mu[k] = post / total if total > 0 and np.isfinite(total) else c
-    return xf, Pf, mu, W
+    return ForwardPass(xf, Pf, mu, W, XP, PP)
 
 
-def imm_backward(xf: FloatArray, Pf: FloatArray, mu: FloatArray, W: FloatArray,
-                 Phi: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Backward pass per mode pair (Kim 1994). With the forward mode-conditioned ``x_k^i``,
-    ``P_k^i`` and for every pair ``(i, j)`` (``i`` at ``k``, ``j`` at ``k + 1``):
+def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: bool = True
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Backward pass per mode pair (Kim 1994), ``i`` the mode at ``k``, ``j`` at ``k + 1``. With the
+    forward mode-conditioned ``x_k^i``, ``P_k^i``:
 
-    - ``x^{ij} = Phi_j x_k^i``, ``P^{ij} = Phi_j P_k^i Phi_j^T + Q_j``,
-      ``C^{ij} = P_k^i Phi_j^T (P^{ij})^-1``;
-    - ``xs_k^{ij} = x_k^i + C^{ij} (xs_{k+1}^j - x^{ij})``,
-      ``Ps_k^{ij} = P_k^i + C^{ij} (Ps_{k+1}^j - P^{ij}) C^{ij T}``;
-    - ``P(m_k = i, m_{k+1} = j | Z^N) = W_ij mus_{k+1}(j)`` (``W`` the forward mixing weights
-      ``P(m_k = i | m_{k+1} = j, Z^k)``), ``mus_k(i) = sum_j W_ij mus_{k+1}(j)``;
-    - ``xs_k^i = sum_j w_ij xs_k^{ij}``, ``Ps_k^i = sum_j w_ij (Ps_k^{ij} + dd^T)`` with
-      ``w_ij = W_ij mus_{k+1}(j) / mus_k(i)`` and ``d = xs_k^{ij} - xs_k^i``.
+    - states: ``x^{ij} = Phi_j x_k^i``, ``P^{ij} = Phi_j P_k^i Phi_j^T + Q_j``,
+      ``C^{ij} = P_k^i Phi_j^T (P^{ij})^-1``; ``xs_k^{ij} = x_k^i + C^{ij} (xs_{k+1}^j - x^{ij})``,
+      ``Ps_k^{ij} = P_k^i + C^{ij} (Ps_{k+1}^j - P^{ij}) C^{ij T}`` (exact RTS steps: the models
+      are linear);
+    - modes: ``P(m_k = i, m_{k+1} = j | Z^N) = b_ij mus_{k+1}(j)``, ``mus_k(i) = sum_j`` of it,
+      ``b_ij = P(m_k = i | m_{k+1} = j, Z^N)``;
+    - ``xs_k^i = sum_j w_ij xs_k^{ij}``, ``Ps_k^i = sum_j w_ij (Ps_k^{ij} + dd^T)``,
+      ``w_ij = b_ij mus_{k+1}(j) / mus_k(i)``, ``d = xs_k^{ij} - xs_k^i``.
+
+    Kim's ``b_ij`` is the forward ``W_ij = P(m_k = i | m_{k+1} = j, Z^k)``: it ignores what the
+    plots after ``k`` say about ``m_k``, so a turn the filter noticed late starts late in the
+    smoothed modes too, and a stiff CV model then carries the turned heading backwards
+    (measured: on tracks drawn from the model itself with ``q_cv = 0.5``, twice the forward
+    filter's error). With ``future_modes`` (default) ``b_ij`` is ``W_ij L_ij`` normalised over
+    ``i``, ``L_ij`` the likelihood of the later plots given the pair:
+
+        L_ij = int N(x; xs_{k+1}^j, Ps_{k+1}^j) / N(x; xp_{k+1}^j, Pp_{k+1}^j)
+                   N(x; x^{ij}, P^{ij}) dx
+
+    (the later plots' information about ``x_{k+1}``: the smoothed over the forward mixed
+    prediction ``xp``, ``Pp``; closed form in :func:`_future_weights`).
 
     The pair gains depend on the forward pass only and are computed for all steps at once.
     Returns the smoothed mode-conditioned states, covariances and mode probabilities.
     """
+    xf, Pf, mu, W = fw.x, fw.P, fw.mu, fw.W
     n = xf.shape[0]
     xs, Ps, mus = xf.copy(), Pf.copy(), mu.copy()
     if n < 2:
@@ -210,9 +244,15 @@ def imm_backward(xf: FloatArray, Pf: FloatArray, mu: FloatArray, W: FloatArray,
     # xs^{ij} = a^{ij} + C^{ij} xs_{k+1}^j, Ps^{ij} = B^{ij} + C^{ij} Ps_{k+1}^j C^{ij T}
     a = xf[:-1, :, None, :] - (C @ xpair[..., None])[..., 0]
     B = Pk - C @ Ppair @ CT
+    if future_modes:
+        pred_inv = np.linalg.inv(fw.Pp)
     uniform = np.full((N_MODES, N_MODES), 1.0 / N_MODES)
     for k in range(n - 2, -1, -1):
-        joint = W[k] * mus[k + 1]
+        b = W[k]
+        if future_modes:
+            b = _future_weights(b, xs[k + 1], Ps[k + 1], fw.xp[k], pred_inv[k], xpair[k],
+                                Ppair[k])
+        joint = b * mus[k + 1]
         m = joint.sum(1)
         mus[k] = m / m.sum()
         if m.min() > 0:
@@ -230,6 +270,43 @@ def imm_backward(xf: FloatArray, Pf: FloatArray, mu: FloatArray, W: FloatArray,
     return xs, Ps, mus
 
 
+def _future_weights(W: FloatArray, xs: FloatArray, Ps: FloatArray, xp: FloatArray,
+                    Pp_inv: FloatArray, xpair: FloatArray, Ppair: FloatArray) -> FloatArray:
+    """``b_ij`` proportional to ``W_ij L_ij`` over ``i`` (see :func:`imm_backward`) for one step:
+    ``xs (j, 4)``, ``Ps (j, 4, 4)`` smoothed at ``k + 1``, ``xp``, ``Pp_inv`` the forward mixed
+    prediction, ``xpair (i, j, 4)``, ``Ppair (i, j, 4, 4)`` the pair predictions.
+
+    The later plots' information about ``x_{k+1}`` is ``L = Ps^-1 - Pp^-1 = V diag(l) V^T`` with
+    the vector ``e = Pp^-1 (xs - xp)``, i.e. a pseudo-measurement ``y = L^+ e`` of weight ``L``;
+    negative ``l`` (the mixture approximations can make ``Ps`` exceed ``Pp``) are set to 0, since
+    information cannot be negative and would reward pair predictions for being far away. With
+    ``R = L^{1/2}``, ``r = R (x^{ij} - xs) - R^+ e`` and ``M = I + R P^{ij} R`` (positive definite):
+    ``log L_ij = -(log det M + r^T M^-1 r) / 2`` up to a constant per ``j``."""
+    L = np.linalg.inv(Ps) - Pp_inv
+    if not np.isfinite(L).all():  # absurd sigmas: no usable information, keep Kim's weights
+        return W
+    lam, V = np.linalg.eigh(L)  # ascending; reads one triangle
+    keep = lam > 1e-9 * lam[:, -1:]
+    sq = np.sqrt(np.where(keep, lam, 0.0))
+    inv_sq = np.divide(1.0, sq, out=np.zeros_like(sq), where=keep)
+    Vt = np.swapaxes(V, -1, -2)
+    e = Pp_inv @ (xs - xp)[:, :, None]  # (j, 4, 1)
+    y = inv_sq[:, :, None] * (Vt @ e)  # R^+ e in the eigenbasis
+    Rh = sq[:, :, None] * Vt  # diag(sqrt l) V^T: R = V Rh, and V drops out of r^T M^-1 r
+    r = Rh[None] @ (xpair - xs[None])[..., None] - y[None]  # (i, j, 4, 1)
+    M = Rh[None] @ Ppair @ np.swapaxes(Rh, -1, -2)[None]
+    M[..., _DIAG, _DIAG] += 1.0
+    chol = np.linalg.cholesky(M)
+    z = np.linalg.solve(chol, r)
+    logL = -np.log(chol[..., _DIAG, _DIAG]).sum(-1) - 0.5 * (z * z).sum((-2, -1))
+    b = W * np.exp(logL - logL.max(0))
+    tot = b.sum(0)
+    good = (tot > 0) & np.isfinite(tot)
+    if good.all():
+        return b / tot
+    return np.where(good[None], b / np.where(good, tot, 1.0)[None], W)
+
+
 def combine(x: FloatArray, P: FloatArray, mu: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Moment matching over the modes: ``x = sum_i mu_i x_i``,
     ``P = sum_i mu_i (P_i + (x_i - x)(x_i - x)^T)``; ``(n, 4)``, ``(n, 4, 4)``."""
@@ -239,13 +316,15 @@ def combine(x: FloatArray, P: FloatArray, mu: FloatArray) -> tuple[FloatArray, F
     return xc, Pc
 
 
-def run_imm_smoother(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT,
+def run_imm_smoother(meas: PolarPlots | SensorPlots, q_cv: float = Q_CV, q_ct: float = Q_CT,
                      omega_deg: float = OMEGA_DEG, tau_cv: float = TAU_CV,
                      tau_ct: float = TAU_CT, measurement: str = "ekf",
-                     smooth: bool = True) -> FilterEstimate:
+                     smooth: bool = True, future_modes: bool = True) -> FilterEstimate:
     """IMM (CV, right turn, left turn) filter and fixed-interval smoother on the plots;
-    ``smooth=False`` returns the forward IMM. The prior at the first plot is the plot point with
-    its converted covariance, velocity 0 +- ``SIGMA_V0``, the chain's stationary probabilities."""
+    ``smooth=False`` returns the forward IMM; ``future_modes=False`` smooths the mode
+    probabilities as Kim 1994 (see :func:`imm_backward`). The prior at the first plot is the plot
+    point with its converted covariance, velocity 0 +- ``SIGMA_V0``, the chain's stationary
+    probabilities."""
     for name, v in (("q_cv", q_cv), ("q_ct", q_ct), ("tau_cv", tau_cv), ("tau_ct", tau_ct)):
         if not v > 0:
             raise ValueError(f"{name} must be positive, got {v}")
@@ -257,12 +336,13 @@ def run_imm_smoother(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT,
     dt = np.diff(t)
     Phi, Q = transitions(dt, q_cv, q_ct, np.deg2rad(omega_deg))
     Pi = switching_matrices(dt, tau_cv, tau_ct)
-    xf, Pf, mu, W = imm_forward(meas, Phi, Q, Pi, stationary(tau_cv, tau_ct), measurement)
-    sf, Cf = combine(xf, Pf, mu)
+    fw = imm_forward(meas, Phi, Q, Pi, stationary(tau_cv, tau_ct), measurement)
+    mu = fw.mu
+    sf, Cf = combine(fw.x, fw.P, mu)
     omega = np.deg2rad(omega_deg) * np.array([0.0, 1.0, -1.0])
     if not smooth:
         return estimate("imm_smoother", t, sf, Cf, model_probabilities=mu, turn_rate=mu @ omega)
-    xs, Ps, mus = imm_backward(xf, Pf, mu, W, Phi, Q)
+    xs, Ps, mus = imm_backward(fw, Phi, Q, future_modes)
     s, C = combine(xs, Ps, mus)
     return estimate("imm_smoother", t, s, C, model_probabilities=mus,
                     filtered_model_probabilities=mu, filtered=sf, turn_rate=mus @ omega)
