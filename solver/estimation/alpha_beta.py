@@ -13,6 +13,23 @@ manoeuvres. Both axes use the same scalar gains (unweighted fit, as the paper).
 The covariance reported is that of these gains under the straight-line model with the plots'
 converted measurement covariances (Joseph form, no process noise): honest on straight legs,
 optimistic in turns.
+
+Several sensors (or a geodetic frame: :class:`SensorPlots`): the same least-squares polynomial,
+now weighted, as the paper's unweighted fit would let a coarse fast sensor outweigh an accurate
+slow one. At each plot, the generalised least-squares line (parabola) in both plane axes through
+each sensor's plots of its last ``(k_max - 1/2) T_j`` seconds (``T_j`` its median update period:
+its last ``k_max`` plots, so a fast sensor's memory stays as short as alone and a gap leaves no
+stale plots; every past plot for ``k_max=None``), each plot weighted by the inverse of its full
+2x2 covariance::
+
+    N = sum_i (a_i a_i^T) (x) R_i^-1,   b = sum_i a_i (x) R_i^-1 y_i,
+    s_k = N^-1 b,   cov(s_k) = N^-1,   a_i = (1, tau_i, tau_i^2 / 2)
+
+with ``tau_i = t_i - t_k``: growing memory until the window is full, then a finite memory of
+the same length (instead of the frozen gains, which have no meaning when the plots' weights
+differ). A window with fewer distinct times than the polynomial's coefficients gets a weak
+prior (velocity 0 +- ``SIGMA_V0``, acceleration 0 +- 10 m/s^2). All windows are solved at once
+(batched normal equations); the covariance is exact for the polynomial model.
 """
 
 from __future__ import annotations
@@ -22,7 +39,7 @@ import numpy as np
 from ..inputs import FloatArray
 from ..results import FilterEstimate
 from .common import SIGMA_V0, cartesian_output, estimate
-from .measurements import PolarPlots
+from .measurements import PolarPlots, SensorPlots
 
 K_MAX = 4
 """Default memory cap (plots): best of {3, 4, 6, 8, 12, 20} on the dev trajectories for the
@@ -90,11 +107,74 @@ def gain_sequence(t: FloatArray, order: int = 2, k_max: int | None = K_MAX) -> F
     return K
 
 
-def run_alpha_beta(meas: PolarPlots, order: int = 2, k_max: int | None = K_MAX) -> FilterEstimate:
+def memory_spans(meas: SensorPlots, k_max: int | None) -> FloatArray:
+    """Per sensor ``(k_max - 1/2)`` times its median update period (s): its last ``k_max``
+    plots; a sensor with one plot takes the longest span of the others; infinite for
+    ``k_max=None``."""
+    spans = np.full(meas.n_sensors, np.inf)
+    if k_max is None:
+        return spans
+    for j in range(meas.n_sensors):
+        tj = meas.t[meas.sensor == j]
+        if tj.size > 1:
+            spans[j] = (k_max - 0.5) * float(np.median(np.diff(tj)))
+    finite = np.isfinite(spans)
+    if finite.any():
+        spans[~finite] = spans[finite].max()
+    return spans
+
+
+def window_fits(meas: SensorPlots, order: int, spans: FloatArray, chunk: int = 200_000
+                ) -> tuple[FloatArray, FloatArray]:
+    """Weighted least-squares polynomials (module docstring) at every plot ``k`` through the
+    plots ``i`` of sensor ``j`` with ``t_k - spans[j] < t_i <= t_k`` (plots at ``t_k`` all
+    included): states ``(n, 2 order)`` ordered ``(x, z, vx, vz, ax, az)`` and covariances."""
+    t, n, m = meas.t, len(meas), order
+    y = meas.points()
+    Ri = np.linalg.inv(meas.converted_cov())
+    end = meas.same_instant()
+    start = np.searchsorted(t, t - np.max(spans), side="right")
+    W = int(np.max(end - start + 1))
+    fact = np.array([1.0, 1.0, 2.0])[:m]
+    prior = np.repeat(np.array([0.0, 1 / SIGMA_V0**2, 1 / 100.0])[:m], 2)
+    states, cov = np.empty((n, 2 * m)), np.empty((n, 2 * m, 2 * m))
+    step = max(1, chunk // W)
+    cols = np.arange(W)
+    for lo in range(0, n, step):
+        k = np.arange(lo, min(n, lo + step))
+        idx = np.minimum(start[k, None] + cols, n - 1)
+        tau = t[idx] - t[k, None]
+        valid = (start[k, None] + cols <= end[k, None]) & (tau > -spans[meas.sensor[idx]])
+        tau = np.where(valid, tau, 0.0)
+        # distinct times among the valid plots (fewer than m: a weak prior makes N regular)
+        last = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+        prev = np.concatenate([np.full((k.size, 1), -1), last[:, :-1]], axis=1)
+        prev_t = np.take_along_axis(tau, np.maximum(prev, 0), axis=1)
+        weak = np.sum(valid & ((prev < 0) | (tau != prev_t)), axis=1) < m
+        scale = np.maximum(np.max(np.abs(tau), axis=1), 1.0)  # conditioning: tau / scale
+        A = (tau / scale[:, None])[..., None] ** np.arange(m) / fact * valid[..., None]
+        N = np.einsum("kwi,kwj,kwab->kiajb", A, A, Ri[idx]).reshape(-1, 2 * m, 2 * m)
+        b = np.einsum("kwi,kwab,kwb->kia", A, Ri[idx], y[idx]).reshape(-1, 2 * m)
+        # coefficients c = D s with D = diag(scale^j): the prior on s becomes D^-1 prior D^-1
+        d = np.repeat(scale[:, None] ** np.arange(m), 2, axis=1)  # (nk, 2m)
+        N[weak] += (prior / d[weak] ** 2)[:, :, None] * np.eye(2 * m)
+        C = np.linalg.inv(N)
+        states[k] = np.einsum("kij,kj->ki", C, b) / d
+        cov[k] = C / (d[:, :, None] * d[:, None, :])
+    return states, cov
+
+
+def run_alpha_beta(meas: PolarPlots | SensorPlots, order: int = 2, k_max: int | None = K_MAX
+                   ) -> FilterEstimate:
     if order not in (2, 3):
         raise ValueError(f"order must be 2 (alpha-beta) or 3 (alpha-beta-gamma), not {order!r}")
     if k_max is not None and k_max < order:
         raise ValueError(f"k_max must be at least {order}, not {k_max!r}")
+    if isinstance(meas, SensorPlots):
+        spans = memory_spans(meas, k_max)
+        s, C = window_fits(meas, order, spans)
+        return estimate("alpha_beta", meas.t, s[:, :4], C[:, :4, :4], order=float(order),
+                        memory_s=float(np.max(spans)))
     t = meas.t
     n, m = t.shape[0], order
     y = meas.points()
