@@ -1,0 +1,363 @@
+"""ASTERIX ingest (solver.io.asterix): recordings ENCODED here with libasterix (CAT048 of two
+radars, CAT021 ADS-B, CAT034), decoded back to the same plots at the encoding resolution; pcap
+captures written here with struct; midnight wrap; damaged recordings (truncated blocks,
+unknown categories and SAC/SIC) reported with their byte offsets while the rest is read."""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import asterix.generated as ast
+import numpy as np
+import pytest
+
+from solver.frames import LocalFrame, slant_and_azimuth
+from solver.inputs import InputError
+from solver.io.asterix import decode_blocks, read_recording
+from solver.io.problems import Problems
+from solver.io.sensors_file import parse_sensors
+from solver.io.split import split_aircraft
+from solver.io.tables import FL_M
+
+C048, C021, C034 = ast.Cat_048_1_32, ast.Cat_021_2_7, ast.Cat_034_1_29
+
+SITES = {"R1": (46.0, 14.0, 300.0), "R2": (46.5, 15.0, 500.0)}
+CODES = {"R1": (25, 201), "R2": (25, 202), "ADSB": (25, 1)}
+SENSOR_FILE = [
+    {"id": "R1", "kind": "radar", "sac": 25, "sic": 201, "lat_deg": 46.0, "lon_deg": 14.0,
+     "height_m": 300.0, "range_error_m": 150.0, "azimuth_error_deg": 0.24},
+    {"id": "R2", "kind": "radar", "sac": 25, "sic": 202, "lat_deg": 46.5, "lon_deg": 15.0,
+     "height_m": 500.0, "range_error_m": 150.0, "azimuth_error_deg": 0.24},
+    {"id": "ADSB", "kind": "position", "sac": 25, "sic": 1, "position_sigma_m": 30.0},
+]
+SENSORS = parse_sensors(SENSOR_FILE)
+PLANE = LocalFrame(46.2, 14.5)
+RHO_LSB_M = 1852.0 / 256
+THETA_LSB_DEG = 360.0 / 2**16
+TIME_LSB_S = 1.0 / 128
+LATLON_LSB_DEG = 180.0 / 2**30
+
+
+@dataclass(frozen=True)
+class Flight:
+    """A straight, level flight in the plane PLANE: ``address`` (Mode S), start ``(x0, z0)``
+    (m), velocity ``(vx, vz)`` (m/s), flight level ``fl`` (a multiple of 1/4)."""
+
+    address: int
+    x0: float
+    z0: float
+    vx: float
+    vz: float
+    fl: float
+    track_numbers: tuple[int, int] = (101, 201)
+    mode_3a: str = "1234"
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """lat, lon (deg) and height (m, the pressure altitude taken as height) at ``t``."""
+        lat, lon = PLANE.to_geodetic(self.x0 + self.vx * t, self.z0 + self.vz * t)
+        return lat, lon, np.full(np.shape(t), self.fl * FL_M)
+
+
+FLIGHTS = (Flight(0x4CA2D1, 0.0, 0.0, 200.0, 50.0, 350.0),
+           Flight(0x3C6DD4, 20_000.0, -30_000.0, -150.0, 180.0, 280.25, (102, 202), "7000"))
+
+
+@dataclass
+class Encoded:
+    """What was encoded: one dict per plot (sensor, tod, measurement, keys), and the bytes of
+    every data block in time order."""
+
+    plots: list[dict]
+    blocks: list[bytes]
+
+    @property
+    def data(self) -> bytes:
+        return b"".join(self.blocks)
+
+
+def cat048(sensor: str, tod: float, rho_nm: float, theta_deg: float, fl: float | None,
+           address: int | None, trn: int | None, mode_3a: str | None = None,
+           code: tuple[int, int] | None = None):
+    sac, sic = code or CODES[sensor]
+    items: dict = {"010": (("SAC", sac), ("SIC", sic)), "140": (tod, "s"),
+                   "040": (("RHO", (rho_nm, "NM")), ("THETA", (theta_deg, "°")))}
+    if fl is not None:
+        items["090"] = (0, 0, ("FL", (fl, "FL")))
+    if address is not None:
+        items["220"] = address
+    if mode_3a is not None:
+        items["070"] = (0, 0, 0, 0, ("MODE3A", mode_3a))
+    if trn is not None:
+        items["161"] = (0, ("TRN", trn))
+    return C048.cv_record.create(items)
+
+
+def cat021(tod: float, lat: float, lon: float, fl: float, address: int,
+           code: tuple[int, int] | None = None):
+    sac, sic = code or CODES["ADSB"]
+    return C021.cv_record.create({
+        "010": (("SAC", sac), ("SIC", sic)), "071": (tod, "s"),
+        "131": (("LAT", (lat, "°")), ("LON", (lon, "°"))), "145": (fl, "FL"),
+        "080": address})
+
+
+def encode_recording(tod0: float = 36_000.0, duration: float = 40.0,
+                     flights: tuple[Flight, ...] = FLIGHTS, with_mode_s: bool = True
+                     ) -> Encoded:
+    """R1 scans every 4 s, R2 every 5 s (one block per scan with every aircraft), ADS-B every
+    2 s (one block per report); a CAT034 north marker per scan of R1. Times of day from
+    ``tod0`` (wrapping at 86400)."""
+    events: list[tuple[float, str]] = []
+    for name, period, phase in (("R1", 4.0, 0.3), ("R2", 5.0, 1.1), ("ADSB", 2.0, 0.5)):
+        events += [(float(t), name) for t in np.arange(phase, duration, period)]
+    events.sort()
+    plots: list[dict] = []
+    blocks: list[bytes] = []
+    for t, name in events:
+        tod = float(np.round(((tod0 + t) % 86400.0) * 128) / 128)  # on the 1/128 s grid
+        recs = []
+        for k, f in enumerate(flights):
+            lat, lon, h = (float(v[0]) for v in f.at(np.array([t])))
+            if name == "ADSB":
+                recs.append(cat021(tod, lat, lon, f.fl, f.address))
+                plots.append({"sensor": name, "tod": tod, "lat": lat, "lon": lon, "fl": f.fl,
+                              "mode_s": f.address, "flight": k})
+                continue
+            r, az, _ = slant_and_azimuth(SITES[name], lat, lon, h)
+            r, az = float(r), float(np.rad2deg(az))
+            trn = f.track_numbers[0 if name == "R1" else 1]
+            recs.append(cat048(name, tod, r / 1852.0, az, f.fl,
+                               f.address if with_mode_s else None, trn, f.mode_3a))
+            plots.append({"sensor": name, "tod": tod, "range_m": r, "azimuth_deg": az,
+                          "fl": f.fl, "mode_s": f.address if with_mode_s else -1,
+                          "track_number": trn, "mode_3a": int(f.mode_3a, 8), "flight": k})
+        if name == "ADSB":
+            blocks += [C021.create([rec]).unparse().to_bytes() for rec in recs]
+        else:
+            blocks.append(C048.create(recs).unparse().to_bytes())
+            if name == "R1":
+                blocks.append(C034.create([C034.cv_record.create({
+                    "000": 1, "010": (("SAC", 25), ("SIC", 201)), "030": (tod, "s"),
+                    "041": (4.0, "s")})]).unparse().to_bytes())
+    return Encoded(plots, blocks)
+
+
+def assert_same_plots(rows, plots: list[dict]) -> None:
+    """Decoded rows equal the encoded plots (same order) to the encoding resolution."""
+    assert len(rows) == len(plots)
+    for i, p in enumerate(plots):
+        assert rows.sensor[i] == p["sensor"], i
+        assert abs(rows.time_of_day_s[i] - p["tod"]) <= TIME_LSB_S / 2
+        assert rows.flight_level[i] == p["fl"]
+        assert rows.altitude_m[i] == pytest.approx(p["fl"] * 30.48, abs=1e-9)
+        assert rows.mode_s[i] == p["mode_s"]
+        if "range_m" in p:
+            assert abs(rows.range_m[i] - p["range_m"]) <= RHO_LSB_M / 2 + 1e-9
+            assert abs(rows.azimuth_deg[i] - p["azimuth_deg"]) <= THETA_LSB_DEG / 2 + 1e-12
+            assert np.isnan(rows.lat_deg[i]) and np.isnan(rows.lon_deg[i])
+            assert rows.track_number[i] == p["track_number"]
+            assert rows.mode_3a[i] == p["mode_3a"]
+        else:
+            assert abs(rows.lat_deg[i] - p["lat"]) <= LATLON_LSB_DEG / 2 + 1e-15
+            assert abs(rows.lon_deg[i] - p["lon"]) <= LATLON_LSB_DEG / 2 + 1e-15
+            assert np.isnan(rows.range_m[i]) and np.isnan(rows.azimuth_deg[i])
+
+
+def pcap(payloads: list[bytes], *, nanoseconds: bool = False, big_endian: bool = False) -> bytes:
+    """A classic pcap capture: every payload one Ethernet/IPv4/UDP packet to port 8600."""
+    e = ">" if big_endian else "<"
+    magic = 0xA1B23C4D if nanoseconds else 0xA1B2C3D4
+    out = [struct.pack(e + "IHHiIII", magic, 2, 4, 0, 0, 65535, 1)]
+    for k, payload in enumerate(payloads):
+        udp = struct.pack(">HHHH", 40000, 8600, 8 + len(payload), 0) + payload
+        ip = struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), k & 0xFFFF, 0, 64, 17, 0,
+                         bytes([10, 0, 0, 1]), bytes([239, 1, 1, 1]))
+        frame = bytes(6) + bytes([2, 0, 0, 0, 0, 1]) + struct.pack(">H", 0x0800) + ip + udp
+        out.append(struct.pack(e + "IIII", 1_700_000_000 + k, 0, len(frame), len(frame)))
+        out.append(frame)
+    return b"".join(out)
+
+
+# ---------------------------------------------------------------------------------- tests
+
+
+def test_round_trip_two_radars_and_adsb():
+    enc = encode_recording()
+    rec = read_recording(enc.data, SENSORS)
+    assert not rec.problems, rec.problems.summary()
+    assert_same_plots(rec.rows, enc.plots)
+    assert rec.rows.origin_unit == "byte"
+    assert rec.blocks[48] == 10 + 8 and rec.blocks[34] == 10 and rec.blocks[21] == 40
+    assert rec.service["R1"].north_markers == 10
+    assert rec.service["R1"].rotation_period_s == 4.0
+    # t: seconds since the midnight before the first plot, here the time of day itself
+    np.testing.assert_array_equal(rec.rows.t, rec.rows.time_of_day_s)
+    # origins are the records' byte offsets: the first record (from its FSPEC) follows the
+    # first block's 3-byte header
+    assert rec.rows.origin[0] == 3
+
+
+def test_decoded_plots_lie_on_the_flights():
+    """Through split and the sensor model: every plot's fix is within the encoding resolution
+    of where the aircraft was (azimuth LSB 0.0055 deg is 8 m at 85 km)."""
+    enc = encode_recording()
+    rec = read_recording(enc.data, SENSORS)
+    problems = Problems()
+    tracks = list(split_aircraft(rec.rows, SENSORS, reference=PLANE, problems=problems))
+    assert not problems, problems.summary()
+    for track in tracks:
+        f = next(f for f in FLIGHTS if f"{f.address:06X}" == track.key)
+        t = track.table.t - 36_000.0
+        fixes = track.table.fixes()
+        x, z = f.x0 + f.vx * t, f.z0 + f.vz * t
+        err = np.hypot(fixes.ellipses.cx - x, fixes.ellipses.cz - z)
+        assert err.max() < 15.0, err.max()
+
+
+def test_pcap_round_trip():
+    enc = encode_recording()
+    # several blocks per datagram too: a datagram is a concatenation of blocks
+    payloads = [enc.blocks[0] + enc.blocks[1], *enc.blocks[2:]]
+    for kw in ({}, {"nanoseconds": True, "big_endian": True}):
+        rec = read_recording(pcap(payloads, **kw), SENSORS)
+        assert not rec.problems, rec.problems.summary()
+        assert rec.packets == len(payloads)
+        assert_same_plots(rec.rows, enc.plots)
+        # byte offsets are in the capture file: 24 (file) + 16 (packet) + 42 (headers) + 3
+        assert rec.rows.origin[0] == 24 + 16 + 14 + 20 + 8 + 3
+
+
+def test_pcap_damage_reported_and_the_rest_read(tmp_path):
+    enc = encode_recording()
+    payloads = list(enc.blocks)
+    cut = 5  # a truncated block inside one datagram: the next datagrams are still read
+    payloads[cut] = payloads[cut][:-4]
+    data = pcap(payloads)
+    path = tmp_path / "rec.pcap"
+    path.write_bytes(data[:-10])  # and the capture itself cut inside its last packet
+    rec = read_recording(path, SENSORS)
+    kinds = rec.problems.counts
+    assert kinds == {"truncated_block": 1, "truncated_packet": 1}, rec.problems.summary()
+    (trunc,) = rec.problems.of_kind("truncated_block")
+    offset = data.index(enc.blocks[cut][:-4])
+    assert trunc.where == f"byte {offset}"
+    assert len(rec.rows) > len(enc.plots) - 6
+
+
+def test_pcapng_is_refused_with_a_clear_error():
+    with pytest.raises(InputError, match="pcapng"):
+        read_recording(b"\x0a\x0d\x0d\x0a" + bytes(40), SENSORS)
+
+
+def test_midnight_wrap():
+    enc = encode_recording(tod0=86_380.0, duration=40.0)
+    rec = read_recording(enc.data, SENSORS)
+    assert not rec.problems, rec.problems.summary()
+    rows = rec.rows
+    assert rows.time_of_day_s.max() > 86_390 and rows.time_of_day_s.min() < 10
+    # t counts from the midnight before the first plot and grows across midnight
+    assert np.all(np.diff(rows.t) >= 0)
+    np.testing.assert_allclose(rows.t, 86_380.0 + np.array(
+        [p["tod"] - 86_380.0 if p["tod"] > 40_000 else p["tod"] + 20.0 for p in enc.plots]))
+    tracks = list(split_aircraft(rows, SENSORS))
+    assert len(tracks) == 2 and all(len(tr.table) == len(enc.plots) // 2 for tr in tracks)
+
+
+def test_two_aircraft_become_two_tracks_merged_across_sensors():
+    enc = encode_recording()
+    rec = read_recording(enc.data, SENSORS)
+    tracks = list(split_aircraft(rec.rows, SENSORS))
+    assert sorted(tr.key for tr in tracks) == ["3C6DD4", "4CA2D1"]
+    for tr in tracks:
+        assert {s.id for s in tr.table.sensors} == {"R1", "R2", "ADSB"}
+        assert set(rec.rows.mode_s[tr.rows].tolist()) == {int(tr.key, 16)}
+        assert np.all(np.diff(tr.table.t) >= 0)
+    assert sum(len(tr.table) for tr in tracks) == len(rec.rows)
+
+
+def test_without_mode_s_radar_tracks_split_by_track_number():
+    enc = encode_recording(with_mode_s=False)
+    rec = read_recording(enc.data, SENSORS)
+    keys = sorted(tr.key for tr in split_aircraft(rec.rows, SENSORS))
+    assert keys == ["3C6DD4", "4CA2D1", "R1:track:101", "R1:track:102", "R2:track:201",
+                    "R2:track:202"]
+
+
+def test_truncated_block_in_a_raw_file_reports_its_offset_and_the_rest_is_read():
+    enc = encode_recording()
+    k = 7  # cut block k short by 9 bytes; the recorder went on with the next block
+    data = b"".join(enc.blocks[:k]) + enc.blocks[k][:-9] + b"".join(enc.blocks[k + 1:])
+    offset = sum(len(b) for b in enc.blocks[:k])
+    rec = decode_blocks(data, SENSORS)
+    assert rec.problems.counts == {"truncated_block": 1}, rec.problems.summary()
+    (p,) = rec.problems.entries
+    assert p.where == f"byte {offset}"
+    assert f"next block starts at byte {offset + len(enc.blocks[k]) - 9}" in p.message
+    # every block after the cut is decoded: compare with the undamaged decode
+    full = decode_blocks(enc.data, SENSORS).rows
+    after = full.origin >= offset + len(enc.blocks[k])
+    tail = rec.rows.origin >= offset + len(enc.blocks[k]) - 9
+    np.testing.assert_array_equal(rec.rows.range_m[tail], full.range_m[after])
+    np.testing.assert_array_equal(rec.rows.t[tail], full.t[after])
+    before = full.origin < offset
+    np.testing.assert_array_equal(rec.rows.t[rec.rows.origin < offset], full.t[before])
+
+
+def test_truncated_last_block_and_garbage_between_blocks():
+    enc = encode_recording()
+    data = enc.data[:-5]
+    rec = decode_blocks(data, SENSORS)
+    (p,) = rec.problems.entries
+    assert p.kind == "truncated_block" and p.where == f"byte {len(enc.data) - len(enc.blocks[-1])}"
+    assert "only" in p.message and "remain" in p.message
+    junk = b"\xff\x00\x01junk!"
+    data = enc.blocks[0] + junk + b"".join(enc.blocks[1:])
+    rec = decode_blocks(data, SENSORS)
+    assert [e.kind for e in rec.problems.entries] == ["unrecognised_bytes"]
+    assert rec.problems.entries[0].where == f"byte {len(enc.blocks[0])}"
+    assert f"{len(junk)} bytes" in rec.problems.entries[0].message
+    assert_same_plots(rec.rows, enc.plots)
+
+
+def test_unknown_sac_sic_and_category_are_counted_and_skipped():
+    enc = encode_recording()
+    stranger = [C048.create([cat048("R1", 36_000.0 + k, 30.0, 10.0, 100.0, 0xABCDEF, 7,
+                                    code=(25, 99))]).unparse().to_bytes() for k in range(3)]
+    cat062 = bytes([62, 0, 6, 0x80, 0x01, 0x02])  # a valid-looking CAT062 block
+    data = stranger[0] + enc.data + cat062 + stranger[1] + stranger[2]
+    rec = decode_blocks(data, SENSORS)
+    assert rec.problems.counts == {"unknown_sensor": 3, "unknown_category": 1}
+    (unknown,) = rec.problems.of_kind("unknown_sensor")
+    assert unknown.where == "byte 3" and "SAC 25 / SIC 99" in unknown.message
+    assert unknown.count == 3 and unknown.dropped == 3
+    (cat,) = rec.problems.of_kind("unknown_category")
+    assert cat.where == f"byte {len(stranger[0]) + len(enc.data)}" and "CAT062" in cat.message
+    assert_same_plots(rec.rows, enc.plots)
+
+
+def test_flagged_and_incomplete_reports_are_counted():
+    rec_bad_fl = C048.cv_record.create({
+        "010": (("SAC", 25), ("SIC", 201)), "140": (10.0, "s"),
+        "040": (("RHO", (30.0, "NM")), ("THETA", (10.0, "°"))),
+        "090": (1, 0, ("FL", (100.0, "FL"))), "220": 0xABCDEF})  # V=1: not validated
+    no_position = C048.cv_record.create({"010": (("SAC", 25), ("SIC", 201)),
+                                         "140": (11.0, "s"), "220": 0xABCDEF})
+    test_target = C048.cv_record.create({
+        "010": (("SAC", 25), ("SIC", 201)), "140": (12.0, "s"),
+        "020": ((("TYP", 5), ("SIM", 0), ("RDP", 0), ("SPI", 0), ("RAB", 1), None),),
+        "040": (("RHO", (30.0, "NM")), ("THETA", (10.0, "°")))})
+    data = C048.create([rec_bad_fl, no_position, test_target]).unparse().to_bytes()
+    rec = decode_blocks(data, SENSORS)
+    assert len(rec.rows) == 1 and np.isnan(rec.rows.altitude_m[0])
+    assert rec.problems.counts == {"invalid_code": 1, "missing_item": 1, "not_aircraft": 1}
+    assert rec.problems.dropped == {"invalid_code": 0, "missing_item": 1, "not_aircraft": 1}
+
+
+def test_radar_code_sending_adsb_is_reported():
+    data = C021.create([cat021(5.0, 46.0, 14.0, 100.0, 0xABCDEF, code=CODES["R1"])]
+                       ).unparse().to_bytes()
+    rec = decode_blocks(data, SENSORS)
+    assert len(rec.rows) == 0
+    (p,) = rec.problems.entries
+    assert p.kind == "wrong_sensor_kind" and "'R1'" in p.message and p.where == "byte 3"
