@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_serializer
+from pydantic import BaseModel, ConfigDict, Field
 
 from solver.estimation import FILTER_NAMES
 
@@ -228,26 +228,21 @@ _COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2. I
         "carry (a constant altitude is not observable from 2-D plots)")
 
 
-_GEO_FIELDS = ("lat_deg", "lon_deg", "altitude_m", "altitude_sigma_m")
+def _absent(value: object) -> bool:
+    return value is None
+
+
+def _optional(description: str) -> Any:
+    """A field left out of the JSON, not null, where it does not apply (latitude and longitude
+    of the single `radar`'s flat plane), so those answers keep their size."""
+    return Field(None, description=description, exclude_if=_absent)
 
 
 class _GeoOut(_Out):
-    """A state that carries its latitude and longitude (and estimated altitude) when known:
-    those fields are left out of the JSON, not null, where they do not apply (the single
-    `radar` on its flat plane), so those answers keep their size."""
+    """A state that carries its latitude and longitude when the plane has a frame."""
 
-    lat_deg: float | None = Field(None, description="Latitude (degrees, WGS-84); with "
-                                  "`sensors` only.")
-    lon_deg: float | None = Field(None, description="Longitude (degrees, WGS-84); with "
-                                  "`sensors` only.")
-
-    @model_serializer(mode="wrap")
-    def _drop_absent(self, handler: Any) -> dict[str, Any]:
-        out = handler(self)
-        for key in _GEO_FIELDS:
-            if out.get(key, 0) is None:
-                del out[key]
-        return out
+    lat_deg: float | None = _optional("Latitude (degrees, WGS-84); with `sensors` only.")
+    lon_deg: float | None = _optional("Longitude (degrees, WGS-84); with `sensors` only.")
 
 
 class StateOut(_GeoOut):
@@ -261,10 +256,9 @@ class StateOut(_GeoOut):
     heading_deg: float = Field(description="Heading (degrees clockwise from north, [0, 360)).")
     speed: float = Field(description="Ground speed (m/s).")
     cov: Cov | None = Field(None, description=f"{_COV}; null when the method gives none.")
-    altitude_m: float | None = Field(None, description="Estimated height above the "
-                                     "ellipsoid (m), where the altitude was estimated from "
-                                     "several sensors.")
-    altitude_sigma_m: float | None = Field(None, description="Its standard deviation (m).")
+    altitude_m: float | None = _optional("Estimated height above the ellipsoid (m), where the "
+                                         "altitude was estimated from several sensors.")
+    altitude_sigma_m: float | None = _optional("Its standard deviation (m).")
 
 
 class SegmentOut(_Out):

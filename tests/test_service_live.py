@@ -26,6 +26,7 @@ from schemathesis.specs.openapi.checks import (
     response_schema_conformance,
     status_code_conformance,
 )
+from test_service_sensors import _body as two_sensor_body
 
 ROOT = Path(__file__).resolve().parents[1]
 OPENAPI = ROOT / "openapi" / "openapi.json"
@@ -107,6 +108,21 @@ def test_generated_client_round_trip(server, tmp_path):
             assert res.status_code == 422
             assert isinstance(res.parsed, models.ErrorResponse)
             assert res.parsed.message.startswith("plots[4].t is not after plots[3].t")
+
+            # several sensors on the earth through the generated models (sensors.md)
+            body = two_sensor_body()
+            two = models.ReconstructionRequest.from_dict(body)
+            assert two.to_dict()["sensors"] == body["sensors"]
+            res = api.sync_detailed(client=client, body=two)
+            assert res.status_code == 200, res.content
+            out = res.parsed
+            assert [s.id for s in out.sensors] == ["LJLJ", "SSR2", "ADSB"]
+            assert len(out.trajectory.at_plots) == len(body["plots"])
+            first = out.trajectory.at_plots[0]
+            assert 45 < first.lat_deg < 47 and 13 < first.lon_deg < 16
+            assert out.trajectory.altitude_m > 9000
+            raw = httpx.post(server + "/v1/reconstructions", json=two.to_dict(), timeout=60)
+            assert raw.json()["sensors"] == [s.to_dict() for s in out.sensors]
     finally:
         sys.path.remove(str(tmp_path / "site"))
 
