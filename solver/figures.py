@@ -1,0 +1,180 @@
+"""Figures a person would rather look at than read (matplotlib, Agg; PNG bytes or files).
+
+- :func:`track_figure`: one aircraft, in the style of seed 000's figures 4-8: the plots of
+  every sensor with their 3-sigma ellipses (the a priori maximum errors of a radar whose sigmas
+  are a third of them), the reconstructed trajectory with its switch points and 95 % ellipses,
+  and beside it the controls ``u(t)``, ``w(t)``, the speed and, where estimated, the altitude.
+- :func:`recording_map`: every track of a recording on one map, with the radar sites.
+
+Map axes: east to the right, north up, in km in the local plane (with latitude/longitude ticks'
+labels when the plane has a frame).
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.collections import PatchCollection
+from matplotlib.figure import Figure
+from matplotlib.patches import Ellipse
+
+from .inputs import FloatArray
+from .plots import PlotTable
+from .results import Reconstruction
+from .sensors import RadarSensor
+
+CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square with 2 degrees of freedom
+MAX_ELLIPSES = 400  # drawn per figure (every k-th plot beyond): more only hide the track
+COLOURS = ("tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive",
+           "tab:cyan", "tab:gray")
+DPI = 100
+
+
+def _ellipse_patches(cx: FloatArray, cz: FloatArray, cov: FloatArray) -> list[Ellipse]:
+    """Ellipses of ``(x, z)`` covariances ``(n, 2, 2)`` in (east, north) km axes."""
+    out = []
+    for x, z, c in zip(cx, cz, cov, strict=True):
+        p = np.array([[c[1, 1], c[0, 1]], [c[0, 1], c[0, 0]]])  # (east, north) order
+        vals, vecs = np.linalg.eigh(p)
+        vals = np.maximum(vals, 0.0)
+        angle = np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1]))
+        w, h = 2 * np.sqrt(vals[::-1]) / 1e3
+        out.append(Ellipse((z / 1e3, x / 1e3), w, h, angle=angle))
+    return out
+
+
+def _thin(n: int) -> np.ndarray:
+    return np.arange(0, n, max(1, int(np.ceil(n / MAX_ELLIPSES))))
+
+
+def _fix_covariances(table: PlotTable) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Plot centres and their one-sigma covariances in the plane."""
+    e = table.fixes().ellipses
+    c, s = np.cos(e.psi), np.sin(e.psi)
+    cov = np.empty((len(table), 2, 2))
+    cov[:, 0, 0] = c * c * e.B**2 + s * s * e.A**2
+    cov[:, 1, 1] = s * s * e.B**2 + c * c * e.A**2
+    cov[:, 0, 1] = cov[:, 1, 0] = s * c * (e.B**2 - e.A**2)
+    return e.cx, e.cz, cov
+
+
+def _map_axes(ax: Axes, title: str) -> None:
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("east (km)")
+    ax.set_ylabel("north (km)")
+    ax.set_title(title)
+    ax.grid(True, lw=0.3)
+
+
+def track_figure(table: PlotTable, rec: Reconstruction, title: str = "") -> Figure:
+    """One aircraft's plots, reconstruction and controls (see the module docstring)."""
+    has_alt = rec.samples.h is not None
+    fig = plt.figure(figsize=(13, 7.5), dpi=DPI)
+    grid = fig.add_gridspec(4 if has_alt else 3, 2, width_ratios=(1.3, 1))
+    ax = fig.add_subplot(grid[:, 0])
+    cx, cz, cov = _fix_covariances(table)
+    for k, sensor in enumerate(table.sensors):
+        rows = np.flatnonzero(table.sensor == k)
+        colour = COLOURS[k % len(COLOURS)]
+        ax.plot(cz[rows] / 1e3, cx[rows] / 1e3, "+", ms=4, color=colour,
+                label=f"{sensor.id} ({sensor.kind}, {rows.size} plots)")
+        sel = rows[_thin(rows.size)]
+        patches = _ellipse_patches(cx[sel], cz[sel], 9.0 * cov[sel])  # 3 sigma
+        ax.add_collection(PatchCollection(patches, facecolor="none", edgecolor=colour, lw=0.4,
+                                          alpha=0.6))
+    s = rec.samples
+    ax.plot(s.z / 1e3, s.x / 1e3, "-", color="tab:red", lw=1.2, label="reconstruction")
+    starts = np.array([[seg.z, seg.x] for seg in rec.segments[1:]]) / 1e3
+    if starts.size:
+        ax.plot(starts[:, 0], starts[:, 1], ".", color="k", ms=3,
+                label=f"control switches ({len(rec.segments) - 1})")
+    a = rec.at_plots
+    if a.cov is not None:
+        sel = _thin(len(a))
+        patches = _ellipse_patches(a.x[sel], a.z[sel], CHI2_2DOF_95 * a.cov[sel, :2, :2])
+        ax.add_collection(PatchCollection(patches, facecolor="tab:red", edgecolor="none",
+                                          alpha=0.25))
+    ax.legend(loc="best", fontsize=8)
+    _map_axes(ax, title or f"{len(table)} plots, {len(table.sensors)} sensor(s)")
+    t = np.array([seg.t_start for seg in rec.segments] + [rec.segments[-1].t_end])
+    panels = [("u (m/s^2)", [seg.u for seg in rec.segments]),
+              ("w (m/s^2)", [seg.w for seg in rec.segments])]
+    for i, (label, values) in enumerate(panels):
+        axc = fig.add_subplot(grid[i, 1])
+        axc.step(t, [*values, values[-1]], where="post", color="tab:red", lw=1)
+        axc.set_ylabel(label)
+        axc.grid(True, lw=0.3)
+    axv = fig.add_subplot(grid[2, 1])
+    axv.plot(s.t, s.speed, color="tab:red", lw=1)
+    axv.set_ylabel("speed (m/s)")
+    axv.grid(True, lw=0.3)
+    if has_alt:
+        assert s.h is not None and s.h_sigma is not None
+        axh = fig.add_subplot(grid[3, 1])
+        axh.plot(s.t, s.h, color="tab:red", lw=1, label="estimated height")
+        axh.fill_between(s.t, s.h - 2 * s.h_sigma, s.h + 2 * s.h_sigma, color="tab:red",
+                         alpha=0.2, lw=0)
+        known = np.isfinite(table.altitude_m)
+        if known.any():
+            axh.plot(table.t[known], table.altitude_m[known], ".", ms=2, color="k",
+                     label="reported altitude")
+            axh.legend(fontsize=7)
+        axh.set_ylabel("height (m)")
+        axh.grid(True, lw=0.3)
+    fig.axes[-1].set_xlabel("t (s)")
+    fig.tight_layout()
+    return fig
+
+
+def recording_map(tracks: Sequence[tuple[str, FloatArray, FloatArray]],
+                  sensors: Sequence[tuple[str, float, float]] = (), title: str = "") -> Figure:
+    """Every track ``(key, x, z)`` (metres in one plane) and sensor sites ``(id, x, z)``."""
+    fig, ax = plt.subplots(figsize=(10, 9), dpi=DPI)
+    for i, (_, x, z) in enumerate(tracks):
+        ax.plot(np.asarray(z) / 1e3, np.asarray(x) / 1e3, "-", lw=0.7,
+                color=plt.cm.tab20(i % 20))
+    for sid, x, z in sensors:
+        ax.plot(z / 1e3, x / 1e3, "^", color="k", ms=8)
+        ax.annotate(sid, (z / 1e3, x / 1e3), textcoords="offset points", xytext=(5, 5),
+                    fontsize=8)
+    _map_axes(ax, title or f"{len(tracks)} tracks")
+    fig.tight_layout()
+    return fig
+
+
+def sensor_sites(table: PlotTable) -> list[tuple[str, float, float]]:
+    """Radar sites of a table in its plane (the origin for a radar without a site)."""
+    out = []
+    for s in table.sensors:
+        if not isinstance(s, RadarSensor):
+            continue
+        if table.frame is None or s.site is None:
+            out.append((s.id, 0.0, 0.0))
+        else:
+            x, z = table.frame.to_plane(np.array([s.site.lat_deg]), np.array([s.site.lon_deg]))
+            out.append((s.id, float(x[0]), float(z[0])))
+    return out
+
+
+def png(fig: Figure) -> bytes:
+    """The figure as PNG bytes (and closed)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def save(fig: Figure, path: Path) -> Path:
+    """Write the figure (format from the suffix) and close it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

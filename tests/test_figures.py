@@ -1,0 +1,39 @@
+"""Figures of a track and of a recording render (PNG) for one radar and for several sensors."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_refine_multisensor import SSR_A, SSR_B, _simulate
+
+from solver.figures import png, recording_map, sensor_sites, track_figure
+from solver.inputs import Plots, Radar
+from solver.reconstruct import reconstruct
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def test_track_figure_of_two_radars_has_the_altitude_panel():
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (12.0, 1.1)), noise=1.0, t_end=400.0)
+    rec = reconstruct(table)
+    fig = track_figure(table, rec)
+    assert len(fig.axes) == 5  # map, u, w, speed, height
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert any(label.startswith("A (radar") for label in labels)
+    data = png(fig)
+    assert data.startswith(PNG_MAGIC) and len(data) > 20_000
+
+
+def test_track_figure_of_the_seed_radar_and_a_recording_map():
+    t = 10.0 * np.arange(30)
+    plots = Plots.from_arrays(t, 80e3 + 200.0 * t, np.deg2rad(30.0 + 0.01 * t))
+    rec = reconstruct(plots, Radar(300.0, np.deg2rad(0.5)))
+    from solver.plots import PlotTable
+
+    table = PlotTable.from_plots(plots, Radar(300.0, np.deg2rad(0.5)))
+    fig = track_figure(table, rec, title="seed radar")
+    assert len(fig.axes) == 4 and fig.axes[0].get_title() == "seed radar"
+    assert png(fig).startswith(PNG_MAGIC)
+    tracks = [("a", rec.samples.x, rec.samples.z), ("b", rec.samples.x + 5e3, rec.samples.z)]
+    fig = recording_map(tracks, sensor_sites(table))
+    assert len(fig.axes[0].lines) == 3  # two tracks and the radar
+    assert png(fig).startswith(PNG_MAGIC)
