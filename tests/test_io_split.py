@@ -1,0 +1,180 @@
+"""Splitting a recording into aircraft (solver.io.split) and the sensor file
+(solver.io.sensors_file): keys, merging, and every left-out plot reported."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from test_io_asterix import SENSOR_FILE, SENSORS
+
+from solver.frames import LocalFrame
+from solver.inputs import InputError
+from solver.io.problems import Problems
+from solver.io.sensors_file import load_sensors, parse_sensors
+from solver.io.split import aircraft_keys, recording_frame, split_aircraft
+from solver.io.tables import PlotRows
+from solver.sensors import PositionSensor, RadarSensor
+
+
+def radar_rows(t, sensor="R1", mode_s=-1, track_number=-1, mode_3a=-1, aircraft="",
+               range_m=60_000.0, altitude_m=np.nan) -> PlotRows:
+    t = np.asarray(t, dtype=float)
+    n = t.size
+
+    def col(v, dtype):
+        return np.broadcast_to(np.asarray(v, dtype=dtype), (n,)).copy()
+
+    return PlotRows.from_columns(
+        n, t=t, sensor=col(sensor, object), range_m=col(range_m, float) + 100.0 * t,
+        azimuth_deg=np.full(n, 45.0), altitude_m=col(altitude_m, float),
+        mode_s=col(mode_s, np.int64), track_number=col(track_number, np.int64),
+        mode_3a=col(mode_3a, np.int64), aircraft=col(aircraft, object))
+
+
+def adsb_rows(t, mode_s) -> PlotRows:
+    t = np.asarray(t, dtype=float)
+    return PlotRows.from_columns(t.size, t=t, sensor=np.full(t.size, "ADSB", dtype=object),
+                                 lat_deg=46.3 + 1e-3 * t, lon_deg=np.full(t.size, 14.4),
+                                 mode_s=np.full(t.size, mode_s))
+
+
+def concat(parts: list[PlotRows]) -> PlotRows:
+    """Rows of several parts, numbered 1.. as the rows of one table."""
+    rows = PlotRows.concat(parts)
+    return dataclasses.replace(rows, origin=np.arange(1, len(rows) + 1))
+
+
+def split(rows: PlotRows, **kw):
+    problems = Problems()
+    tracks = {tr.key: tr for tr in split_aircraft(rows, SENSORS, problems=problems, **kw)}
+    return tracks, problems
+
+
+def test_keys_in_order_of_preference():
+    rows = concat([
+        radar_rows([0, 4, 8], mode_s=0x4CA2D1, track_number=7, mode_3a=0o7000),
+        radar_rows([1, 5, 9], track_number=7, mode_3a=0o1234, sensor="R2"),
+        radar_rows([2, 6, 10], mode_3a=0o1234, sensor="R2"),
+        radar_rows([3, 7, 11], mode_s=0x4CA2D1, aircraft="AFR123"),
+    ])
+    keys = aircraft_keys(rows).tolist()
+    assert keys == ["4CA2D1"] * 3 + ["R2:track:7"] * 3 + ["R2:mode3a:1234"] * 3 + ["AFR123"] * 3
+
+
+def test_mode_s_merges_sensors_and_is_lent_to_its_track():
+    rows = concat([
+        radar_rows([0, 4, 8, 12], mode_s=[0x4CA2D1, -1, 0x4CA2D1, -1], track_number=7),
+        radar_rows([1, 6, 11], mode_s=0x4CA2D1, sensor="R2"),
+        adsb_rows([2, 3, 5], 0x4CA2D1),
+        # a track number carrying two addresses lends neither
+        radar_rows([20, 24, 28, 32, 36], mode_s=[0x111111, 0x222222, -1, -1, -1],
+                   track_number=9),
+    ])
+    tracks, problems = split(rows)
+    assert sorted(tracks) == ["4CA2D1", "R1:track:9"]
+    assert problems.counts == {"short_track": 2}  # 111111 and 222222: one plot each
+    shorts = {p.where: p.message for p in problems.of_kind("short_track")}
+    assert shorts == {f"aircraft {a}": "1 plot(s), fewer than the 3 a reconstruction needs: "
+                      "left out" for a in ("111111", "222222")}
+    assert tracks["R1:track:9"].rows.tolist() == [12, 13, 14]
+    tr = tracks["4CA2D1"]
+    assert len(tr.table) == 10
+    assert {s.id for s in tr.table.sensors} == {"R1", "R2", "ADSB"}
+    np.testing.assert_array_equal(tr.table.t, [0, 1, 2, 3, 4, 5, 6, 8, 11, 12])
+    np.testing.assert_array_equal(rows.t[tr.rows], tr.table.t)
+
+
+def test_time_gaps_split_a_key():
+    rows = radar_rows([0, 5, 10, 400, 405, 410, 415], mode_s=0x4CA2D1)
+    tracks, problems = split(rows)
+    assert {k: len(v.table) for k, v in tracks.items()} == {"4CA2D1": 3, "4CA2D1#2": 4}
+    assert not problems
+    tracks, _ = split(rows, gap_s=1000.0)
+    assert list(tracks) == ["4CA2D1"]
+
+
+def test_duplicate_times_of_one_sensor_are_reported_and_the_first_kept():
+    rows = concat([radar_rows([0, 4, 8, 12], mode_s=0x4CA2D1),
+                            radar_rows([4, 8], mode_s=0x4CA2D1, range_m=70_000.0),
+                            radar_rows([4], mode_s=0x4CA2D1, sensor="R2")])
+    tracks, problems = split(rows)
+    assert problems.counts == {"duplicate_time": 2} and problems.dropped["duplicate_time"] == 2
+    (p,) = problems.entries
+    assert p.where == "row 5" and p.count == 2 and "aircraft 4CA2D1" in p.message
+    assert "sensor 'R1' at t = 4.000 s" in p.message
+    tr = tracks["4CA2D1"]
+    assert tr.rows.tolist() == [0, 1, 6, 2, 3]
+    assert np.all(tr.table.range_m < 65_000.0)
+
+
+def test_rows_that_cannot_be_used_are_reported():
+    rows = concat([
+        radar_rows([0, 4, 8, 12], mode_s=0x4CA2D1, altitude_m=[9000.0, 9000.0, 1e5 - 1,
+                                                                9000.0]),
+        radar_rows([1], sensor="NOPE", mode_s=0x4CA2D1),
+        radar_rows([2], sensor="ADSB", mode_s=0x4CA2D1),       # radar measurement, ADS-B
+        radar_rows([3, 5]),                                      # no key at all
+    ])
+    tracks, problems = split(rows)
+    assert problems.counts == {"unknown_sensor": 1, "wrong_measurement": 1,
+                               "no_aircraft_key": 2, "bad_plot": 1}
+    bad = problems.of_kind("bad_plot")[0]
+    assert bad.where == "row 3" and "altitude_m" in bad.message
+    assert problems.of_kind("unknown_sensor")[0].where == "row 5"
+    assert problems.of_kind("wrong_measurement")[0].where == "row 6"
+    assert tracks["4CA2D1"].rows.tolist() == [0, 1, 3]
+    assert sum(problems.dropped.values()) + 3 == len(rows)
+
+
+def test_every_track_shares_the_recording_plane():
+    rows = concat([radar_rows([0, 4, 8], mode_s=1), adsb_rows([1, 2, 3], 2)])
+    tracks, _ = split(rows)
+    frames = {tr.table.frame for tr in tracks.values()}
+    assert frames == {LocalFrame(46.0, 14.0)}  # the first radar's site
+    assert recording_frame(SENSORS, rows) == LocalFrame(46.0, 14.0)
+    with_ref = parse_sensors({"sensors": SENSOR_FILE, "reference": {"lat_deg": 46.2,
+                                                                    "lon_deg": 14.5}})
+    assert recording_frame(with_ref, rows) == LocalFrame(46.2, 14.5)
+    adsb_only = parse_sensors([SENSOR_FILE[2]])
+    frame = recording_frame(adsb_only, adsb_rows([1, 2], 2))  # the first position plot
+    assert frame is not None and (frame.lat_deg, frame.lon_deg) == (46.3 + 1e-3, 14.4)
+
+
+def test_sensor_file(tmp_path):
+    path = tmp_path / "sensors.json"
+    path.write_text(json.dumps(SENSOR_FILE))
+    s = load_sensors(path)
+    assert [x.id for x in s.sensors] == ["R1", "R2", "ADSB"]
+    assert s.codes == {(25, 201): 0, (25, 202): 1, (25, 1): 2}
+    r1 = s.by_code(25, 201)
+    assert isinstance(r1, RadarSensor) and r1.site is not None and r1.site.height_m == 300.0
+    assert r1.azimuth_error_rad == pytest.approx(np.deg2rad(0.24))
+    assert isinstance(s.by_code(25, 1), PositionSensor) and s.by_code(1, 1) is None
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"sac": 300}, r"^sensors\[0\]\.sac must be an integer in \[0, 255\] \(300\)"),
+    ({"sic": None, "sac": 1}, r"^sensors\[0\]\.sic must be an integer"),
+    ({"range_error_m": "big"}, r"^sensors\[0\]\.range_error_m must be a finite number"),
+    ({"azimuth_error_deg": -1}, r"^sensors\[0\]\.azimuth_error_deg must be positive"),
+    ({"colour": "red"}, r"^sensors\[0\]\.colour is not a field of a radar sensor"),
+    ({"lon_deg": None}, r"^sensors\[0\]\.lon_deg must be a finite number"),
+    ({"kind": "sonar"}, r"^sensors\[0\]\.kind must be \"radar\" or \"position\""),
+    ({"sic": 202}, r"^sensors\[1\]\.sic SAC 25 / SIC 202 repeats sensors\[0\]"),
+])
+def test_sensor_file_errors_are_named(change, message):
+    first = {**SENSOR_FILE[0], **change}
+    with pytest.raises(InputError, match=message):
+        parse_sensors([first, *SENSOR_FILE[1:]])
+
+
+def test_sensor_file_json_errors():
+    with pytest.raises(InputError, match="line 1 column 2"):
+        parse_sensors("[x]")
+    with pytest.raises(InputError, match="NaN"):
+        parse_sensors('[{"id": "A", "kind": "position", "position_sigma_m": NaN}]')
+    with pytest.raises(InputError, match=r"^sensors\[1\]\.id 'R1' repeats"):
+        parse_sensors([SENSOR_FILE[0], {**SENSOR_FILE[1], "id": "R1"}])

@@ -1,0 +1,128 @@
+"""The documented plot table (solver.io.tables): CSV and Parquet round trips, missing columns
+named, bad values reported by row while the rest is read, time of day unwrapped."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from test_io_asterix import SENSORS, encode_recording
+
+from solver.inputs import InputError
+from solver.io.asterix import read_recording
+from solver.io.tables import PlotRows, read_csv, read_table, unwrap_time_of_day, write_table
+
+COLUMNS = ("t", "time_of_day_s", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
+           "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number")
+
+
+def assert_rows_equal(a: PlotRows, b: PlotRows) -> None:
+    assert len(a) == len(b)
+    for name in COLUMNS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.sensor.tolist() == b.sensor.tolist()
+    assert a.aircraft.tolist() == b.aircraft.tolist()
+
+
+def decoded() -> PlotRows:
+    rows = read_recording(encode_recording(tod0=86_390.0).data, SENSORS).rows
+    aircraft = np.array(["" if i % 5 else f"user-{i}" for i in range(len(rows))], dtype=object)
+    return PlotRows.from_columns(len(rows), **{n: getattr(rows, n) for n in COLUMNS},
+                                 sensor=rows.sensor, aircraft=aircraft)
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_round_trip(tmp_path, suffix):
+    rows = decoded()
+    assert rows.mode_3a.max() == 0o7000 and (rows.track_number >= 0).any()
+    path = tmp_path / f"plots{suffix}"
+    write_table(rows, path)
+    back, problems = read_table(path)
+    assert not problems, problems.summary()
+    assert back.origin.tolist() == list(range(1, len(rows) + 1))
+    assert_rows_equal(back, rows)
+
+
+def test_csv_text_format(tmp_path):
+    """Mode S in hex, Mode 3/A in octal with leading zeros, empty cells for missing values."""
+    rows = PlotRows.from_columns(1, t=[1.5], sensor=np.array(["R1"], dtype=object),
+                                 range_m=[1000.0], azimuth_deg=[90.0], mode_s=[0x00A1B2],
+                                 mode_3a=[0o0123])
+    write_table(rows, tmp_path / "p.csv")
+    with open(tmp_path / "p.csv", newline="") as f:
+        (record,) = csv.DictReader(f)
+    assert record["mode_s"] == "00A1B2" and record["mode_3a"] == "0123"
+    assert record["lat_deg"] == "" and record["track_number"] == ""
+
+
+def test_missing_columns_are_named():
+    with pytest.raises(InputError, match=r"^sensor is missing"):
+        read_csv(b"t,range_m,azimuth_deg\n1,2,3\n")
+    with pytest.raises(InputError, match=r"^azimuth_deg is missing \(it goes with `range_m`\)"):
+        read_csv(b"t,sensor,range_m\n1,R1,3\n")
+    with pytest.raises(InputError, match=r"^t is missing"):
+        read_csv(b"sensor,range_m,azimuth_deg\nR1,2,3\n")
+    with pytest.raises(InputError, match=r"^range_m is missing"):
+        read_csv(b"t,sensor\n1,R1\n")
+    with pytest.raises(InputError, match=r"^speed is not a column"):
+        read_csv(b"t,sensor,range_m,azimuth_deg,speed\n1,R1,2,3,4\n")
+
+
+def test_missing_column_in_parquet_is_named(tmp_path):
+    path = tmp_path / "p.parquet"
+    pq.write_table(pa.table({"t": [1.0], "sensor": ["R1"], "lat_deg": [46.0]}), path)
+    with pytest.raises(InputError, match=r"^lon_deg is missing"):
+        read_table(path)
+
+
+def test_bad_values_are_reported_by_row_and_the_rest_is_read():
+    data = (b"time_of_day_s,sensor,range_m,azimuth_deg,lat_deg,lon_deg,mode_s,mode_3a\n"
+            b"86399,R1,50000,10,,,4CA2D1,7000\n"
+            b"86399.5,R1,fifty,10,,,4CA2D1,7000\n"      # row 2: not a number
+            b"0.5,ADSB,,,46.1,14.2,4CA2D1,\n"
+            b"1.0,R1,50100,10,46,14,,\n"                # row 4: radar and position
+            b"1.5,,50200,10,,,,\n"                      # row 5: no sensor
+            b"2.0,R1,50300,10,,,XYZ,7000\n"             # row 6: bad Mode S
+            b"2.5,R1,50400,10,,,,8000\n"                # row 7: not octal
+            b"3.0,R1,50500,,,,,\n"                      # row 8: range without azimuth
+            b"4.0,R1,50600,11,,,,\n")
+    rows, problems = read_csv(data)
+    assert problems.counts == {"bad_value": 6} and problems.dropped == {"bad_value": 6}
+    where = {p.where: p.message for p in problems.entries}
+    assert where == {
+        "row 2 (line 3)": "range_m: 'fifty' is not a number",
+        "row 4 (line 5)": "lat_deg: a row is either a radar plot (range_m, azimuth_deg) or a "
+                          "position plot (lat_deg, lon_deg), not both",
+        "row 5 (line 6)": "sensor: is missing",
+        "row 6 (line 7)": "mode_s: 'XYZ' is not a 24-bit hex address (4CA2D1)",
+        "row 7 (line 8)": "mode_3a: '8000' is not 4 octal digits (7000)",
+        "row 8 (line 9)": "azimuth_deg: is missing (the row has `range_m`)"}
+    assert rows.origin.tolist() == [1, 3, 9]
+    # the time of day wraps at midnight: t grows across it
+    np.testing.assert_array_equal(rows.t, [86399.0, 86400.5, 86404.0])
+    np.testing.assert_array_equal(rows.time_of_day_s, [86399.0, 0.5, 4.0])
+    assert rows.mode_s.tolist() == [0x4CA2D1, 0x4CA2D1, -1]
+    assert rows.mode_3a.tolist() == [0o7000, -1, -1]
+
+
+def test_strict_raises_at_the_first_bad_row():
+    with pytest.raises(InputError, match=r"^rows\[2\]\.range_m 'x' is not a number"):
+        read_csv(b"t,sensor,range_m,azimuth_deg\n1,R1,5,6\n2,R1,x,6\n", strict=True)
+
+
+def test_flight_level_gives_pressure_altitude():
+    rows, _ = read_csv(b"t,sensor,range_m,azimuth_deg,flight_level,altitude_m\n"
+                       b"1,R1,5000,6,350,\n2,R1,5000,6,350,9000\n3,R1,5000,6,,\n")
+    np.testing.assert_array_equal(rows.altitude_m[:2], [350 * 30.48, 9000.0])
+    assert np.isnan(rows.altitude_m[2])
+
+
+def test_unwrap_time_of_day():
+    tod = np.array([86398.0, 86399.5, 0.5, 86399.9, 1.0, 43000.0, 86000.0, 100.0])
+    np.testing.assert_array_equal(
+        unwrap_time_of_day(tod),
+        [86398.0, 86399.5, 86400.5, 86399.9, 86401.0, 86400 + 43000.0, 86400 + 86000.0,
+         2 * 86400 + 100.0])
