@@ -64,27 +64,36 @@ def small_case():
     return table, fine, coarse
 
 
+def predicted(table, tau, x, v, first_plots):
+    """At every row: the last step at or before its time predicted to it; before the first
+    step, the plot itself (``first_plots``: positions of those rows)."""
+    j = np.searchsorted(tau, table.t, side="right") - 1
+    jj = np.maximum(j, 0)
+    pos = x[jj] + v[jj] * (table.t - tau[jj])[:, None]
+    pos[j < 0] = first_plots[j < 0]
+    vel = np.where((j < 0)[:, None], 0.0, v[jj])
+    return pos, vel
+
+
 def test_fusion_a_by_hand():
     table, y1, y2 = small_case()
     c1, c2 = 40 / 50, 10 / 50  # sigma_2 / (sigma_1 + sigma_2), sigma_1 / (sigma_1 + sigma_2)
-    # steps at every instant; each source's latest value held
-    tau = np.array([0, 1, 2, 3, 4, 5, 6, 7.0])
-    y = np.array([y1[0],  # only the fine source has reported
-                  c1 * y1[0] + c2 * y2[0], c1 * y1[0] + c2 * y2[1], c1 * y1[1] + c2 * y2[1],
-                  c1 * y1[1] + c2 * y2[2], c1 * y1[1] + c2 * y2[3], c1 * y1[2] + c2 * y2[4],
-                  c1 * y1[2] + c2 * y2[5]])
+    # steps at the faster (coarse, 1 s) source's plots; each source's latest value held
+    tau = T2
+    y = np.array([c1 * y1[0] + c2 * y2[0], c1 * y1[0] + c2 * y2[1], c1 * y1[1] + c2 * y2[2],
+                  c1 * y1[1] + c2 * y2[3], c1 * y1[2] + c2 * y2[4], c1 * y1[2] + c2 * y2[5]])
     x, v = alpha_beta(tau, y, k_max=4)
     est = run_filter("fusion_a", table).states
     t_rows = table.t
-    step = np.searchsorted(tau, t_rows)
+    pos, vel = predicted(table, tau, x, v, plane(table))
     np.testing.assert_allclose(est.t, t_rows)
-    np.testing.assert_allclose(np.column_stack([est.x, est.z]), x[step], atol=1e-6)
-    np.testing.assert_allclose(np.column_stack([est.vx, est.vz]), v[step], atol=1e-9)
-    # covariance: step 0 the fine plot alone; step 1 (alpha = beta = 1): the fused variance
-    # c1^2 s1^2 + c2^2 s2^2 = 64 + 64 on the position
+    np.testing.assert_allclose(np.column_stack([est.x, est.z]), pos, atol=1e-6)
+    np.testing.assert_allclose(np.column_stack([est.vx, est.vz]), vel, atol=1e-9)
+    # covariance: the fine plot at 0 s before the first step; the first step: the fused
+    # variance c1^2 s1^2 + c2^2 s2^2 = 64 + 64 on the position
     row0 = int(np.flatnonzero(t_rows == 0.0)[0])
     row1 = int(np.flatnonzero(t_rows == 1.0)[0])
-    assert est.cov[row0, 0, 0] == pytest.approx(S1**2)
+    assert est.cov[row0, 0, 0] == pytest.approx(S1**2) and est.cov[row0, 2, 2] == 300.0**2
     assert est.cov[row1, 0, 0] == pytest.approx(128.0)
     assert est.cov[row1, 1, 1] == pytest.approx(128.0)
 
@@ -93,15 +102,14 @@ def test_fusion_b_by_hand():
     table, y1, y2 = small_case()
     # median update periods T1 = 3 s, T2 = 1 s; c1 = s2 T2 / (s1 T1 + s2 T2) = 40 / 70
     c1, c2 = 40 / 70, 30 / 70
-    tau = np.array([0, 1, 2, 3, 4, 5, 6, 7.0])
-    y = np.array([y1[0], c1 * y1[0] + c2 * y2[0], c1 * y1[0] + c2 * y2[1],
-                  c1 * y1[1] + c2 * y2[1], c1 * y1[1] + c2 * y2[2], c1 * y1[1] + c2 * y2[3],
-                  c1 * y1[2] + c2 * y2[4], c1 * y1[2] + c2 * y2[5]])
+    tau = T2
+    y = np.array([c1 * y1[0] + c2 * y2[0], c1 * y1[0] + c2 * y2[1], c1 * y1[1] + c2 * y2[2],
+                  c1 * y1[1] + c2 * y2[3], c1 * y1[2] + c2 * y2[4], c1 * y1[2] + c2 * y2[5]])
     x, v = alpha_beta(tau, y, k_max=2)  # a capped memory: steps 2.. use k = 2's gains
     est = run_filter("fusion_b", table, k_max=2).states
-    step = np.searchsorted(tau, table.t)
-    np.testing.assert_allclose(np.column_stack([est.x, est.z]), x[step], atol=1e-6)
-    np.testing.assert_allclose(np.column_stack([est.vx, est.vz]), v[step], atol=1e-9)
+    pos, vel = predicted(table, tau, x, v, plane(table))
+    np.testing.assert_allclose(np.column_stack([est.x, est.z]), pos, atol=1e-6)
+    np.testing.assert_allclose(np.column_stack([est.vx, est.vz]), vel, atol=1e-9)
 
 
 def test_fusion_c_by_hand():

@@ -10,10 +10,11 @@ one value per filter step into a growing-memory alpha-beta filter with the memor
     alpha = 2 (2k' + 1) / ((k' + 1)(k' + 2)),   beta = 6 / ((k' + 1)(k' + 2)),
     x_pred = x + v T,   r = y - x_pred,   x = x_pred + alpha r,   v = v + (beta / T) r):
 
-- ``fusion_a``: a step at every instant some source reports; ``y = c1 y1 + c2 y2`` with each
-  source's latest value (held, "aged", when stale) and ``c1 = s2 / (s1 + s2)``,
-  ``c2 = s1 / (s1 + s2)`` (``s_j`` that value's sigma on the axis). Before both sources have
-  reported, the one that has.
+- ``fusion_a``: a step at every plot of the faster source (smaller ``T_j``; source 2 if equal:
+  the filter's clock; a step at every instant either source reports would take velocities from
+  two sensors' plots milliseconds apart); ``y = c1 y1 + c2 y2`` with each source's latest value
+  (held, "aged", when stale) and ``c1 = s2 / (s1 + s2)``, ``c2 = s1 / (s1 + s2)`` (``s_j`` that
+  value's sigma on the axis). Before both sources have reported, the one that has.
 - ``fusion_b``: as A with ``c1 = s2 T2 / (s1 T1 + s2 T2)``, ``c2 = s1 T1 / (s1 T1 + s2 T2)``.
 - ``fusion_c``: event-driven: a step at every instant source 1 reports; ``y = c1 y1 + c2 y2``
   (A's weights) when source 2 has a fresh value (reported since the previous step, the first
@@ -24,8 +25,8 @@ predicted forward. The sound alternative is ``cv_rts`` on the same plots: every 
 own time with its own covariance (Kalman filter and RTS smoother; ``smooth=False`` the filter).
 
 Output at every plot: the state of the last step at or before its time, predicted to it
-(``x + v dt``); ``fusion_c`` before source 1's first plot: the plot with its covariance and an
-unknown velocity (sigma ``SIGMA_V0``). The covariance is that of the gains with the step values
+(``x + v dt``); before the first step: the plot with its covariance and an unknown velocity
+(sigma ``SIGMA_V0``). The covariance is that of the gains with the step values
 taken as independent with variance ``c1^2 s1^2 + c2^2 s2^2`` under a straight-line model: held
 values are reused (correlated) and their age is a lag, neither of which it includes, so for A and B
 it is optimistic.
@@ -64,7 +65,7 @@ def _source_split(meas: PolarPlots | SensorPlots, name: str
 
 
 def update_period(t: FloatArray) -> float:
-    """Median step of one source's times (its whole span, or 1 s, with a single plot)."""
+    """Median step of one source's times (1 s with a single plot)."""
     if t.size > 1:
         return float(np.median(np.diff(t)))
     return 1.0
@@ -103,7 +104,8 @@ def run_fusion(meas: PolarPlots | SensorPlots, variant: str, k_max: int | None =
     if k_max is not None and not k_max >= 1:
         raise ValueError(f"k_max must be at least 1, not {k_max!r}")
     ((t1, y1, s1), (t2, y2, s2)), acc = _source_split(meas, name)
-    steps = np.unique(t1 if variant == "c" else meas.t)
+    fast = t1 if update_period(t1) < update_period(t2) else t2
+    steps = t1 if variant == "c" else fast
     i1 = np.searchsorted(t1, steps, side="right") - 1  # latest value at each step (-1: none)
     i2 = np.searchsorted(t2, steps, side="right") - 1
     use1, use2 = i1 >= 0, i2 >= 0
@@ -132,7 +134,7 @@ def run_fusion(meas: PolarPlots | SensorPlots, variant: str, k_max: int | None =
     for axis in (0, 1):  # state (x, z, vx, vz): axis a at indices (a, a + 2)
         Pax = F @ Pa[jj, axis] @ np.transpose(F, (0, 2, 1))
         cov[np.ix_(np.arange(dt.size), [axis, axis + 2], [axis, axis + 2])] = Pax
-    before = j < 0  # fusion_c: no step yet (source 2's plots before source 1's first)
+    before = j < 0  # no step yet (the other source's plots before the clock's first)
     if before.any():
         out[before] = np.column_stack([meas.centre[before], np.zeros((before.sum(), 2))])
         cov[before] = 0.0

@@ -161,8 +161,10 @@ def _run_fuzzy_axes(meas: SensorPlots, kb: FuzzyGain, alpha: float, sigma_low: f
 
     Phi_lo, Q_lo, P_lo = model(sigma_low)
     _, Q_hi, P_hi = model(sigma_high)
-    K_lo = kalman_gains(P_lo, Phi_lo, Q_lo, R)
-    K_hi = kalman_gains(P_hi, Phi_lo, Q_hi, R)
+    K_lo, K_hi = np.split(kalman_gains(np.concatenate([P_lo, P_hi]),  # one batched pass
+                                       np.concatenate([Phi_lo, Phi_lo], 1),
+                                       np.concatenate([Q_lo, Q_hi], 1),
+                                       np.concatenate([R, R], 1)), 2, axis=1)
     levels = np.zeros((n, 2))
 
     def gain(k: int, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
