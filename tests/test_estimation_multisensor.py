@@ -12,7 +12,7 @@ from solver import Plots, Radar
 from solver.estimation import SINGLE_SENSOR_NAMES, run_filter
 from solver.estimation.cv_rts import run_cv_rts
 from solver.estimation.fuzzy import kalman_gains, steady_gain
-from solver.estimation.measurements import SensorPlots
+from solver.estimation.measurements import SensorPlots, borrowed_altitude
 from solver.estimation.models import quasi_optimal, singer
 from solver.frames import LocalFrame
 from solver.geometry import weight_entries
@@ -343,3 +343,44 @@ def test_taylor_discretisation_of_a_zero_step_is_still():
     np.testing.assert_array_equal(Phi[0], np.eye(3))
     np.testing.assert_array_equal(Q[0], np.zeros((3, 3)))
     assert np.all(np.isfinite(Q[1])) and Q[1][0, 0] > 0
+
+
+def without_radar_altitude(table):
+    h = table.altitude_m.copy()
+    h[table.radar_rows()] = np.nan
+    return PlotTable.build(table.sensors, table.t, table.sensor, table.range_m,
+                           table.azimuth_rad, table.lat_deg, table.lon_deg, h,
+                           reference=table.frame)
+
+
+def test_radar_plots_without_altitude_borrow_the_adsb_altitude():
+    """Radar plots without Mode C beside ADS-B altitudes are placed at the interpolated ADS-B
+    altitude: as accurate as with Mode C. Without any altitude in the table they stay at the
+    site height, with the h^2 / 2r bias (~1 km here: 10 km high, ~50 km away)."""
+    full = simulate()
+    bare = without_radar_altitude(full)
+    h = borrowed_altitude(bare)
+    np.testing.assert_allclose(h, 10_000.0)  # constant here; interpolation below
+    x, z = truth(full.t)
+    for name in ("cv_rts", "singer"):
+        a, b = run_filter(name, full).states, run_filter(name, bare).states
+        rms_a = np.sqrt(np.mean(np.hypot(a.x - x, a.z - z) ** 2))
+        rms_b = np.sqrt(np.mean(np.hypot(b.x - x, b.z - z) ** 2))
+        assert rms_b < 1.1 * rms_a + 2.0, (name, rms_a, rms_b)
+    radars = without_radar_altitude(simulate((PSR, SSR)))
+    assert np.all(np.isnan(borrowed_altitude(radars)))
+    s = run_filter("cv_rts", radars).states
+    xr, zr = truth(radars.t)
+    assert np.sqrt(np.mean(np.hypot(s.x - xr, s.z - zr) ** 2)) > 500  # the known limitation
+
+
+def test_borrowed_altitude_interpolates_in_time():
+    table = simulate((PSR, ADSB), dur=60.0)
+    h = table.altitude_m.copy()
+    adsb = np.flatnonzero(table.sensor == 1)
+    h[adsb] = 9000.0 + 10.0 * table.t[adsb]  # climbing 10 m/s
+    h[table.radar_rows()] = np.nan
+    t2 = PlotTable.build(table.sensors, table.t, table.sensor, table.range_m, table.azimuth_rad,
+                         table.lat_deg, table.lon_deg, h, reference=FRAME)
+    got = borrowed_altitude(t2)
+    np.testing.assert_allclose(got, 9000.0 + 10.0 * np.clip(table.t, 0.0, table.t[adsb].max()))

@@ -27,8 +27,11 @@ model above, unchanged) or a *linear position fix* ``z = p + v``, ``v ~ N(0, R)`
 plane position from ``table.fixes()`` (a radar plot placed through the curved earth, an ADS-B
 position projected) with ``R = B^2 e_r e_r^T + A^2 e_c e_c^T``, ``e_r = (cos psi, sin psi)``,
 ``e_c = (-sin psi, cos psi)`` from its one-sigma ellipse (``B`` along the sensor's ray, ``A``
-across). A radar plot without altitude is placed at its site's height (the slant range taken for
-the ground range, as for the single radar): the filters' 2-D states cannot estimate altitude.
+across). A radar plot without altitude is placed at the altitude of the table's other plots
+(Mode C of another radar, ADS-B), interpolated in time, when some carry one
+(:func:`borrowed_altitude`), else at its site's height (the slant range taken for the ground
+range, as for the single radar, with its ``h^2 / 2r`` bias): the filters' 2-D states cannot
+estimate altitude.
 """
 
 from __future__ import annotations
@@ -167,9 +170,16 @@ class SensorPlots:
             centre[polar] = np.column_stack([dp * np.cos(pp), dp * np.sin(pp)])
             cov[polar] = converted_cov(dp, pp, sigma_d[polar], sig_psi[polar])
         if not polar.all():
-            ell = table.fixes().ellipses
+            fixes = table.fixes()
+            ell = fixes.ellipses
             fix = ~polar
             centre[fix] = np.column_stack([ell.cx, ell.cz])[fix]
+            h = borrowed_altitude(table)
+            moved = fixes.altitude_free & np.isfinite(h)
+            if moved.any():  # within the heights the fix's altitude model covers
+                h = np.clip(np.nan_to_num(h), fixes.h_mid - fixes.h_half,
+                            fixes.h_mid + fixes.h_half)
+                centre[moved] = fixes.centre_at(h)[moved]
             cov[fix] = ellipse_cov(ell.psi[fix], ell.A[fix], ell.B[fix])
         return cls(t=np.asarray(table.t, float)[order], rows=order,
                    sensor=np.asarray(table.sensor)[order], n_sensors=len(table.sensors),
@@ -200,6 +210,18 @@ class SensorPlots:
         n = len(self)
         last = np.flatnonzero(np.append(np.diff(self.t) > 0, True))
         return last[np.searchsorted(last, np.arange(n))]
+
+
+def borrowed_altitude(table: PlotTable) -> FloatArray:
+    """``(n,)`` heights at which to place radar plots without altitude: interpolated in time
+    (held beyond the ends) from the table's plots that carry one (another radar's Mode C, an
+    ADS-B altitude); NaN when no plot does. Plots with their own altitude keep it."""
+    h = table.altitude_m
+    known = np.flatnonzero(np.isfinite(h))
+    if known.size == 0:
+        return np.full(len(table), np.nan)
+    order = known[np.argsort(table.t[known], kind="stable")]
+    return np.where(np.isfinite(h), h, np.interp(table.t, table.t[order], h[order]))
 
 
 def ellipse_cov(psi: FloatArray, A: FloatArray, B: FloatArray) -> FloatArray:
