@@ -12,6 +12,7 @@ Several sensors (or a geodetic frame: :class:`SensorPlots`): the same model per 
 (``x`` north, ``z`` east) on the plots' plane positions, each with its marginal variance, and
 ``sigma_M`` in metres on both axes. There is no common polar origin then, and in plane axes a
 straight flight has no acceleration, which suits the model better than range and azimuth.
+``info`` then names the channels ``x`` and ``z`` (``lambda_x``, ``discrepancy_z``, ...).
 
 ``lam="auto"`` picks ``Lambda`` per channel by the discrepancy principle (paper eq. 5): among
 ``LAMBDA_GRID`` the smallest (most smoothing) value whose discrepancy functional ``J`` does not
@@ -129,6 +130,7 @@ def run_quasi_optimal(meas: PolarPlots | SensorPlots, lam: float | str = LAMBDA,
         s, P = axes_to_cartesian(xf, Pf, 0, 2 * G - 1)
     else:
         s, P = channels_to_cartesian(xf, Pf, 0, 2 * G - 1)
-    info.update(lambda_range=float(lams[0]), lambda_azimuth=float(lams[-1]),
-                discrepancy_range=float(J[0]), discrepancy_azimuth=float(J[-1]))
+    a, b = ("x", "z") if isinstance(meas, SensorPlots) else ("range", "azimuth")  # channels
+    info.update({f"lambda_{a}": float(lams[0]), f"lambda_{b}": float(lams[-1]),
+                 f"discrepancy_{a}": float(J[0]), f"discrepancy_{b}": float(J[-1])})
     return estimate("quasi_optimal", meas.t, s, P, **info)
