@@ -1,0 +1,362 @@
+"""Many aircraft at once: :func:`reconstruct_many` over an executor, results streamed to disk.
+
+The scale-out engine is Dask distributed (no home-made scheduler): by default an embedded
+``LocalCluster`` of worker processes (one thread each, as many as usable cores), or the
+cluster of an existing scheduler when its address is named; any ``concurrent.futures``-style
+executor (``submit`` returning futures) works too. Each track is one task,
+:func:`solve_track`, which never raises for a track's own failure: a bad table, a solver
+failure or the per-track time limit (a deadline passed into the solver, so it works inside any
+worker, no signals) come back as a ``failed`` :class:`TrackOutcome` with the reason, and the
+other tracks go on. A task whose worker died (Dask retries it on another worker first) is
+reported as failed too.
+
+Memory is bounded however long the recording: the problems are consumed lazily with at most
+``max_in_flight`` tasks submitted, and finished tracks are written as they come, in parts::
+
+    OUT/tracks.parquet/part-000001.parquet    states at every plot (see TRACK_COLUMNS)
+    OUT/segments.parquet/part-000001.parquet  constant-control segments
+    OUT/progress.jsonl                        one line per finished track (the commit log)
+
+A part is written to a temporary name and renamed, then its tracks' lines are appended to
+``progress.jsonl`` (flushed and synced): a track is finished exactly when its line is there.
+A rerun with the same ``OUT`` resumes: tracks with a line are skipped, parts without one (a
+run killed between the two steps) are deleted, so every track appears once. Read the results
+with ``pyarrow.parquet.read_table(OUT / "tracks.parquet")``.
+
+The embedded cluster starts worker processes by spawning: a script that calls
+:func:`reconstruct_many` without an executor must do so under ``if __name__ == "__main__":``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import json
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from .config import ReconstructionConfig
+from .plots import PlotTable
+
+TRACK_COLUMNS = ("aircraft", "plot", "sensor", "t", "x", "z", "lat_deg", "lon_deg", "vx", "vz",
+                 "speed", "heading_deg", "cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz",
+                 "cov_z_z", "cov_z_vx", "cov_z_vz", "cov_vx_vx", "cov_vx_vz", "cov_vz_vz",
+                 "h_m", "h_sigma_m")
+"""Columns of ``tracks.parquet``: one row per plot (``plot``: its index in the track's table,
+time order), positions in the recording's plane (m; ``x`` north, ``z`` east) and on WGS-84,
+velocity (m/s), heading (deg clockwise from north), the covariance over ``(x, z, vx, vz)``
+(upper triangle) and the estimated height with its sigma where it was estimated (else null)."""
+SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
+PROGRESS = "progress.jsonl"
+
+
+@dataclass(frozen=True)
+class TrackProblem:
+    """One aircraft to reconstruct: its key and its validated plots table."""
+
+    key: str
+    table: PlotTable
+
+
+@dataclass
+class TrackOutcome:
+    """What became of one track: ``done`` (with its rows) or ``failed`` (with the reason)."""
+
+    key: str
+    status: Literal["done", "failed"]
+    plots: int
+    elapsed_s: float
+    error: str | None = None
+    warnings: list[str] = field(default_factory=list)
+    states: pa.Table | None = None
+    segments: pa.Table | None = None
+
+    def ledger(self, part: str | None) -> dict[str, Any]:
+        return {"aircraft": self.key, "status": self.status, "plots": self.plots,
+                "elapsed_s": round(self.elapsed_s, 4), "error": self.error,
+                "warnings": self.warnings, "part": part}
+
+
+@dataclass
+class BatchSummary:
+    """Counts of one :func:`reconstruct_many` run (``skipped``: finished by an earlier run),
+    the plots of the tracks reconstructed now and their rate, and every failure's reason."""
+
+    tracks: int = 0
+    done: int = 0
+    failed: int = 0
+    skipped: int = 0
+    plots: int = 0
+    elapsed_s: float = 0.0
+    failures: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def plots_per_s(self) -> float:
+        return self.plots / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "plots_per_s": self.plots_per_s}
+
+
+# ------------------------------------------------------------------------------- the task
+
+
+def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None = None,
+                time_limit_s: float | None = None) -> TrackOutcome:
+    """Reconstruct one track (runs on a worker). Any ``Exception`` of the track (bad input,
+    solver failure, the deadline ``time_limit_s`` after the start) is returned as a failed
+    outcome naming it; the result's rows come back as Arrow tables."""
+    from .reconstruct import reconstruct
+
+    start = time.perf_counter()
+    deadline = None if time_limit_s is None else time.monotonic() + time_limit_s
+    try:
+        rec = reconstruct(table, config=config or ReconstructionConfig(), deadline=deadline)
+        states = _states_table(key, table, rec)
+        segments = _segments_table(key, rec)
+    except Exception as e:  # isolated: one track's failure is its own
+        return TrackOutcome(key, "failed", len(table), time.perf_counter() - start,
+                            f"{type(e).__name__}: {e}")
+    return TrackOutcome(key, "done", len(table), time.perf_counter() - start, None,
+                        list(rec.diagnostics.warnings), states, segments)
+
+
+def _states_table(key: str, table: PlotTable, rec: Any) -> pa.Table:
+    s = rec.at_plots
+    n = len(s)
+    cov = s.cov if s.cov is not None else np.full((n, 4, 4), np.nan)
+    names = ("x", "z", "vx", "vz")
+    cols: dict[str, Any] = {
+        "aircraft": pa.array([key] * n, pa.string()),
+        "plot": pa.array(np.arange(n), pa.int32()),
+        "sensor": pa.array([table.sensors[k].id for k in table.sensor.tolist()], pa.string()),
+        "t": s.t, "x": s.x, "z": s.z,
+        "lat_deg": _nullable(s.lat_deg, n), "lon_deg": _nullable(s.lon_deg, n),
+        "vx": s.vx, "vz": s.vz, "speed": s.speed, "heading_deg": np.rad2deg(s.heading)}
+    for i in range(4):
+        for j in range(i, 4):
+            cols[f"cov_{names[i]}_{names[j]}"] = cov[:, i, j]
+    cols["h_m"] = _nullable(s.h, n)
+    cols["h_sigma_m"] = _nullable(s.h_sigma, n)
+    return pa.table({k: cols[k] if isinstance(cols[k], pa.Array)
+                     else pa.array(np.asarray(cols[k], float), pa.float64())
+                     for k in TRACK_COLUMNS})
+
+
+def _nullable(a: np.ndarray | None, n: int) -> pa.Array:
+    if a is None:
+        return pa.nulls(n, pa.float64())
+    return pa.array(np.asarray(a, float), pa.float64(), from_pandas=True)
+
+
+def _segments_table(key: str, rec: Any) -> pa.Table:
+    segs = rec.segments
+    return pa.table({
+        "aircraft": pa.array([key] * len(segs), pa.string()),
+        "t_start": pa.array([g.t_start for g in segs], pa.float64()),
+        "t_end": pa.array([g.t_end for g in segs], pa.float64()),
+        "x": pa.array([g.x for g in segs], pa.float64()),
+        "z": pa.array([g.z for g in segs], pa.float64()),
+        "heading_deg": pa.array([float(np.rad2deg(g.heading)) for g in segs], pa.float64()),
+        "speed": pa.array([g.speed for g in segs], pa.float64()),
+        "u": pa.array([g.u for g in segs], pa.float64()),
+        "w": pa.array([g.w for g in segs], pa.float64())})
+
+
+# ------------------------------------------------------------------------------- output
+
+
+class _Store:
+    """The output directory: parts, the progress ledger, resume."""
+
+    def __init__(self, out: Path):
+        self.out = out
+        self.tracks_dir = out / "tracks.parquet"
+        self.segments_dir = out / "segments.parquet"
+        for d in (self.tracks_dir, self.segments_dir):
+            d.mkdir(parents=True, exist_ok=True)
+        self.ledger_path = out / PROGRESS
+        self.finished: dict[str, dict[str, Any]] = {}
+        parts: set[str] = set()
+        if self.ledger_path.exists():
+            lines = self.ledger_path.read_bytes().split(b"\n")
+            good = []
+            for line in lines:
+                try:
+                    entry = json.loads(line)
+                except ValueError:  # a torn last line of a killed run
+                    continue
+                good.append(line)
+                self.finished[entry["aircraft"]] = entry
+                if entry.get("part"):
+                    parts.add(entry["part"])
+            if len(good) != len([x for x in lines if x]):
+                self._rewrite(good)
+        numbers = [0]
+        for d in (self.tracks_dir, self.segments_dir):
+            for f in d.iterdir():
+                if f.name not in parts:  # not committed: a killed run's, redone now
+                    f.unlink()
+                elif f.name.startswith("part-"):
+                    numbers.append(int(f.name[5:11]))
+        self.next_part = max(numbers) + 1
+
+    def _rewrite(self, lines: list[bytes]) -> None:
+        tmp = self.ledger_path.with_suffix(".tmp")
+        tmp.write_bytes(b"".join(x + b"\n" for x in lines))
+        os.replace(tmp, self.ledger_path)
+
+    def commit(self, outcomes: list[TrackOutcome]) -> None:
+        """Write the done tracks' rows as one part, then their ledger lines."""
+        done = [o for o in outcomes if o.status == "done"]
+        part = None
+        if done:
+            part = f"part-{self.next_part:06d}.parquet"
+            self.next_part += 1
+            for d, tables in ((self.tracks_dir, [o.states for o in done]),
+                              (self.segments_dir, [o.segments for o in done])):
+                tmp = d / f".{part}.tmp"
+                pq.write_table(pa.concat_tables(tables), tmp)  # type: ignore[arg-type]
+                os.replace(tmp, d / part)
+        with open(self.ledger_path, "a", encoding="utf-8") as f:
+            for o in outcomes:
+                entry = o.ledger(part if o.status == "done" else None)
+                f.write(json.dumps(entry) + "\n")
+                self.finished[o.key] = entry
+            f.flush()
+            os.fsync(f.fileno())
+
+
+# ------------------------------------------------------------------------------- engine
+
+
+def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path, *,
+                     config: ReconstructionConfig | None = None, executor: Any = None,
+                     scheduler: str | None = None, workers: int | None = None,
+                     time_limit_s: float | None = 300.0, max_in_flight: int | None = None,
+                     flush_tracks: int = 32, flush_s: float = 5.0, retry_failed: bool = False,
+                     on_outcome: Callable[[TrackOutcome], None] | None = None) -> BatchSummary:
+    """Reconstruct every track of ``problems`` (objects with ``key`` and ``table``, e.g.
+    :class:`TrackProblem` or :class:`solver.io.split.AircraftTrack`) into ``out_dir``.
+
+    ``executor``: a Dask ``Client`` or any ``concurrent.futures``-style executor; else a Dask
+    client of the scheduler at ``scheduler``; else an embedded ``LocalCluster`` of ``workers``
+    processes (default: the usable cores), closed at the end. ``time_limit_s``: per track (None:
+    none). At most ``max_in_flight`` tracks (default twice the workers) are submitted at once;
+    finished tracks are written every ``flush_tracks`` tracks or ``flush_s`` seconds. Tracks
+    already in ``out_dir`` are skipped (failed ones too, unless ``retry_failed``); a key given
+    twice is refused (``ValueError``). ``on_outcome`` is called with each outcome (progress).
+    """
+    store = _Store(Path(out_dir))
+    summary = BatchSummary()
+    start = time.perf_counter()
+    with _engine(executor, scheduler, workers) as (submit, wait, n_workers):
+        limit = max_in_flight or max(2 * n_workers, 2)
+        pending: dict[Any, str] = {}
+        buffer: list[TrackOutcome] = []
+        last_flush = time.monotonic()
+        seen: set[str] = set()
+
+        def collect(futures: Iterable[Any]) -> None:
+            nonlocal last_flush
+            for fut in futures:
+                key = pending.pop(fut)
+                try:
+                    outcome: TrackOutcome = fut.result()
+                except Exception as e:  # the task itself failed: a worker died repeatedly
+                    outcome = TrackOutcome(key, "failed", 0, 0.0, f"{type(e).__name__}: {e}")
+                summary.done += outcome.status == "done"
+                summary.failed += outcome.status == "failed"
+                summary.plots += outcome.plots if outcome.status == "done" else 0
+                if outcome.error is not None:
+                    summary.failures[key] = outcome.error
+                buffer.append(outcome)
+                if on_outcome is not None:
+                    on_outcome(outcome)
+            if buffer and (len(buffer) >= flush_tracks
+                           or time.monotonic() - last_flush >= flush_s):
+                store.commit(buffer)
+                buffer.clear()
+                last_flush = time.monotonic()
+
+        for problem in _problems(problems):
+            key = problem.key
+            if key in seen:
+                raise ValueError(f"track key {key!r} given twice")
+            seen.add(key)
+            summary.tracks += 1
+            prior = store.finished.get(key)
+            if prior is not None and (prior["status"] == "done" or not retry_failed):
+                summary.skipped += 1
+                continue
+            while len(pending) >= limit:
+                collect(wait(list(pending)))
+            pending[submit(solve_track, key, problem.table, config, time_limit_s)] = key
+        while pending:
+            collect(wait(list(pending)))
+        if buffer:
+            store.commit(buffer)
+    summary.elapsed_s = time.perf_counter() - start
+    return summary
+
+
+def _problems(problems: Iterable[Any]) -> Iterator[Any]:
+    for p in problems:
+        if not (hasattr(p, "key") and isinstance(getattr(p, "table", None), PlotTable)):
+            raise TypeError(f"a problem needs .key and .table (a PlotTable), got {type(p)}")
+        yield p
+
+
+class _engine:
+    """``(submit, wait_first_completed, workers)`` of the chosen executor; closes what it
+    started."""
+
+    def __init__(self, executor: Any, scheduler: str | None, workers: int | None):
+        self.executor, self.scheduler, self.workers = executor, scheduler, workers
+        self.owned: list[Any] = []
+
+    def __enter__(self) -> tuple[Callable[..., Any], Callable[[list[Any]], Any], int]:
+        ex = self.executor
+        if ex is None:
+            from distributed import Client, LocalCluster
+
+            if self.scheduler is not None:
+                ex = Client(self.scheduler)
+            else:
+                n = self.workers or len(os.sched_getaffinity(0))
+                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                       dashboard_address=None)
+                self.owned.append(cluster)
+                ex = Client(cluster)
+            self.owned.insert(0, ex)
+        from distributed import Client
+        from distributed import wait as dask_wait
+
+        if isinstance(ex, Client):
+            n_workers = max(len(ex.scheduler_info()["workers"]), 1)
+
+            def submit(fn: Callable[..., Any], *args: Any) -> Any:
+                return ex.submit(fn, *args, pure=False)
+
+            def wait(fs: list[Any]) -> Any:
+                return dask_wait(fs, return_when="FIRST_COMPLETED").done
+        else:
+            n_workers = getattr(ex, "_max_workers", None) or 1
+
+            def submit(fn: Callable[..., Any], *args: Any) -> Any:
+                return ex.submit(fn, *args)
+
+            def wait(fs: list[Any]) -> Any:
+                return cf.wait(fs, return_when=cf.FIRST_COMPLETED).done
+        return submit, wait, n_workers
+
+    def __exit__(self, *exc: object) -> None:
+        for thing in self.owned:
+            thing.close()

@@ -1,0 +1,106 @@
+"""solver.batch.reconstruct_many: a real 2-worker Dask LocalCluster (no mocks), per-track
+failures isolated and reported, results streamed to Parquet parts, reruns resume."""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+import pytest
+from test_io_asterix import SENSORS, encode_recording
+
+from solver.batch import PROGRESS, TRACK_COLUMNS, TrackProblem, reconstruct_many
+from solver.io.asterix import read_recording
+from solver.io.split import split_aircraft
+from solver.plots import PlotTable
+
+
+@pytest.fixture(scope="module")
+def tracks() -> list[TrackProblem]:
+    """Two aircraft seen by two radars and ADS-B (60 s), and a track of 2 plots that
+    the reconstruction refuses."""
+    rows = read_recording(encode_recording(duration=60.0).data, SENSORS).rows
+    good = [TrackProblem(tr.key, tr.table) for tr in split_aircraft(rows, SENSORS)]
+    t = good[0].table
+    r = np.flatnonzero(t.sensor == t.sensor[0])[:2]  # two plots of one radar
+    two = PlotTable.build([t.sensors[t.sensor[0]]], t.t[r], np.zeros(2, int), t.range_m[r],
+                          t.azimuth_rad[r], altitude_m=t.altitude_m[r], reference=t.frame)
+    return [good[0], TrackProblem("TOO-SHORT", two), good[1]]
+
+
+def ledger(out) -> list[dict]:
+    return [json.loads(line) for line in (out / PROGRESS).read_text().splitlines()]
+
+
+def test_local_cluster_two_workers(tmp_path, tracks, monkeypatch):
+    from distributed import Client, LocalCluster
+
+    # the workers use CasADi's interpreter (same results; compiling the motion model at a
+    # worker's start-up costs seconds that this test does not need to spend)
+    monkeypatch.setenv("TRAJRECON_COMPILE", "0")
+    out = tmp_path / "out"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        assert len(client.scheduler_info()["workers"]) == 2
+        summary = reconstruct_many(tracks, out, executor=client, flush_tracks=1)
+        pids = client.run(lambda: __import__("os").getpid())
+    assert len(set(pids.values())) == 2  # two worker processes
+    assert (summary.tracks, summary.done, summary.failed, summary.skipped) == (3, 2, 1, 0)
+    assert summary.failures["TOO-SHORT"].startswith("InputError: plots has 2 plot(s)")
+    states = pq.read_table(out / "tracks.parquet")
+    assert tuple(states.column_names) == TRACK_COLUMNS
+    by_key = {k: states.filter(pc.equal(states["aircraft"], k)).to_pydict()
+              for k in ("4CA2D1", "3C6DD4")}
+    for problem in (tracks[0], tracks[2]):
+        got = by_key[problem.key]
+        np.testing.assert_array_equal(got["t"], problem.table.t)
+        assert got["plot"] == list(range(len(problem.table)))
+        assert np.all(np.isfinite(got["lat_deg"])) and np.all(np.isfinite(got["cov_x_x"]))
+        assert 150.0 < np.median(got["speed"]) < 260.0  # flights at 206 and 234 m/s
+    assert summary.plots == len(tracks[0].table) + len(tracks[2].table)
+    entries = ledger(out)
+    assert sorted(e["aircraft"] for e in entries) == ["3C6DD4", "4CA2D1", "TOO-SHORT"]
+    assert {e["aircraft"]: e["status"] for e in entries}["TOO-SHORT"] == "failed"
+    assert pq.read_table(out / "segments.parquet").num_rows > 0
+
+
+def test_rerun_resumes_and_every_track_appears_once(tmp_path, tracks):
+    out = tmp_path / "out"
+    with ThreadPoolExecutor(1) as ex:
+        first = reconstruct_many(tracks, out, executor=ex, flush_tracks=1)
+    assert (first.done, first.failed) == (2, 1)
+    # nothing left to do
+    with ThreadPoolExecutor(1) as ex:
+        again = reconstruct_many(tracks, out, executor=ex)
+    assert (again.tracks, again.skipped, again.done, again.failed) == (3, 3, 0, 0)
+    # a run killed after writing its last part but before committing it, mid-line
+    entries = ledger(out)
+    last_done = next(e for e in reversed(entries) if e["status"] == "done")
+    kept = [e for e in entries if e is not last_done]
+    (out / PROGRESS).write_text("".join(json.dumps(e) + "\n" for e in kept) + '{"airc')
+    with ThreadPoolExecutor(1) as ex:
+        resumed = reconstruct_many(tracks, out, executor=ex)
+    assert (resumed.skipped, resumed.done) == (2, 1)
+    states = pq.read_table(out / "tracks.parquet")
+    counts = {k: states["aircraft"].to_pylist().count(k) for k in ("4CA2D1", "3C6DD4")}
+    assert counts == {p.key: len(p.table) for p in (tracks[0], tracks[2])}
+    assert len(ledger(out)) == 3
+    # failed tracks are retried on request only
+    with ThreadPoolExecutor(1) as ex:
+        retried = reconstruct_many(tracks, out, executor=ex, retry_failed=True)
+    assert (retried.skipped, retried.failed) == (2, 1)
+
+
+def test_deadline_fails_the_track_not_the_run(tmp_path, tracks):
+    with ThreadPoolExecutor(1) as ex:
+        summary = reconstruct_many(tracks[:1], tmp_path, executor=ex, time_limit_s=1e-6)
+    assert summary.failed == 1
+    assert summary.failures[tracks[0].key].startswith("DeadlineExceeded")
+
+
+def test_a_key_given_twice_is_refused(tmp_path, tracks):
+    with ThreadPoolExecutor(1) as ex, pytest.raises(ValueError, match="given twice"):
+        reconstruct_many([tracks[1], tracks[1]], tmp_path, executor=ex)
