@@ -93,7 +93,10 @@ def test_two_radars_without_altitude_noise_free_within_5_m():
     assert rec.at_plots.h is not None and np.abs(rec.at_plots.h - h).max() < 50.0
     assert rec.altitude_m == pytest.approx(np.mean(h), abs=300)
     assert rec.diagnostics.extra["altitude_estimated"] == 1
-    assert not rec.diagnostics.warnings
+    # exact plots: both radars' sigmas are found overstated (and said so), nothing else
+    assert len(rec.diagnostics.warnings) == 2, rec.diagnostics.warnings
+    assert all("closer to the track than its declared sigmas" in w
+               for w in rec.diagnostics.warnings)
     # every state carries its position on the earth
     lat, lon = FRAME.to_geodetic(x, z)
     assert np.abs(rec.at_plots.lat_deg - lat).max() < 1e-4

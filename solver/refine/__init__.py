@@ -31,7 +31,7 @@ from ..trajectory import sample_times
 from . import nlp
 from .blocks import LADDER, DeadlineExceeded, Problem, build_solvers, cut, solve_block
 from .covariance import node_covariance, state_size
-from .gate import report_bounds, wild_plots
+from .gate import RESCALE_ROUNDS, overstated_sigmas, report_bounds, report_scales, wild_plots
 from .layout import BIAS_TERMS, Variant, solution_columns
 from .nodes import (
     NodeData,
@@ -133,6 +133,20 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         biases0 = np.zeros((variant.biases, BIAS_TERMS))
         sol, biases, failures, iters = solve_all(guess, data, biases0, None)
         solves = len(blocks)
+        # Sensors whose plots lie far closer to the track than their declared sigmas: weight
+        # them by the scatter they show (re-solved from the solution, at most a few rounds).
+        weight_scale = np.ones(len(table.sensors))
+        for _ in range(RESCALE_ROUNDS):
+            quad = data.quad(sol, biases, variant.altitude)
+            factor = overstated_sigmas(quad[plot_node], table.sensor, len(table.sensors),
+                                       weight_scale)
+            if np.all(factor == 1.0):
+                break
+            weight_scale *= factor
+            data = data.reweighted(plot_node, factor[table.sensor])
+            sol, biases, f1, it1 = solve_all(sol, data, biases, None)
+            failures, iters, solves = failures + f1, iters + it1, solves + len(blocks)
+        report_scales(weight_scale, table, diag)
         # Second solve, decided on the stitched solution so blocks and one block decide alike.
         quad = data.quad(sol, biases, variant.altitude)
         rejected = wild_plots(quad[plot_node], t_nodes, sol, bounds, st, diag)

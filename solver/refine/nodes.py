@@ -112,6 +112,12 @@ class NodeData:
         weight[nodes] = 0.0
         return replace(self, weight=weight)
 
+    def reweighted(self, plot_node: np.ndarray, factor: FloatArray) -> NodeData:
+        """A copy whose plots' ellipse weights are multiplied by ``factor`` (per plot)."""
+        info = self.info.copy()
+        info[plot_node] *= factor[:, None]
+        return replace(self, info=info)
+
     def centre_at(self, h: FloatArray | None) -> FloatArray:
         """``(n, 2)`` plot centres at node heights ``h`` (None: the fixed centres)."""
         if h is None:
