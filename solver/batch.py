@@ -242,7 +242,8 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                      scheduler: str | None = None, workers: int | None = None,
                      time_limit_s: float | None = 300.0, max_in_flight: int | None = None,
                      flush_tracks: int = 32, flush_s: float = 5.0, retry_failed: bool = False,
-                     on_outcome: Callable[[TrackOutcome], None] | None = None) -> BatchSummary:
+                     on_outcome: Callable[[TrackOutcome], None] | None = None,
+                     task: Callable[..., TrackOutcome] = solve_track) -> BatchSummary:
     """Reconstruct every track of ``problems`` (objects with ``key`` and ``table``, e.g.
     :class:`TrackProblem` or :class:`solver.io.split.AircraftTrack`) into ``out_dir``.
 
@@ -253,6 +254,8 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
     finished tracks are written every ``flush_tracks`` tracks or ``flush_s`` seconds. Tracks
     already in ``out_dir`` are skipped (failed ones too, unless ``retry_failed``); a key given
     twice is refused (``ValueError``). ``on_outcome`` is called with each outcome (progress).
+    ``task``: the function run per track, ``task(key, table, config, time_limit_s)``
+    (default :func:`solve_track`).
     """
     store = _Store(Path(out_dir))
     summary = BatchSummary()
@@ -298,7 +301,7 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                 continue
             while len(pending) >= limit:
                 collect(wait(list(pending)))
-            pending[submit(solve_track, key, problem.table, config, time_limit_s)] = key
+            pending[submit(task, key, problem.table, config, time_limit_s)] = key
         while pending:
             collect(wait(list(pending)))
         if buffer:

@@ -35,18 +35,25 @@ def ledger(out) -> list[dict]:
     return [json.loads(line) for line in (out / PROGRESS).read_text().splitlines()]
 
 
-def test_local_cluster_two_workers(tmp_path, tracks, monkeypatch):
+@pytest.fixture(scope="module")
+def client():
+    """A real LocalCluster of 2 single-threaded worker processes, and its client."""
     from distributed import Client, LocalCluster
 
     # the workers use CasADi's interpreter (same results; compiling the motion model at a
-    # worker's start-up costs seconds that this test does not need to spend)
-    monkeypatch.setenv("TRAJRECON_COMPILE", "0")
+    # worker's start-up costs seconds that these tests do not need to spend)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("TRAJRECON_COMPILE", "0")
+        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                          dashboard_address=None) as cluster, Client(cluster) as c:
+            yield c
+
+
+def test_local_cluster_two_workers(tmp_path, tracks, client):
     out = tmp_path / "out"
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
-        assert len(client.scheduler_info()["workers"]) == 2
-        summary = reconstruct_many(tracks, out, executor=client, flush_tracks=1)
-        pids = client.run(lambda: __import__("os").getpid())
+    assert len(client.scheduler_info()["workers"]) == 2
+    summary = reconstruct_many(tracks, out, executor=client, flush_tracks=1)
+    pids = client.run(lambda: __import__("os").getpid())
     assert len(set(pids.values())) == 2  # two worker processes
     assert (summary.tracks, summary.done, summary.failed, summary.skipped) == (3, 2, 1, 0)
     assert summary.failures["TOO-SHORT"].startswith("InputError: plots has 2 plot(s)")
@@ -65,6 +72,29 @@ def test_local_cluster_two_workers(tmp_path, tracks, monkeypatch):
     assert sorted(e["aircraft"] for e in entries) == ["3C6DD4", "4CA2D1", "TOO-SHORT"]
     assert {e["aircraft"]: e["status"] for e in entries}["TOO-SHORT"] == "failed"
     assert pq.read_table(out / "segments.parquet").num_rows > 0
+
+
+def test_a_killed_workers_track_is_retried(tmp_path, tracks, client):
+    """The first attempt at one track kills its worker process (os._exit); Dask's nanny
+    restarts the worker and the scheduler runs the track again: it comes out done, once."""
+    marker = tmp_path / "killed-once"
+
+    def task(key, table, config, limit):
+        import os
+
+        from solver.batch import solve_track
+
+        if key == tracks[2].key and not marker.exists():
+            marker.write_text(str(os.getpid()))
+            os._exit(1)
+        return solve_track(key, table, config, limit)
+
+    summary = reconstruct_many([tracks[0], tracks[2]], tmp_path / "out", executor=client,
+                               task=task)
+    assert marker.exists()
+    assert (summary.done, summary.failed) == (2, 0), summary.failures
+    states = pq.read_table(tmp_path / "out" / "tracks.parquet")
+    assert states["aircraft"].to_pylist().count(tracks[2].key) == len(tracks[2].table)
 
 
 def test_rerun_resumes_and_every_track_appears_once(tmp_path, tracks):
