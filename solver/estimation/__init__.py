@@ -54,8 +54,8 @@ _PER_MEASUREMENT = frozenset({"nis", "gains", "gain_level"})
 """``info`` arrays that describe each measurement (not the state after it)."""
 
 
-def measurements(data: PlotTable | Plots, radar: Radar | None = None
-                 ) -> PolarPlots | SensorPlots:
+def measurement_set(data: PlotTable | Plots, radar: Radar | None = None
+                    ) -> PolarPlots | SensorPlots:
     """The filters' measurements: ``PolarPlots`` for the single radar at the origin of a flat
     plane (``(plots, radar)`` or a legacy table: today's filters unchanged), else
     ``SensorPlots`` in time order."""
@@ -111,7 +111,7 @@ def run_filter(name: str, data: PlotTable | Plots, radar: Radar | None = None,
     """
     if name not in _RUNNERS:
         raise KeyError(f"unknown filter {name!r}; choose from {', '.join(FILTER_NAMES)}")
-    meas = measurements(data, radar)
+    meas = measurement_set(data, radar)
     try:
         with np.errstate(all="ignore"):
             est = _RUNNERS[name](meas, **params)
@@ -130,5 +130,5 @@ def run_filters(names: Iterable[str], data: PlotTable | Plots, radar: Radar | No
     return {name: run_filter(name, data, radar) for name in names}
 
 
-__all__ = ["FILTER_NAMES", "FUSION_NAMES", "SINGLE_SENSOR_NAMES", "measurements", "run_filter",
+__all__ = ["FILTER_NAMES", "FUSION_NAMES", "SINGLE_SENSOR_NAMES", "measurement_set", "run_filter",
            "run_filters"]
