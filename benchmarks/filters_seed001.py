@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from solver.estimation import FILTER_NAMES, run_filter
+from solver.estimation import SINGLE_SENSOR_NAMES as FILTER_NAMES
+from solver.estimation import run_filter
 from solver.inputs import Plots, Radar
 from solver.results import StateSeries
 

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from solver import FilterEstimate, Plots, Radar
-from solver.estimation import FILTER_NAMES, run_filter, run_filters
+from solver.estimation import (
+    FILTER_NAMES,
+    FUSION_NAMES,
+    SINGLE_SENSOR_NAMES,
+    run_filter,
+    run_filters,
+)
 
 RADAR = Radar(1200.0, 0.03, range_sigma_m=400.0, azimuth_sigma_rad=0.01)
 
@@ -23,13 +29,18 @@ def straight(n, dt=10.0, seed=0, irregular=False, altitude=None):
 
 
 def test_names_are_the_contract():
-    assert FILTER_NAMES == ("singer", "quasi_optimal", "fuzzy", "alpha_beta", "cv_rts", "imm")
+    assert FILTER_NAMES == ("singer", "quasi_optimal", "fuzzy", "alpha_beta", "cv_rts", "imm",
+                            "imm_smoother", "fusion_a", "fusion_b", "fusion_c")
+    assert SINGLE_SENSOR_NAMES + FUSION_NAMES == FILTER_NAMES
+    for name in FUSION_NAMES:  # seed 004's fusion of two sources: not for one radar
+        with pytest.raises(ValueError, match="two"):
+            run_filter(name, straight(5)[0], RADAR)
     with pytest.raises(KeyError):
         run_filter("kalman", straight(5)[0], RADAR)
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 7])
-@pytest.mark.parametrize("name", FILTER_NAMES)
+@pytest.mark.parametrize("name", SINGLE_SENSOR_NAMES)
 def test_short_and_irregular_tracks_give_finite_estimates(name, n):
     plots, x, z = straight(n, irregular=True, seed=n)
     est = run_filter(name, plots, RADAR)
@@ -44,7 +55,7 @@ def test_short_and_irregular_tracks_give_finite_estimates(name, n):
     assert np.all(np.hypot(s.x - x, s.z - z) < 5000)
 
 
-@pytest.mark.parametrize("name", FILTER_NAMES)
+@pytest.mark.parametrize("name", SINGLE_SENSOR_NAMES)
 def test_known_altitude_uses_the_ground_range(name):
     plots, x, z = straight(40, altitude=True)
     with_alt = run_filter(name, plots, RADAR).states
@@ -66,7 +77,7 @@ def test_azimuth_crossing_north_is_continuous():
     plots = Plots.from_arrays(t, np.hypot(x, z) + rng.normal(0, 50, n),
                               np.arctan2(z, x) + rng.normal(0, 0.001, n))
     radar = Radar(150, 0.003, range_sigma_m=50, azimuth_sigma_rad=0.001)
-    for est in run_filters(FILTER_NAMES, plots, radar).values():
+    for est in run_filters(SINGLE_SENSOR_NAMES, plots, radar).values():
         assert np.max(np.hypot(est.states.x - x, est.states.z - z)[5:]) < 1000, est.name
 
 
@@ -92,14 +103,14 @@ def test_measurement_modes_and_bad_parameters():
 
 def test_500_plots_through_all_filters_is_fast():
     plots, _, _ = straight(500, dt=4.8)
-    run_filters(FILTER_NAMES, plots, RADAR)  # warm-up (imports, caches)
+    run_filters(SINGLE_SENSOR_NAMES, plots, RADAR)  # warm-up (imports, caches)
     t0 = time.perf_counter()
-    run_filters(FILTER_NAMES, plots, RADAR)
+    run_filters(SINGLE_SENSOR_NAMES, plots, RADAR)
     elapsed = time.perf_counter() - t0
     assert elapsed < 2.0, f"{elapsed:.2f} s"  # ~0.4 s on the dev machine; headroom for CI
 
 
-@pytest.mark.parametrize("name", FILTER_NAMES)
+@pytest.mark.parametrize("name", SINGLE_SENSOR_NAMES)
 def test_degenerate_geometry_stays_finite(name):
     """Microsecond steps, an hour-long gap, a plot next to the radar, a very distant one."""
     t = np.array([0.0, 1e-6, 2e-6, 10.0, 3610.0, 3620.0, 3630.0])
@@ -112,7 +123,7 @@ def test_degenerate_geometry_stays_finite(name):
 @pytest.mark.parametrize("radar", [Radar(1e-300, 1e-300), Radar(1e300, 1.0), Radar(1e-3, 1e-9)])
 def test_absurd_radar_sigmas_never_give_non_finite_output(radar):
     plots, _, _ = straight(20)
-    for name in FILTER_NAMES:
+    for name in SINGLE_SENSOR_NAMES:
         est = run_filter(name, plots, radar)
         assert np.all(np.isfinite(est.states.states)), name
         assert np.all(np.isfinite(est.states.cov)), name

@@ -19,7 +19,7 @@ from service.logs import LOGGER, JsonFormatter
 from service.models import ReconstructionRequest
 from service.pool import Busy, SolverPool
 from service.settings import Settings
-from solver.estimation import FILTER_NAMES
+from solver.estimation import SINGLE_SENSOR_NAMES
 from solver.reconstruct import reconstruct
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -142,11 +142,11 @@ def test_very_short_tracks_use_the_solver_defaults(client, n):
 
 def test_filters_run_beside_the_reconstruction(client):
     body = batch(300.0)
-    body["filters"] = list(FILTER_NAMES)
+    body["filters"] = list(SINGLE_SENSOR_NAMES)  # fusion_*: two sensors (test_service_sensors)
     r = post(client, body)
     assert r.status_code == 200, r.text
     filters = r.json()["filters"]
-    assert sorted(filters) == sorted(FILTER_NAMES)
+    assert sorted(filters) == sorted(SINGLE_SENSOR_NAMES)
     for name, est in filters.items():
         assert [s["t"] for s in est["states"]] == [p["t"] for p in body["plots"]], name
         cov = np.array([s["cov"] for s in est["states"]])
