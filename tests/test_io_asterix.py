@@ -5,6 +5,7 @@ unknown categories and SAC/SIC) reported with their byte offsets while the rest 
 
 from __future__ import annotations
 
+import itertools
 import struct
 from dataclasses import dataclass
 
@@ -361,3 +362,45 @@ def test_radar_code_sending_adsb_is_reported():
     assert len(rec.rows) == 0
     (p,) = rec.problems.entries
     assert p.kind == "wrong_sensor_kind" and "'R1'" in p.message and p.where == "byte 3"
+
+
+def test_decoding_in_units_in_parallel_gives_the_same_recording():
+    """Cut into ~200-byte units (raw: at block boundaries; pcap: whole packets) and decoded on
+    a thread pool: the same rows, times (unwrapped over the whole recording, across midnight),
+    problems (merged by kind and key) and counts as one decode of the whole."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from solver.io.asterix import block_chunks
+
+    enc = encode_recording(tod0=86_390.0)
+    stranger = [C048.create([cat048("R1", 10.0 + k, 30.0, 10.0, 100.0, 0xABCDEF, 7,
+                                    code=(25, 99))]).unparse().to_bytes() for k in range(3)]
+    k = 50
+    blocks = [stranger[0], *enc.blocks[:k], enc.blocks[k][:-5], *enc.blocks[k + 1:],
+              stranger[1], stranger[2]]
+    raw = b"".join(blocks)
+    damage = sum(len(b) for b in blocks[:k + 2])  # the end of the cut block
+    chunks = block_chunks(raw, 200)
+    # cut at block boundaries up to the damage, from where the rest is one stretch
+    assert len(chunks) >= 6 and chunks[0][0] == 0 and chunks[-1][1] == len(raw)
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(chunks))
+    assert chunks[-2][1] < damage < chunks[-1][1]
+    starts = set(np.cumsum([0] + [len(b) for b in blocks]).tolist())
+    assert {a for a, _ in chunks} <= starts
+    for data in (raw, pcap(blocks)):
+        whole = read_recording(data, SENSORS, chunk_bytes=1 << 30)
+        with ThreadPoolExecutor(2) as ex:
+            parts = read_recording(data, SENSORS, executor=ex, chunk_bytes=200)
+        assert parts.rows.t.max() > 86_400 + 20  # across midnight
+        for name in ("t", "time_of_day_s", "range_m", "lat_deg", "mode_s", "origin"):
+            np.testing.assert_array_equal(getattr(parts.rows, name), getattr(whole.rows, name))
+        assert [str(p) for p in parts.problems.entries] == [str(p) for p in
+                                                            whole.problems.entries]
+        assert parts.problems.counts == whole.problems.counts == {"unknown_sensor": 3,
+                                                                  "truncated_block": 1}
+        assert (parts.records, parts.blocks, parts.service) == (whole.records, whole.blocks,
+                                                                whole.service)
+        lost = {21: 1, 48: len(FLIGHTS), 34: 0}[enc.blocks[k][0]]
+        assert len(whole.rows) == len(enc.plots) - lost  # no plot made of the cut block
+    (trunc,) = read_recording(raw, SENSORS).problems.of_kind("truncated_block")
+    assert trunc.where == f"byte {damage - len(blocks[k + 1])}"

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -98,29 +98,114 @@ class Recording:
     packets: int = 0
 
 
+CHUNK_BYTES = 1 << 20
+"""Size of the units a recording is decoded in (in parallel with ``executor=``)."""
+
+
 def read_recording(source: str | Path | bytes, sensors: SensorSet, *,
-                   editions: Mapping[int, Any] | None = None) -> Recording:
-    """Decode a raw ASTERIX file or a pcap capture of it (see the module docstring)."""
+                   editions: Mapping[int, Any] | None = None, executor: Any = None,
+                   chunk_bytes: int = CHUNK_BYTES) -> Recording:
+    """Decode a raw ASTERIX file or a pcap capture of it (see the module docstring).
+
+    The recording is cut into units of about ``chunk_bytes`` at data block (or packet)
+    boundaries; with ``executor`` (a Dask ``Client`` or any ``concurrent.futures``-style
+    executor) the units are decoded in parallel, else one after the other: the result is the
+    same (rows in recording order, times unwrapped over the whole recording)."""
     data = source if isinstance(source, bytes) else Path(source).read_bytes()
-    decoder = _Decoder(sensors, editions or DEFAULT_EDITIONS)
     if data[:4] == _PCAPNG_MAGIC:
         raise InputError(("recording",), "is a pcapng capture; only classic pcap is read "
                          "(convert it: editcap -F pcap in.pcapng out.pcap)")
+    problems = Problems()
+    units: list[list[tuple[int, bytes]]] = []
+    packets = 0
     if data[:4] in _PCAP_MAGIC:
-        for offset, payload in iter_pcap_payloads(data, decoder.problems):
-            decoder.packets += 1
-            decoder.feed(payload, offset)
+        unit: list[tuple[int, bytes]] = []
+        size = 0
+        for offset, payload in iter_pcap_payloads(data, problems):
+            packets += 1
+            unit.append((offset, payload))
+            size += len(payload)
+            if size >= chunk_bytes:
+                units.append(unit)
+                unit, size = [], 0
+        if unit:
+            units.append(unit)
     else:
-        decoder.feed(data, 0)
-    return decoder.finish(len(data))
+        units = [[(a, data[a:b])] for a, b in block_chunks(data, chunk_bytes)]
+    eds = dict(editions or DEFAULT_EDITIONS)
+    if executor is None:
+        parts = [decode_datagrams(u, sensors, editions=eds) for u in units]
+    else:
+        futures = [executor.submit(decode_datagrams, u, sensors, editions=eds) for u in units]
+        parts = [f.result() for f in futures]
+    return _merge(parts, problems, len(data), packets)
 
 
 def decode_blocks(data: bytes, sensors: SensorSet, *,
                   editions: Mapping[int, Any] | None = None) -> Recording:
     """Decode data blocks one after the other (a raw file's bytes or one datagram)."""
+    return decode_datagrams([(0, data)], sensors, editions=editions)
+
+
+def decode_datagrams(datagrams: list[tuple[int, bytes]], sensors: SensorSet, *,
+                     editions: Mapping[int, Any] | None = None) -> Recording:
+    """Decode ``(file offset, bytes)`` pieces, each a sequence of whole data blocks (a UDP
+    payload, or a stretch of a raw file); byte offsets are the file's."""
     decoder = _Decoder(sensors, editions or DEFAULT_EDITIONS)
-    decoder.feed(data, 0)
-    return decoder.finish(len(data))
+    for offset, payload in datagrams:
+        decoder.feed(payload, offset)
+    return decoder.finish(sum(len(p) for _, p in datagrams))
+
+
+def block_chunks(data: bytes, chunk_bytes: int = CHUNK_BYTES) -> list[tuple[int, int]]:
+    """``(start, stop)`` stretches of a raw recording of about ``chunk_bytes``, cut at data
+    block boundaries found by walking the headers. A cut is placed only where the walk is
+    sure of the boundary (every header so far plausible and within the data); from the first
+    damage on, the rest is one stretch (the decoder resynchronises inside it)."""
+    cuts = [0]
+    pos, end = 0, len(data)
+    while pos < end and _plausible(data, pos):
+        pos += (data[pos + 1] << 8) | data[pos + 2]
+        if pos >= end:
+            break
+        if pos - cuts[-1] >= chunk_bytes and _plausible(data, pos):
+            cuts.append(pos)
+    return list(zip(cuts, [*cuts[1:], end], strict=True))
+
+
+def _plausible(data: bytes, p: int) -> bool:
+    """A block header could start at ``p``: a category libasterix knows and a length of at
+    least 3 (the block may still run past the end: that is reported when it is read)."""
+    return (len(data) - p >= 3 and data[p] in KNOWN_CATEGORIES
+            and ((data[p + 1] << 8) | data[p + 2]) >= 3)
+
+
+def _fits(data: bytes, p: int) -> bool:
+    """A whole block could start at ``p``: plausible and within the data."""
+    return _plausible(data, p) and p + ((data[p + 1] << 8) | data[p + 2]) <= len(data)
+
+
+def _merge(parts: list[Recording], problems: Problems, size: int, packets: int) -> Recording:
+    """One recording from its decoded units in order: rows concatenated and their times
+    unwrapped over the whole, problems and counts added up."""
+    rows = PlotRows.concat([p.rows for p in parts]) if parts else PlotRows.from_columns(
+        0, "byte")
+    rows = replace(rows, t=unwrap_time_of_day(rows.time_of_day_s))
+    service: dict[str, ServiceStats] = {}
+    blocks: dict[int, int] = {}
+    for p in parts:
+        problems.extend(p.problems)
+        for k, v in p.blocks.items():
+            blocks[k] = blocks.get(k, 0) + v
+        for sid, st in p.service.items():
+            acc = service.setdefault(sid, ServiceStats())
+            acc.messages += st.messages
+            acc.north_markers += st.north_markers
+            acc.sector_crossings += st.sector_crossings
+            if st.rotation_period_s is not None:
+                acc.rotation_period_s = st.rotation_period_s
+    return Recording(rows, problems, service, blocks, sum(p.records for p in parts), size,
+                     packets)
 
 
 # ---------------------------------------------------------------------------------- pcap
@@ -238,16 +323,8 @@ class _Decoder:
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
         self.records = 0
-        self.packets = 0
 
     # ------------------------------------------------------------------ block walking
-
-    @staticmethod
-    def _plausible(data: bytes, p: int) -> bool:
-        """A block header could start at ``p``: a category libasterix knows and a length of at
-        least 3 (the block may still run past the end: that is reported when it is read)."""
-        return (len(data) - p >= 3 and data[p] in KNOWN_CATEGORIES
-                and ((data[p + 1] << 8) | data[p + 2]) >= 3)
 
     def _parse(self, cat: int, data: bytes, start: int, stop: int
                ) -> tuple[list[tuple[Any, int]], tuple[int, str] | None]:
@@ -272,12 +349,12 @@ class _Decoder:
         least 4 within the data, records that parse and a plausible successor (or the end).
         Blocks of other categories are not resynchronised on (their records cannot be checked,
         and bytes inside records often look like their headers)."""
-        if data[q] not in self.editions or not self._plausible(data, q):
+        if data[q] not in self.editions or not _plausible(data, q):
             return False
         nxt = q + ((data[q + 1] << 8) | data[q + 2])
         if nxt - q < 4 or nxt > len(data):
             return False
-        if nxt != len(data) and not self._plausible(data, nxt):
+        if nxt != len(data) and not _plausible(data, nxt):
             return False
         return self._parse(data[q], data, q + 3, nxt)[1] is None
 
@@ -310,7 +387,7 @@ class _Decoder:
             nxt = pos + length
             stop = min(nxt, end)
             records, err = self._parse(cat, data, pos + 3, stop)
-            if nxt <= end and err is None and (nxt == end or self._plausible(data, nxt)):
+            if nxt <= end and err is None and (nxt == end or _fits(data, nxt)):
                 self._handle(cat, records, pos, base)  # the usual case
                 pos = nxt
                 continue
@@ -335,7 +412,7 @@ class _Decoder:
                 problems.add("bad_record", f"byte {base + err[0]}", f"CAT{cat:03d} record "
                              f"does not parse ({err[1]}); the rest of its block "
                              f"({nxt - err[0]} bytes) skipped")
-            if nxt == end or self._plausible(data, nxt):
+            if nxt == end or _plausible(data, nxt):
                 pos = nxt
                 continue
             problems.add("unrecognised_bytes", f"byte {base + nxt}", f"{(q or end) - nxt} "
@@ -513,8 +590,7 @@ class _Decoder:
                 "range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m", "flight_level")},
             **{k: np.asarray(c[k], dtype=np.int64) for k in (
                 "mode_s", "mode_3a", "track_number", "origin")})
-        return Recording(rows, self.problems, self.service, self.blocks, self.records, size,
-                         self.packets)
+        return Recording(rows, self.problems, self.service, self.blocks, self.records, size)
 
 
 def _names(variation: Any) -> set[str]:

@@ -26,6 +26,7 @@ class Problem:
     message: str
     count: int = 1
     dropped: int = 0
+    key: str | None = None
 
     def __str__(self) -> str:
         more = f" ({self.count} times)" if self.count > 1 else ""
@@ -57,16 +58,24 @@ class Problems:
             return
         if self._per_kind.get(kind, 0) >= MAX_ENTRIES_PER_KIND:
             return
-        self._per_kind[kind] = self._per_kind.get(kind, 0) + 1
-        entry = Problem(kind, where, message, 1, dropped)
+        self._keep(Problem(kind, where, message, 1, dropped, key))
+
+    def _keep(self, entry: Problem) -> None:
+        self._per_kind[entry.kind] = self._per_kind.get(entry.kind, 0) + 1
         self.entries.append(entry)
-        if key is not None:
-            self._keyed[(kind, key)] = entry
+        if entry.key is not None:
+            self._keyed[(entry.kind, entry.key)] = entry
 
     def extend(self, other: Problems) -> None:
-        """Append another ingest's problems (counts add up)."""
+        """Add the problems of a later part of the same input (counts add up; entries of the
+        same kind and key merge into the first)."""
         for e in other.entries:
-            self.entries.append(e)
+            first = self._keyed.get((e.kind, e.key)) if e.key is not None else None
+            if first is not None:
+                first.count += e.count
+                first.dropped += e.dropped
+            elif self._per_kind.get(e.kind, 0) < MAX_ENTRIES_PER_KIND:
+                self._keep(Problem(e.kind, e.where, e.message, e.count, e.dropped, e.key))
         for k, n in other.counts.items():
             self.counts[k] = self.counts.get(k, 0) + n
         for k, n in other.dropped.items():
