@@ -19,7 +19,7 @@ from solver.io.asterix import decode_blocks, read_recording
 from solver.io.problems import Problems
 from solver.io.sensors_file import parse_sensors
 from solver.io.split import split_aircraft
-from solver.io.tables import FL_M
+from solver.io.tables import FL_M, PlotRows
 
 C048, C021, C034 = ast.Cat_048_1_32, ast.Cat_021_2_7, ast.Cat_034_1_29
 
@@ -404,3 +404,26 @@ def test_decoding_in_units_in_parallel_gives_the_same_recording():
         assert len(whole.rows) == len(enc.plots) - lost  # no plot made of the cut block
     (trunc,) = read_recording(raw, SENSORS).problems.of_kind("truncated_block")
     assert trunc.where == f"byte {damage - len(blocks[k + 1])}"
+
+
+def test_encode_rows_reads_back_exactly():
+    """Rows decoded from a recording re-encode (solver.io.asterix.encode_rows) to a recording
+    that decodes to the same values: they are on the encoding grid already."""
+    from solver.io.asterix import encode_rows
+
+    rows = read_recording(encode_recording(tod0=86_390.0).data, SENSORS).rows
+    data = encode_rows(rows, SENSORS, max_block_records=3)
+    back = read_recording(data, SENSORS)
+    assert not back.problems, back.problems.summary()
+    # consecutive rows of one sensor share a block: a scan's two aircraft
+    assert back.blocks == {48: 18, 21: 20}
+    data = encode_rows(rows, SENSORS, max_block_records=1)
+    assert read_recording(data, SENSORS).blocks == {48: 36, 21: 40}
+    for name in ("t", "time_of_day_s", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
+                 "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number"):
+        np.testing.assert_array_equal(getattr(back.rows, name), getattr(rows, name), name)
+    assert back.rows.sensor.tolist() == rows.sensor.tolist()
+    far = PlotRows.from_columns(1, t=[0.0], sensor=np.array(["R1"], dtype=object),
+                                range_m=[5e5], azimuth_deg=[1.0])
+    with pytest.raises(ValueError, match=r"row 0: range_m 500000\.0 is beyond"):
+        encode_rows(far, SENSORS)
