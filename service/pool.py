@@ -1,34 +1,110 @@
-"""The solver pool: warm-up, readiness, and a bound on queued and running solves."""
+"""The solver pool: warm-up, readiness, a bound on queued and running solves, and workers that
+fail alone."""
 
 from __future__ import annotations
 
 import asyncio
 import multiprocessing
+import os
+import signal
 import time
-from concurrent.futures import Executor, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import ThreadPoolExecutor
+from multiprocessing.process import BaseProcess
 
 from .convert import Job
 from .logs import LOGGER
 from .metrics import Metrics
 from .settings import Settings
-from .workers import Outcome, init_worker, ping, solve
+from .workers import Outcome, SolveError, worker_main
+
+# a worker that has not answered this long after its solve time limit is killed: the limit
+# is enforced inside the worker (deadline, SIGALRM), so this only catches a solver call that
+# ignores both
+KILL_GRACE_S = 5.0
+STOP_GRACE_S = 2.0  # on shutdown, a worker gets this long to leave before it is killed
 
 
 class Busy(Exception):
     """Every solver slot and queue place is taken (answered 503 with Retry-After)."""
 
 
-class SolverPool:
-    """``workers`` solver processes, each warmed once.
+class WorkerDied(Exception):
+    """The worker process running a solve ended (killed, out of memory, crashed)."""
 
-    At most ``solve_slots`` solves are handed to the pool at once; up to ``max_queued_solves``
-    more requests wait for a slot; any further request is refused at once (:class:`Busy`).
+    def __init__(self, exitcode: int | None):
+        super().__init__(f"solver worker ended (exit code {exitcode})")
+        self.exitcode = exitcode
+
+
+class Worker:
+    """One solver process and the parent's end of its pipe."""
+
+    def __init__(self, settings: Settings, number: int, readers: ThreadPoolExecutor):
+        s = settings
+        self.readers = readers
+        ctx = multiprocessing.get_context("spawn")
+        self.number = number
+        self.conn, child = ctx.Pipe(duplex=True)
+        args = (child, os.getpid(), list(s.warmup_window_plots), s.nlp_solver, s.warmup,
+                s.worker_niceness, s.worker_memory_mb * 2**20)
+        self.process: BaseProcess = ctx.Process(target=worker_main, args=args,
+                                                name=f"trajrecon-solver-{number}", daemon=True)
+        self.process.start()
+        child.close()  # only the worker holds its end: its death makes our recv() fail
+
+    async def receive(self, timeout: float | None = None) -> object:
+        """The worker's next message; :class:`WorkerDied` if it ends first (or overruns
+        ``timeout``, when it is killed)."""
+        loop = asyncio.get_running_loop()
+        try:
+            return await asyncio.wait_for(loop.run_in_executor(self.readers, self._recv), timeout)
+        except TimeoutError:
+            self.kill()
+            raise WorkerDied(None) from None
+
+    def _recv(self) -> object:
+        try:
+            return self.conn.recv()
+        except (EOFError, OSError):
+            self.process.join(5)
+            raise WorkerDied(self.process.exitcode) from None
+
+    def kill(self) -> None:
+        if self.process.is_alive():
+            os.kill(self.process.pid, signal.SIGKILL)  # type: ignore[arg-type]
+
+    async def stop(self) -> None:
+        """Ask the worker to leave; kill it after :data:`STOP_GRACE_S`."""
+        try:
+            self.conn.send(None)
+        except OSError:
+            pass
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(self.readers, self.process.join, STOP_GRACE_S)
+        self.kill()
+        await loop.run_in_executor(self.readers, self.process.join, STOP_GRACE_S)
+        self.conn.close()
+
+
+class SolverPool:
+    """``workers`` solver processes, each warmed once, each with its own pipe.
+
+    At most ``solve_slots`` solves run at once; up to ``max_queued_solves`` more requests wait
+    for a slot; any further request is refused at once (:class:`Busy`). A solve takes an idle
+    worker and gives it back when answered. When a worker dies (killed, out of memory, a
+    crash), only its own solve notices: the worker is replaced (warmed in the background) and
+    the solve retried once on another worker; solves on other workers are not disturbed (a
+    ``ProcessPoolExecutor`` breaks as a whole when one of its processes dies: measured, the
+    innocent request on the healthy worker got a 503 too). Workers end with the server, even
+    when it is killed (:func:`service.workers.exit_with_parent`).
+
     Processes, not threads: the solver caches its CasADi functions and solvers per process, and
     two threads using them at once corrupt the heap (measured: a 2-thread pool aborted with
     ``malloc(): unaligned tcache chunk detected`` during warm-up); processes also run the
     Python parts of the solves in parallel. Workers start with ``spawn``: forking a process
-    that runs an event loop and threads is unsafe.
+    that runs an event loop and threads is unsafe. Standard library rather than Dask's
+    ``LocalCluster``: its workers run tasks in threads (the per-solve ``SIGALRM`` needs the main
+    thread) and come with a nanny process each.
     """
 
     def __init__(self, settings: Settings, metrics: Metrics):
@@ -36,38 +112,37 @@ class SolverPool:
         self.metrics = metrics
         self.state = "starting"
         self.detail = ""
-        self._executor: Executor | None = None
         self._slots: asyncio.Semaphore | None = None
+        self._idle: asyncio.Queue[Worker] | None = None
+        self._workers: set[Worker] = set()
+        self._starting: set[asyncio.Task[None]] = set()
         self._pending = 0
-        self._warm_task: asyncio.Task[None] | None = None
+        self._count = 0
+        self._closing = False
+        self._warm_all: asyncio.Task[None] | None = None
+        # one blocking pipe read per worker at most (a solve, or a warm-up's report) plus the
+        # joins of a shutdown: the event loop's default executor has min(32, cores + 4) threads
+        self._readers = ThreadPoolExecutor(2 * settings.workers + 2,
+                                           thread_name_prefix="solver-pipe")
 
     # ------------------------------------------------------------------------- lifecycle
 
     def start(self) -> None:
-        """Create the pool and warm every worker in the background (``/readyz`` waits)."""
+        """Start every worker; each warms up in the background (``/readyz`` waits for all)."""
         s = self.settings
         self._slots = asyncio.Semaphore(s.solve_slots)
-        self._executor = self._new_executor()
-        self._warm_task = asyncio.create_task(self._warm())
-
-    def _new_executor(self) -> Executor:
-        s = self.settings
-        args = (list(s.warmup_window_plots), s.nlp_solver, s.warmup, s.worker_niceness)
-        ctx = multiprocessing.get_context("spawn")
-        return ProcessPoolExecutor(s.workers, ctx, init_worker, args)
-
-    async def _warm(self) -> None:
-        """Start every worker (each warms up in its initializer) and wait for them all."""
+        self._idle = asyncio.Queue()
         self.state, self.detail = "starting", ""
         self.metrics.ready.set(0)
+        self._warm_all = asyncio.create_task(self._start_all())
+
+    async def _start_all(self) -> None:
         start = time.perf_counter()
-        loop = asyncio.get_running_loop()
-        try:
-            await asyncio.gather(*(loop.run_in_executor(self._executor, ping)
-                                   for _ in range(self.settings.workers)))
-        except Exception as e:  # a failed warm-up leaves the service alive but not ready
-            self.state, self.detail = "failed", f"warm-up failed: {type(e).__name__}: {e}"
-            LOGGER.error("warm-up failed", exc_info=True)
+        results = await asyncio.gather(*(self._spawn() for _ in range(self.settings.workers)))
+        errors = [e for e in results if e]
+        if errors:
+            self.state, self.detail = "failed", f"warm-up failed: {errors[0]}"
+            LOGGER.error("warm-up failed", extra={"fields": {"error": errors[0]}})
             return
         self.state = "ready"
         self.metrics.ready.set(1)
@@ -75,18 +150,59 @@ class SolverPool:
             "workers": self.settings.workers,
             "warmup_ms": round((time.perf_counter() - start) * 1e3, 1)}})
 
+    async def _spawn(self) -> str | None:
+        """Start one worker, wait for its warm-up, and make it idle; the warm-up's error, if
+        any (the worker is then stopped)."""
+        self._count += 1
+        worker = Worker(self.settings, self._count, self._readers)
+        self._workers.add(worker)
+        try:
+            _, error = await worker.receive()  # type: ignore[misc]
+        except WorkerDied as e:
+            self._workers.discard(worker)
+            return str(e)
+        if error is not None or self._closing:
+            self._workers.discard(worker)
+            await worker.stop()
+            return error
+        assert self._idle is not None
+        self._idle.put_nowait(worker)
+        return None
+
+    def _replace(self, worker: Worker) -> None:
+        """Forget a dead worker and start its successor in the background."""
+        self._workers.discard(worker)
+        worker.conn.close()
+        if self._closing:
+            return
+        LOGGER.error("solver worker died; starting a new one", extra={"fields": {
+            "worker": worker.number, "exitcode": worker.process.exitcode}})
+        task = asyncio.create_task(self._respawn())
+        self._starting.add(task)
+        task.add_done_callback(self._starting.discard)
+
+    async def _respawn(self) -> None:
+        error = await self._spawn()
+        if error is not None:
+            LOGGER.error("replacement worker failed", extra={"fields": {"error": error}})
+
     async def close(self) -> None:
-        """Stop warming, cancel queued solves, and shut the workers down."""
-        if self._warm_task is not None:
-            self._warm_task.cancel()
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
+        """Stop warming, and stop every worker (killed after :data:`STOP_GRACE_S`): bounded
+        even when a solve is running."""
+        self._closing = True
+        for task in [self._warm_all, *self._starting]:
+            if task is not None:
+                task.cancel()
+        await asyncio.gather(*(w.stop() for w in list(self._workers)))
+        self._workers.clear()
+        self._readers.shutdown(wait=False, cancel_futures=True)
 
     # -------------------------------------------------------------------------- solving
 
     async def run(self, job: Job) -> Outcome:
-        """Solve ``job`` in a worker; raise :class:`Busy` when the queue is full."""
-        assert self._slots is not None and self._executor is not None, "pool not started"
+        """Solve ``job`` in a worker; raise :class:`Busy` when the queue is full,
+        :class:`SolveError` when the solver failed (or its worker died twice)."""
+        assert self._slots is not None and self._idle is not None, "pool not started"
         s = self.settings
         if self._pending >= s.solve_slots + s.max_queued_solves:
             self.metrics.rejected.inc()
@@ -96,22 +212,50 @@ class SolverPool:
         enqueued = time.time()
         try:
             async with self._slots:
-                executor = self._executor
-                try:
-                    return await asyncio.get_running_loop().run_in_executor(
-                        executor, solve, job, enqueued, s.solve_time_limit_s)
-                except BrokenProcessPool:
-                    self._replace(executor)
-                    raise Busy("a solver worker died; the pool is restarting") from None
+                for attempt in (1, 2):
+                    worker = await self._idle.get()
+                    try:
+                        result = await self._solve_on(worker, job, enqueued)
+                    except WorkerDied as e:
+                        self._replace(worker)
+                        if e.exitcode is None:  # overran its time limit: killed by us
+                            return _overran(job, s.solve_time_limit_s)
+                        if attempt == 2:
+                            return _died_twice(job, e.exitcode)
+                        LOGGER.warning("solve retried on another worker", extra={"fields": {
+                            "exitcode": e.exitcode}})
+                        continue
+                    self._idle.put_nowait(worker)
+                    if isinstance(result, SolveError):
+                        raise result
+                    assert isinstance(result, Outcome)
+                    return result
+                raise AssertionError("unreachable")
         finally:
             self._pending -= 1
             self.metrics.in_flight.dec()
 
-    def _replace(self, broken: Executor) -> None:
-        """Swap a broken process pool for a fresh one (once, whoever notices first)."""
-        if self._executor is not broken:
-            return
-        LOGGER.error("solver pool broken; restarting it")
-        broken.shutdown(wait=False, cancel_futures=True)
-        self._executor = self._new_executor()
-        self._warm_task = asyncio.create_task(self._warm())
+    async def _solve_on(self, worker: Worker, job: Job, enqueued: float) -> object:
+        limit = self.settings.solve_time_limit_s
+        try:
+            worker.conn.send((job, enqueued, limit))
+        except OSError:
+            raise WorkerDied(worker.process.exitcode) from None
+        return await worker.receive(limit + KILL_GRACE_S if limit > 0 else None)
+
+
+def _overran(job: Job, limit_s: float) -> Outcome:
+    return Outcome(None, error_loc=("plots",), error_message=(
+        f"needs more than this service's solve time limit of {limit_s:g} s "
+        f"({len(job.plots)} plots); split the track or raise window.trial_step_s"))
+
+
+def _died_twice(job: Job, exitcode: int | None) -> Outcome:
+    """Two workers ended under this job. Killed (SIGKILL: the kernel's OOM killer, or a memory
+    limit) means it needs more memory than the service has: the client's to change (422).
+    Anything else is a crash of the solver, a bug (500)."""
+    if exitcode == -signal.SIGKILL:
+        return Outcome(None, error_loc=("plots",), error_message=(
+            f"needs more memory than this service has ({len(job.plots)} plots): the solve "
+            "was killed twice; split the track or raise window.trial_step_s or sample_step_s"))
+    raise SolveError(f"the solver worker crashed twice on this request (exit code {exitcode})")

@@ -31,6 +31,10 @@ class Settings(BaseSettings):
     worker_niceness: int = Field(5, ge=0, le=19, description="CPU niceness added to worker "
                                  "processes, so the HTTP event loop keeps answering when "
                                  "solves saturate the cores.")
+    worker_memory_mb: int = Field(
+        0, ge=0, description="Address-space limit of each solver worker (MiB) applied after "
+        "its warm-up; a solve that needs more is answered 422. 0 = none (the kernel's OOM "
+        "killer may then end a worker: its solve is retried once, then answered 422).")
     max_concurrent_solves: int | None = Field(
         None, ge=1, description="Solves running at once (default: the number of workers).")
     max_queued_solves: int = Field(

@@ -1,25 +1,29 @@
-"""Solver workers: the reconstruction runs in a pool, off the event loop.
+"""Solver workers: the reconstruction runs in worker processes, off the event loop.
 
-Each worker builds and warms the CasADi solvers once (``init_worker``), then serves
-``solve`` calls. A worker returns the finished JSON body, so the serialisation of large answers
-runs in parallel too and the event loop only moves bytes.
+Each worker (:func:`worker_main`) builds and warms the CasADi solvers once, then serves jobs
+from its pipe one at a time. A worker returns the finished JSON body, so the serialisation of
+large answers runs in parallel too and the event loop only moves bytes.
 """
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import os
 import signal
+import sys
 import threading
 import time
 import traceback
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 
 import numpy as np
 
 from solver.config import ReconstructionConfig
 from solver.inputs import InputError, Plots, Radar
 from solver.motion import propagate
+from solver.results import FilterEstimate, Reconstruction
 
 from .convert import Job, response_dict
 from .models import ReconstructionResponse
@@ -63,31 +67,77 @@ def warm_up(window_sizes: list[int], nlp_solver: str) -> None:
             reconstruct(plots, radar, config)
 
 
-_warm_up_error: str | None = None
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
-def init_worker(window_sizes: list[int], nlp_solver: str, warm: bool, niceness: int = 0) -> None:
-    """Pool initializer: lower this worker's CPU priority by ``niceness`` (so the event loop
-    keeps answering when solves saturate the cores), then warm the solvers before the first
-    request reaches this worker.
+def exit_with_parent(parent_pid: int) -> None:
+    """End this process when the server process ``parent_pid`` dies, even by SIGKILL (which
+    runs no clean-up in the server): on Linux the kernel sends SIGKILL on the parent's death
+    (``prctl(PR_SET_PDEATHSIG)``); everywhere a daemon thread polls ``os.getppid()`` every
+    0.5 s (a dead parent's orphans are re-parented). Both: the kernel's is immediate, the thread
+    also covers platforms without prctl."""
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent_pid:  # the parent died before the line above
+        os._exit(1)
 
-    A failure is kept and reported by :func:`ping` (an initializer that raises would only
-    break the pool with no message)."""
-    global _warm_up_error
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def limit_memory(max_bytes: int) -> None:
+    """Cap this process's address space: an allocation beyond it raises ``MemoryError`` in
+    this worker (answered 422) instead of the kernel's OOM killer taking a process."""
+    if max_bytes > 0:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_AS, (max_bytes, max_bytes))
+
+
+def worker_main(conn: Connection, parent_pid: int, window_sizes: list[int], nlp_solver: str,
+                warm: bool, niceness: int = 0, memory_bytes: int = 0) -> None:
+    """A worker process: follow the parent's death, lower the CPU priority by ``niceness`` (so
+    the event loop keeps answering when solves saturate the cores), warm the solvers, report
+    ``("ready", error or None)``, then answer ``(job, enqueued_at, time_limit_s)`` messages
+    with an :class:`Outcome` (or a :class:`SolveError`) until the pipe closes or ``None``
+    arrives."""
+    exit_with_parent(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the server, which stops us
     if niceness:
         os.nice(niceness)
+    error = None
     if warm:
         try:
             warm_up(window_sizes, nlp_solver)
         except Exception as e:
-            _warm_up_error = f"{type(e).__name__}: {e}"
-
-
-def ping() -> float:
-    """The readiness probe of one worker: runs after its warm-up, raises if that failed."""
-    if _warm_up_error is not None:
-        raise RuntimeError(_warm_up_error)
-    return time.time()
+            error = f"{type(e).__name__}: {e}"
+    limit_memory(memory_bytes)  # after the warm-up: the limit is for the requests' work
+    conn.send(("ready", error))
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return
+        if message is None:
+            return
+        try:
+            result: Outcome | SolveError = solve(*message)
+        except SolveError as e:
+            result = e
+        except Exception as e:  # a bug here must not end the worker (and retry the job)
+            result = SolveError(f"{type(e).__name__}: {e}\n{traceback.format_exc()}"[:20_000])
+        try:
+            conn.send(result)
+        except (BrokenPipeError, OSError):
+            return
 
 
 class _TimeLimit(BaseException):
@@ -95,62 +145,109 @@ class _TimeLimit(BaseException):
     ``KeyboardInterrupt``, so the solver's ``except Exception`` fallbacks cannot swallow it)."""
 
 
+ALARM_GRACE_S = 1.0  # the SIGALRM fires this long after the deadline the solver checks itself
 _expired = False  # set by the timer: CasADi may swallow the exception raised inside a solve
+_armed = False  # whether the timer may raise: cleared before the outcome of a solve is built
 
 
 def _time_limit(signum: int, frame: object) -> None:
     global _expired
     _expired = True
-    raise _TimeLimit
+    if _armed:
+        raise _TimeLimit
+
+
+def _finite(rec: Reconstruction, estimates: dict[str, FilterEstimate]) -> str | None:
+    """The first part of the answer holding a NaN or infinity, or None: checked on the arrays,
+    so a non-finite result is a 422 here and not a failed response validation (a 500)."""
+    series = {"trajectory.at_plots": rec.at_plots, "trajectory.samples": rec.samples,
+              **{f"filters.{k}": e.states for k, e in estimates.items()}}
+    for name, s in series.items():
+        for a in (s.t, s.x, s.z, s.vx, s.vz, s.cov):
+            if a is not None and not np.isfinite(a).all():
+                return name
+    seg = np.array([[g.t_start, g.t_end, g.x, g.z, g.heading, g.speed, g.u, g.w]
+                    for g in rec.segments], dtype=float)
+    return None if np.isfinite(seg).all() else "trajectory.segments"
+
+
+def _too_long(job: Job, time_limit_s: float) -> Outcome:
+    return Outcome(None, error_loc=("plots",), error_message=(
+        f"needs more than this service's solve time limit of {time_limit_s:g} s "
+        f"({len(job.plots)} plots over {float(job.plots.t[-1] - job.plots.t[0]):g} s); "
+        "split the track or raise window.trial_step_s"))
 
 
 def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
     """Reconstruct, run the requested filters, and serialise the validated response.
 
-    ``time_limit_s`` > 0 stops the work after that many seconds (a ``SIGALRM`` timer; pool
-    workers run tasks in their main thread, and each CasADi call inside lasts milliseconds)
-    and answers an input error naming the limit: some valid but absurd inputs (a track of
-    years with 5-s trial steps) would otherwise hold a worker for hours.
+    ``time_limit_s`` > 0 stops the work after that many seconds and answers an input error
+    naming the limit: some valid but absurd inputs (a track of years with 5-s trial steps)
+    would otherwise hold a worker for hours. The solver gets the deadline where it takes one
+    (checked between sliding steps; IPOPT's wall-time limit); a ``SIGALRM`` timer (workers
+    run jobs in their main thread) stops whatever does not check it, and the pool kills a
+    worker that overruns even that (:class:`service.pool.SolverPool`).
     """
     from solver.estimation import run_filters
     from solver.reconstruct import reconstruct
+    from solver.refine import DeadlineExceeded
 
-    global _expired
+    global _expired, _armed
     started = time.time()
     timed = time_limit_s > 0 and threading.current_thread() is threading.main_thread()
+    deadline = time.monotonic() + time_limit_s if time_limit_s > 0 else None
     _expired = False
     if timed:
         signal.signal(signal.SIGALRM, _time_limit)
-        # re-fires every 0.1 s: CasADi's interrupt check inside a solve may consume one alarm
-        signal.setitimer(signal.ITIMER_REAL, time_limit_s, 0.1)
+        _armed = True
+        # after the solver's own deadline checks had their chance; re-fires every 0.1 s:
+        # CasADi's interrupt check inside a solve may consume one alarm
+        signal.setitimer(signal.ITIMER_REAL, time_limit_s + ALARM_GRACE_S, 0.1)
     try:
-        rec = reconstruct(job.plots, job.radar, job.config)
+        rec = reconstruct(job.plots, job.radar, job.config, deadline=deadline)
         t0 = time.perf_counter()
         estimates = run_filters(list(job.filters), job.plots, job.radar) if job.filters else {}
         filters_ms = (time.perf_counter() - t0) * 1e3
+        _armed = False
         if _expired:  # the limit fired inside a solve, where CasADi swallowed the exception
             raise _TimeLimit
-        gc.disable()  # ~1e5 small objects: cyclic GC passes would triple this step's time
-        try:
-            body = response_dict(rec, estimates)
-            body["diagnostics"]["filters_ms"] = filters_ms
-            body["diagnostics"]["queue_ms"] = max(0.0, (started - enqueued_at) * 1e3)
-            out = ReconstructionResponse.model_validate(body).model_dump_json().encode()
-        finally:
-            gc.enable()
-        return Outcome(out, rec.diagnostics.solver_failures)
-    except InputError as e:
-        return Outcome(None, error_loc=e.loc, error_message=e.message)
-    except (_TimeLimit, KeyboardInterrupt):
-        # the alarm may reach us through CasADi, which reports it as a KeyboardInterrupt
-        if not timed:
-            raise
-        return Outcome(None, error_loc=("plots",), error_message=(
-            f"needs more than this service's solve time limit of {time_limit_s:g} s "
-            f"({len(job.plots)} plots over {float(job.plots.t[-1] - job.plots.t[0]):g} s); "
-            "split the track or raise window.trial_step_s"))
-    except Exception as e:
-        raise SolveError(f"{type(e).__name__}: {e}\n{traceback.format_exc()}") from None
+    except BaseException as e:
+        _armed = False  # first: an alarm must not break the handling below
+        if isinstance(e, InputError):
+            return Outcome(None, error_loc=e.loc, error_message=e.message)
+        if isinstance(e, _TimeLimit | KeyboardInterrupt | DeadlineExceeded) or (
+                _expired and isinstance(e, Exception)):
+            # the alarm may reach us through CasADi, as a KeyboardInterrupt or another error
+            if not timed and deadline is None:
+                raise
+            return _too_long(job, time_limit_s)
+        if isinstance(e, MemoryError):
+            return Outcome(None, error_loc=("plots",), error_message=(
+                f"needs more memory than this service allows one solve ({len(job.plots)} "
+                f"plots over {float(job.plots.t[-1] - job.plots.t[0]):g} s); split the track "
+                "or raise window.trial_step_s or sample_step_s"))
+        if isinstance(e, Exception):
+            raise SolveError(f"{type(e).__name__}: {e}\n{traceback.format_exc()}"[:20_000]
+                             ) from None
+        raise
     finally:
+        _armed = False
         if timed:
             signal.setitimer(signal.ITIMER_REAL, 0)
+    bad = _finite(rec, estimates)
+    if bad is not None:
+        return Outcome(None, error_loc=("bounds",), error_message=(
+            f"give a result that is not finite ({bad} holds NaN or infinity): the "
+            "bounds, radar errors or plots are too extreme for a numerical solution"))
+    gc.disable()  # ~1e5 small objects: cyclic GC passes would triple this step's time
+    try:
+        body = response_dict(rec, estimates)
+        body["diagnostics"]["filters_ms"] = filters_ms
+        body["diagnostics"]["queue_ms"] = max(0.0, (started - enqueued_at) * 1e3)
+        out = ReconstructionResponse.model_validate(body).model_dump_json().encode()
+    except MemoryError:
+        return Outcome(None, error_loc=("sample_step_s",), error_message=(
+            "gives an answer larger than this service's memory allows; raise it"))
+    finally:
+        gc.enable()
+    return Outcome(out, rec.diagnostics.solver_failures)

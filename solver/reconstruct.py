@@ -73,7 +73,7 @@ def _reconstruct_single(plots: Plots, radar: Radar, config: ReconstructionConfig
 
     result = None
     if config.method == "refined" and len(plots) >= 3:
-        initial = (reconstruct_sliding(plots, radar, config)
+        initial = (reconstruct_sliding(plots, radar, config, deadline=deadline)
                    if config.refine.init == "sliding" else None)
         try:
             result = refine_module.refine(plots, radar, config, initial, deadline)
@@ -86,11 +86,11 @@ def _reconstruct_single(plots: Plots, radar: Radar, config: ReconstructionConfig
                 raise KeyboardInterrupt(str(exc)) from exc
             # degrade to the seed's method rather than fail the request
             log.warning("refinement failed (%s); falling back to the sliding windows", exc)
-            result = reconstruct_sliding(plots, radar, config)
+            result = reconstruct_sliding(plots, radar, config, deadline=deadline)
             result.diagnostics.solver_failures += 1
             result.diagnostics.fallbacks += 1
             result.diagnostics.warnings.append(
                 f"refinement failed ({type(exc).__name__}: {exc}); sliding-window result")
     if result is None:
-        result = reconstruct_sliding(plots, radar, config)
+        result = reconstruct_sliding(plots, radar, config, deadline=deadline)
     return result

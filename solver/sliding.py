@@ -49,8 +49,9 @@ import numpy as np
 from .config import ReconstructionConfig
 from .geometry import uncertainty_ellipses
 from .guess import initial_guess
-from .inputs import FloatArray, Plots, Radar
+from .inputs import FloatArray, InputError, Plots, Radar
 from .motion import propagate
+from .refine import DeadlineExceeded
 from .results import Diagnostics, Reconstruction, Segment, StateSeries
 from .trajectory import evaluate, sample_times
 from .window import SwitchFits, criterion, solve_free_start, solve_switches, solve_windows, w_box
@@ -58,6 +59,10 @@ from .window import SwitchFits, criterion, solve_free_start, solve_switches, sol
 MIN_BASELINE_S = 1.0  # shortest time between the two plots that set the initial velocity
 FREE_START_PLOTS = 6  # fewest plots (start plot included) the free-start first window fits
 SWITCH_GAP_S = 1e-3  # a refined switch stays this far before the trial window's first plot
+# most candidate starts in one window: each is a window NLP (tens of microseconds in a mapped
+# call) and a few arrays of its own, so 20000 cost about a second per step; a 1e-9-s trial step
+# over a 19-s window would ask for 2e10 (memory exhaustion before the first solve)
+MAX_CANDIDATES = 20_000
 
 
 def criterion_data(plots: Plots, radar: Radar, criterion: str
@@ -187,16 +192,23 @@ def candidate_times(t: FloatArray, k: int, m: int, step: float) -> FloatArray:
     """Candidate starts of the window of plots ``k .. k + m - 1``: its plot times and every
     ``step`` from its first plot up to its last plot."""
     last = k + m - 1
-    extra = t[k] + step * np.arange(1, int(np.ceil((t[last] - t[k]) / step)))
+    count = (t[last] - t[k]) / step
+    if not count <= MAX_CANDIDATES:
+        raise InputError(("window", "trial_step_s"), (
+            f"({step:g} s) gives {count:.3g} trial starts in the window of plots {k}-{last} "
+            f"({t[last] - t[k]:g} s); at most {MAX_CANDIDATES} are allowed: raise it"))
+    extra = t[k] + step * np.arange(1, int(np.ceil(count)))
     return np.union1d(t[k:last + 1], extra[extra < t[last]])
 
 
 def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start: FloatArray,
           m: int, config: ReconstructionConfig, diag: Diagnostics, value_scale: float = 1.0,
-          seed_rule: bool = False) -> list[Segment]:
+          seed_rule: bool = False, deadline: float | None = None) -> list[Segment]:
     """Segments of the sliding extended windows from ``start`` at ``t[0]`` (needs
     ``len(t) >= m + 1``). Appends each accepted window's criterion value to ``diag``.
     ``seed_rule`` follows the seed literally (see the module docstring for what it turns off).
+    ``deadline`` (a :func:`time.monotonic` value): checked before every step, raises
+    :class:`DeadlineExceeded` once passed (one step is one batch of window NLPs, milliseconds).
     """
     n = len(t)
     bounds = config.bounds
@@ -208,6 +220,8 @@ def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start:
         cur_s, cur_uw, cur_val = fitter.fit_free_start(cur_s, cur_uw, cur_val, m)
     segments: list[Segment] = []
     while cur_k + m - 1 < n - 1:
+        if deadline is not None and time.monotonic() > deadline:
+            raise DeadlineExceeded(f"deadline passed at plot {cur_k} of {n}")
         cand = candidate_times(t, cur_k, m, config.trial_step_s)
         first = np.searchsorted(t, cand, side="right")
         x, z, phi, v = propagate(cur_s[0], cur_s[1], cur_s[2], cur_s[3], cur_uw[0], cur_uw[1],
@@ -243,9 +257,10 @@ def slide(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, start:
     return segments
 
 
-def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig
-                        ) -> Reconstruction:
-    """Reconstruct by sliding extended windows (the seed's method; see the module docstring)."""
+def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig,
+                        deadline: float | None = None) -> Reconstruction:
+    """Reconstruct by sliding extended windows (the seed's method; see the module docstring).
+    ``deadline``: see :func:`slide`."""
     clock = time.perf_counter()
     diag = Diagnostics(method="sliding", criterion=config.criterion)
     t = plots.t
@@ -274,7 +289,7 @@ def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig
         if clipped:
             diag.warnings.append("initial speed from the first plots was outside the speed "
                                  "bounds and was clipped")
-        segments = slide(t, cx, cz, abc, start, m, config, diag, scale)
+        segments = slide(t, cx, cz, abc, start, m, config, diag, scale, deadline=deadline)
     at_plots = evaluate(segments, t)
     samples = evaluate(segments, sample_times(t[0], t[-1], config.sample_step_s))
     diag.extra["accepted_windows"] = len(diag.criterion_values)

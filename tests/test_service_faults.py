@@ -1,0 +1,196 @@
+"""Faults: a dead worker, a server killed with SIGKILL or stopped while solving, solves that
+run into the time limit or ask for too much work."""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from procs import stop
+
+from service.convert import to_job
+from service.metrics import Metrics
+from service.models import ReconstructionRequest
+from service.pool import SolverPool
+from service.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED_BATCH = json.loads((ROOT / "examples" / "seed_track.json").read_text())
+
+
+def job_of(body: dict, max_samples: int = 20_000):
+    return to_job(ReconstructionRequest.model_validate(body), "sqpmethod", 5000, max_samples)
+
+
+async def ready(pool: SolverPool, timeout: float = 60.0) -> None:
+    end = time.monotonic() + timeout
+    while pool.state != "ready":
+        assert pool.state != "failed" and time.monotonic() < end, pool.detail
+        await asyncio.sleep(0.05)
+
+
+def test_a_dead_worker_disturbs_no_other_solve_and_its_solve_is_retried():
+    """Two solves on two workers; the first one's worker is killed mid-solve. The other solve
+    is answered normally, the killed one is retried on another worker and answered too, and
+    the pool is back to two workers (a ProcessPoolExecutor broke as a whole: both got 503)."""
+    job = job_of(SEED_BATCH)
+
+    async def scenario() -> None:
+        pool = SolverPool(Settings(workers=2, warmup=False), Metrics())
+        pool.start()
+        await ready(pool)
+        idle = pool._idle
+        assert idle is not None
+        first = asyncio.create_task(pool.run(job))
+        while idle.qsize() != 1:
+            await asyncio.sleep(0.005)
+        (victim,) = set(pool._workers) - set(idle._queue)  # type: ignore[attr-defined]
+        second = asyncio.create_task(pool.run(job))
+        while idle.qsize() != 0:
+            await asyncio.sleep(0.005)
+        os.kill(victim.process.pid, signal.SIGKILL)
+        a, b = await asyncio.gather(first, second)
+        assert a.body is not None and b.body is not None
+        assert json.loads(a.body) == json.loads(b.body) | {
+            "diagnostics": json.loads(a.body)["diagnostics"]}
+        end = time.monotonic() + 60
+        while len(pool._workers) != 2 or idle.qsize() != 2:
+            assert time.monotonic() < end, "the dead worker was not replaced"
+            await asyncio.sleep(0.05)
+        assert not victim.process.is_alive() and victim not in pool._workers
+        assert (await pool.run(job)).body is not None
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
+def test_solve_time_limit_stops_a_sliding_solve_with_a_422():
+    """A sliding solve stopped by the limit is the documented input error (it was a 500), and
+    ends within a small margin of the limit."""
+    body = copy.deepcopy(SEED_BATCH)
+    body.update(method="sliding", window={"plots": 3, "trial_step_s": 0.05})
+    job = job_of(body)
+
+    async def scenario() -> None:
+        pool = SolverPool(Settings(workers=1, warmup=False, solve_time_limit_s=0.5), Metrics())
+        pool.start()
+        await ready(pool)
+        start = time.perf_counter()
+        out = await pool.run(job)
+        elapsed = time.perf_counter() - start
+        assert out.body is None and out.error_loc == ("plots",), out
+        assert "solve time limit of 0.5 s" in out.error_message
+        assert elapsed < 1.5, elapsed
+        assert len(pool._workers) == 1 and pool._idle.qsize() == 1  # the worker lives on
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
+def test_trial_step_that_asks_for_billions_of_windows_is_a_422_naming_it():
+    body = copy.deepcopy(SEED_BATCH)
+    body["plots"] = body["plots"][:20]
+    body.update(method="sliding", window={"plots": 3, "trial_step_s": 1e-9})
+
+    async def scenario() -> None:
+        pool = SolverPool(Settings(workers=1, warmup=False), Metrics())
+        pool.start()
+        await ready(pool)
+        out = await pool.run(job_of(body))
+        assert out.body is None and out.error_loc == ("window", "trial_step_s"), out
+        assert "at most 20000" in out.error_message
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
+def _start(tmp_env: dict[str, str]) -> tuple[subprocess.Popen, str]:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "TRAJRECON_PORT": str(port), "TRAJRECON_WORKERS": "2",
+           "TRAJRECON_WARMUP": "false", "TRAJRECON_LOG_LEVEL": "WARNING", **tmp_env}
+    proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    url = f"http://127.0.0.1:{port}"
+    end = time.monotonic() + 60
+    while True:
+        assert proc.poll() is None and time.monotonic() < end, "server did not start"
+        try:
+            if httpx.get(url + "/readyz", timeout=1).status_code == 200:
+                return proc, url
+        except httpx.TransportError:
+            pass
+        time.sleep(0.1)
+
+
+def children(pid: int) -> list[int]:
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_workers_exit_when_the_server_is_killed():
+    proc, _ = _start({})
+    try:
+        workers = children(proc.pid)
+        assert len(workers) >= 2, workers
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        end = time.monotonic() + 5
+        while any(alive(p) for p in workers):
+            assert time.monotonic() < end, [p for p in workers if alive(p)]
+            time.sleep(0.05)
+    finally:
+        stop(proc)
+
+
+def test_shutdown_while_solving_ends_in_bounded_time():
+    """SIGTERM with a long solve running: the server is gone within the shutdown timeout plus
+    the workers' stop grace, not after the solve."""
+    proc, url = _start({"TRAJRECON_SHUTDOWN_TIMEOUT_S": "1"})
+    body = copy.deepcopy(SEED_BATCH)
+    body.update(method="sliding", window={"plots": 3, "trial_step_s": 0.05})
+
+    def post() -> None:
+        try:
+            httpx.post(url + "/v1/reconstructions", json=body, timeout=60)
+        except httpx.TransportError:
+            pass
+
+    thread = threading.Thread(target=post, daemon=True)
+    thread.start()
+    try:
+        end = time.monotonic() + 10
+        while "trajrecon_solves_in_flight 1.0" not in httpx.get(url + "/metrics").text:
+            assert time.monotonic() < end
+            time.sleep(0.05)
+        time.sleep(0.5)
+        start = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(20)
+        assert time.monotonic() - start < 8
+    finally:
+        stop(proc)
