@@ -194,3 +194,26 @@ def test_shutdown_while_solving_ends_in_bounded_time():
         assert time.monotonic() - start < 8
     finally:
         stop(proc)
+
+
+def test_a_solve_over_the_memory_limit_is_a_422():
+    """With ``worker_memory_mb`` a solve that needs more memory (10^6 samples with their
+    covariances) is answered 422 naming the cause, and the worker serves on."""
+    body = copy.deepcopy(SEED_BATCH)
+    body["plots"] = body["plots"][:50]
+    body["sample_step_s"] = 0.001
+
+    async def scenario() -> None:
+        pool = SolverPool(Settings(workers=1, warmup=False, worker_memory_mb=1200), Metrics())
+        pool.start()
+        await ready(pool)
+        out = await pool.run(job_of(body, max_samples=10**9))
+        assert out.body is None, "the solve fitted in 1200 MiB: raise the sample count"
+        assert ("more memory than this service allows" in out.error_message
+                or "larger than this service's memory" in out.error_message), out
+        small = dict(body, sample_step_s=1.0)
+        assert (await pool.run(job_of(small))).body is not None
+        assert len(pool._workers) == 1
+        await pool.close()
+
+    asyncio.run(scenario())
