@@ -19,11 +19,11 @@ from solver.plots import PlotTable
 
 
 @pytest.fixture(scope="module")
-def tracks() -> list[TrackProblem]:
+def tracks() -> list:
     """Two aircraft seen by two radars and ADS-B (60 s), and a track of 2 plots that
     the reconstruction refuses."""
     rows = read_recording(encode_recording(duration=60.0).data, SENSORS).rows
-    good = [TrackProblem(tr.key, tr.table) for tr in split_aircraft(rows, SENSORS)]
+    good = list(split_aircraft(rows, SENSORS))  # AircraftTrack: .key and .table
     t = good[0].table
     r = np.flatnonzero(t.sensor == t.sensor[0])[:2]  # two plots of one radar
     two = PlotTable.build([t.sensors[t.sensor[0]]], t.t[r], np.zeros(2, int), t.range_m[r],

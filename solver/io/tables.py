@@ -283,16 +283,20 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
         col = table.column(name)
         if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
             col = pc.utf8_trim_whitespace(col)
-            text = np.asarray(col.to_numpy(zero_copy_only=False), dtype=object)
-            out = np.full(n, np.nan)
-            for i, s in enumerate(text.tolist()):
-                if s is None or s == "":
-                    continue
-                try:
-                    out[i] = float(s)
-                except ValueError:
-                    report(np.array([i]), name, f"{s!r} is not a number")
-            values = out
+            try:  # fast path: Arrow's parser; on a bad value, find it row by row
+                cast = pc.cast(col, pa.float64())
+                values = np.asarray(cast.to_numpy(zero_copy_only=False), dtype=float)
+                values = np.where(np.asarray(cast.is_null().to_numpy(zero_copy_only=False)),
+                                  np.nan, values)
+            except pa.ArrowInvalid:
+                values = np.full(n, np.nan)
+                for i, s in enumerate(col.to_pylist()):
+                    if s is None or s == "":
+                        continue
+                    try:
+                        values[i] = float(s)
+                    except ValueError:
+                        report(np.array([i]), name, f"{s!r} is not a number")
         elif pa.types.is_integer(col.type) or pa.types.is_floating(col.type):
             values = np.asarray(pc.cast(col, pa.float64()).to_numpy(zero_copy_only=False),
                                 dtype=float)
