@@ -77,6 +77,7 @@ class TrackOutcome:
     warnings: list[str] = field(default_factory=list)
     states: pa.Table | None = None
     segments: pa.Table | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
 
     def ledger(self, part: str | None) -> dict[str, Any]:
         return {"aircraft": self.key, "status": self.status, "plots": self.plots,
@@ -109,10 +110,12 @@ class BatchSummary:
 
 
 def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None = None,
-                time_limit_s: float | None = None) -> TrackOutcome:
+                time_limit_s: float | None = None,
+                extras: Callable[[Any], dict[str, Any]] | None = None) -> TrackOutcome:
     """Reconstruct one track (runs on a worker). Any ``Exception`` of the track (bad input,
     solver failure, the deadline ``time_limit_s`` after the start) is returned as a failed
-    outcome naming it; the result's rows come back as Arrow tables."""
+    outcome naming it; the result's rows come back as Arrow tables. ``extras(reconstruction)``
+    (e.g. per-sensor statistics, a figure) fills ``TrackOutcome.extras``, on the worker."""
     from .reconstruct import reconstruct
 
     start = time.perf_counter()
@@ -121,11 +124,12 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
         rec = reconstruct(table, config=config or ReconstructionConfig(), deadline=deadline)
         states = _states_table(key, table, rec)
         segments = _segments_table(key, rec)
+        more = extras(rec) if extras is not None else {}
     except Exception as e:  # isolated: one track's failure is its own
         return TrackOutcome(key, "failed", len(table), time.perf_counter() - start,
                             f"{type(e).__name__}: {e}")
     return TrackOutcome(key, "done", len(table), time.perf_counter() - start, None,
-                        list(rec.diagnostics.warnings), states, segments)
+                        list(rec.diagnostics.warnings), states, segments, more)
 
 
 def _states_table(key: str, table: PlotTable, rec: Any) -> pa.Table:
@@ -334,8 +338,9 @@ class _engine:
                 ex = Client(self.scheduler)
             else:
                 n = self.workers or len(os.sched_getaffinity(0))
+                # a free port for the scheduler's HTTP server (8787 may be another cluster's)
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                       dashboard_address=None)
+                                       dashboard_address=":0")
                 self.owned.append(cluster)
                 ex = Client(cluster)
             self.owned.insert(0, ex)
