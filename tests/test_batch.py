@@ -144,3 +144,36 @@ def test_deadline_fails_the_track_not_the_run(tmp_path, tracks):
 def test_a_key_given_twice_is_refused(tmp_path, tracks):
     with ThreadPoolExecutor(1) as ex, pytest.raises(ValueError, match="given twice"):
         reconstruct_many([tracks[1], tracks[1]], tmp_path, executor=ex)
+
+
+def test_scheduler_address_names_an_existing_cluster(tmp_path, tracks, client):
+    summary = reconstruct_many(tracks[:1], tmp_path, scheduler=client.scheduler.address)
+    assert summary.done == 1
+    assert len(client.scheduler_info()["workers"]) == 2  # the cluster is left running
+
+
+def test_embedded_local_cluster_by_default(tmp_path, tracks, monkeypatch):
+    import os
+
+    monkeypatch.setenv("TRAJRECON_COMPILE", "0")
+    summary = reconstruct_many(tracks, tmp_path / "out", workers=2, time_limit_s=120.0,
+                               task=_task_reporting_pid(tmp_path))
+    assert (summary.done, summary.failed) == (2, 1)
+    assert os.getpid() not in {int(p.read_text()) for p in tmp_path.glob("pid-*")}
+    assert len(list(tmp_path.glob("pid-*"))) == 2  # two worker processes did the work
+
+
+def _task_reporting_pid(folder):
+    """solve_track that leaves a file named by its process id, and takes at least 0.5 s so
+    that both workers get tracks."""
+    def task(key, table, config, limit):
+        import os
+        import time
+
+        from solver.batch import solve_track
+
+        (folder / f"pid-{os.getpid()}").write_text(str(os.getpid()))
+        time.sleep(0.5)
+        return solve_track(key, table, config, limit)
+
+    return task
