@@ -1,0 +1,406 @@
+"""The command line: ``trajrecon RECORDING --sensors SENSORS.json --out DIR``.
+
+Reads a recording (raw ASTERIX or a pcap capture of it: CAT048, CAT021, CAT034; or a plot
+table in CSV or Parquet, see ``solver/io/README.md``) and the sensor file, splits it into
+aircraft, reconstructs every track on Dask (an embedded ``LocalCluster`` sized to the cores, or
+the cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
+
+- ``tracks.parquet/``, ``segments.parquet/`` (streamed as tracks finish; a rerun resumes),
+  ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
+  ``tracks.geojsonl`` (one GeoJSON LineString feature per aircraft, for maps);
+- ``sensors.csv``: per sensor, against the reconstruction (SASS-C/TRES-style assessment):
+  plots, detection rate (plots over expected scans at the estimated scan period), wild plots,
+  bias and sigma of the range and azimuth residuals, estimated offsets where asked;
+- ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
+  (every track with the radar sites), ``figures/<track>.png`` with ``--figures``,
+  ``summary.json``; a summary is printed at the end (tracks, plots, failures, plots/s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+from .batch import BatchSummary, TrackOutcome, reconstruct_many, solve_track
+from .config import ReconstructionConfig
+from .inputs import InputError
+from .io.asterix import read_recording
+from .io.problems import Problems
+from .io.sensors_file import SensorSet, load_sensors
+from .io.split import AircraftTrack, recording_frame, split_aircraft
+from .io.tables import PlotRows, read_table
+from .plots import PlotTable
+from .results import Reconstruction
+from .sensors import RadarSensor
+
+TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
+SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "scan_period_s",
+                  "detection_rate", "range_residual_mean_m", "range_residual_sigma_m",
+                  "azimuth_residual_mean_deg", "azimuth_residual_sigma_deg",
+                  "position_residual_rms_m", "range_bias_m", "azimuth_bias_deg", "time_bias_s")
+MAP_POINTS_PER_TRACK = 200  # a recording map draws each track with at most this many points
+
+
+# ----------------------------------------------------------------------------- the task
+
+
+@dataclass
+class AssessedTrack(TrackOutcome):
+    """A track's outcome with its sensors' statistics (:class:`solver.results.SensorReport`
+    as dicts, plus each sensor's plot times span and median interval for the detection
+    rate)."""
+
+    sensors: list[dict[str, Any]] = field(default_factory=list)
+
+
+def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None,
+                 time_limit_s: float | None, figures_dir: str | None = None) -> AssessedTrack:
+    """:func:`solver.batch.solve_track` plus the per-sensor statistics and, with
+    ``figures_dir``, the track's figure (drawn on the worker)."""
+    spans = _sensor_spans(table)
+
+    def extras(rec: Reconstruction) -> dict[str, Any]:
+        if figures_dir is not None:
+            from .figures import save, track_figure
+
+            save(track_figure(table, rec, title=key), Path(figures_dir) / f"{_safe(key)}.png")
+        return {"sensors": [{**asdict(r), **spans.get(r.id, {})} for r in rec.sensors]}
+
+    out = solve_track(key, table, config, time_limit_s, extras=extras)
+    return AssessedTrack(**{k: v for k, v in vars(out).items() if k != "extras"},
+                         sensors=out.extras.get("sensors", []))
+
+
+def _sensor_spans(table: PlotTable) -> dict[str, dict[str, float]]:
+    out = {}
+    for k, s in enumerate(table.sensors):
+        t = np.sort(table.t[table.sensor == k])
+        if t.size:
+            out[s.id] = {"span_s": float(t[-1] - t[0]),
+                         "median_step_s": float(np.median(np.diff(t))) if t.size > 1 else 0.0}
+    return out
+
+
+def _safe(key: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", key)[:120]
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+@dataclass
+class Loaded:
+    """A recording read and split: tracks (lazily), problems, sensors, rows."""
+
+    sensors: SensorSet
+    rows: PlotRows
+    problems: Problems
+    tracks: Iterator[AircraftTrack]
+    scan_periods: dict[str, float]
+
+
+def load(recording: Path, sensors_path: Path) -> Loaded:
+    """Read the sensor file and the recording (by suffix: a table, else ASTERIX/pcap)."""
+    sensors = load_sensors(sensors_path)
+    periods: dict[str, float] = {}
+    if recording.suffix.lower() in TABLE_SUFFIXES:
+        rows, problems = read_table(recording)
+    else:
+        rec = read_recording(recording, sensors)
+        rows, problems = rec.rows, rec.problems
+        periods = {sid: st.rotation_period_s for sid, st in rec.service.items()
+                   if st.rotation_period_s}
+    frame = recording_frame(sensors, rows)
+    tracks = split_aircraft(rows, sensors, reference=frame, problems=problems)
+    return Loaded(sensors, rows, problems, tracks, periods)
+
+
+# ----------------------------------------------------------------------------- outputs
+
+
+class SensorStats:
+    """Per-sensor statistics pooled over tracks (plot-weighted means and variances)."""
+
+    def __init__(self, sensors: SensorSet, periods: dict[str, float]):
+        self.sensors = sensors
+        self.periods = dict(periods)
+        self.acc: dict[str, dict[str, Any]] = {
+            s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "used": 0, "steps": [],
+                   "spans": [], "r1": 0.0, "r2": 0.0, "a1": 0.0, "a2": 0.0, "p2": 0.0,
+                   "biases": []} for s in sensors.sensors}
+
+    def add(self, reports: Sequence[dict[str, Any]]) -> None:
+        for r in reports:
+            a = self.acc.get(r["id"])
+            if a is None:
+                continue
+            n = r["plots"] - r["plots_gated"]
+            a["tracks"] += 1
+            a["plots"] += r["plots"]
+            a["plots_gated"] += r["plots_gated"]
+            a["spans"].append((r.get("span_s", 0.0), r["plots"]))
+            if r.get("median_step_s"):
+                a["steps"].append(r["median_step_s"])
+            if n <= 0:
+                continue
+            a["used"] += n
+            if r["range_residual_mean_m"] is not None:
+                a["r1"] += n * r["range_residual_mean_m"]
+                a["r2"] += n * r["range_residual_rms_m"] ** 2
+                a["a1"] += n * r["azimuth_residual_mean_rad"]
+                a["a2"] += n * r["azimuth_residual_rms_rad"] ** 2
+            if r["position_residual_rms_m"] is not None:
+                a["p2"] += n * r["position_residual_rms_m"] ** 2
+            if r["range_bias_m"] is not None:
+                a["biases"].append((r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]))
+
+    def rows(self) -> list[dict[str, Any]]:
+        out = []
+        for s in self.sensors.sensors:
+            a = self.acc[s.id]
+            n = a["used"]
+            row: dict[str, Any] = {"sensor": s.id, "kind": s.kind, "tracks": a["tracks"],
+                                   "plots": a["plots"], "plots_gated": a["plots_gated"]}
+            period = self.periods.get(s.id) or (float(np.median(a["steps"])) if a["steps"]
+                                                else None)
+            row["scan_period_s"] = period
+            expected = sum(span / period + 1 for span, _ in a["spans"]) if period else 0.0
+            row["detection_rate"] = min(a["plots"] / expected, 1.0) if expected else None
+            radar = isinstance(s, RadarSensor)
+            if radar and n:
+                r_mean, a_mean = a["r1"] / n, a["a1"] / n
+                row["range_residual_mean_m"] = r_mean
+                row["range_residual_sigma_m"] = float(np.sqrt(max(a["r2"] / n - r_mean**2, 0)))
+                row["azimuth_residual_mean_deg"] = float(np.rad2deg(a_mean))
+                row["azimuth_residual_sigma_deg"] = float(np.rad2deg(
+                    np.sqrt(max(a["a2"] / n - a_mean**2, 0.0))))
+            if not radar and n:
+                row["position_residual_rms_m"] = float(np.sqrt(a["p2"] / n))
+            if a["biases"]:
+                b = np.median(np.array(a["biases"]), axis=0)
+                row["range_bias_m"], row["time_bias_s"] = float(b[0]), float(b[2])
+                row["azimuth_bias_deg"] = float(np.rad2deg(b[1]))
+            out.append({k: row.get(k) for k in SENSOR_COLUMNS})
+        return out
+
+
+def write_csv_and_geojson(out: Path) -> tuple[int, int]:
+    """``tracks.csv`` and ``tracks.geojsonl`` from the Parquet parts, one part at a time
+    (memory bounded by a part); returns (rows, tracks)."""
+    parts = sorted((out / "tracks.parquet").glob("part-*.parquet"))
+    rows = tracks = 0
+    writer: pacsv.CSVWriter | None = None
+    with open(out / "tracks.geojsonl", "w", encoding="utf-8") as geo:
+        for part in parts:
+            table = pq.read_table(part)
+            if writer is None:
+                writer = pacsv.CSVWriter(out / "tracks.csv", table.schema)
+            writer.write_table(table)
+            rows += table.num_rows
+            keys = table.column("aircraft").to_numpy(zero_copy_only=False)
+            lat = table.column("lat_deg").to_numpy(zero_copy_only=False).astype(float)
+            lon = table.column("lon_deg").to_numpy(zero_copy_only=False).astype(float)
+            t = table.column("t").to_numpy()
+            for key in dict.fromkeys(keys.tolist()):
+                sel = keys == key
+                coords = [[round(float(b), 7), round(float(a), 7)]
+                          for a, b in zip(lat[sel], lon[sel], strict=True)
+                          if np.isfinite(a) and np.isfinite(b)]
+                if len(coords) < 2:
+                    continue
+                feature = {"type": "Feature", "geometry": {"type": "LineString",
+                                                            "coordinates": coords},
+                           "properties": {"aircraft": key, "t_start": float(t[sel].min()),
+                                          "t_end": float(t[sel].max()),
+                                          "plots": int(sel.sum())}}
+                geo.write(json.dumps(feature) + "\n")
+                tracks += 1
+    if writer is not None:
+        writer.close()
+    return rows, tracks
+
+
+def write_map(out: Path, sensors: SensorSet, rows: PlotRows) -> Path | None:
+    """``map.png``: every reconstructed track (thinned) and the radar sites."""
+    from .figures import recording_map, save
+
+    parts = sorted((out / "tracks.parquet").glob("part-*.parquet"))
+    lines = []
+    for part in parts:
+        table = pq.read_table(part, columns=["aircraft", "x", "z"])
+        keys = table.column("aircraft").to_numpy(zero_copy_only=False)
+        x, z = table.column("x").to_numpy(), table.column("z").to_numpy()
+        for key in dict.fromkeys(keys.tolist()):
+            sel = np.flatnonzero(keys == key)
+            sel = sel[:: max(1, sel.size // MAP_POINTS_PER_TRACK)]
+            lines.append((key, x[sel], z[sel]))
+    if not lines:
+        return None
+    frame = recording_frame(sensors, rows)
+    sites = []
+    for s in sensors.sensors:
+        if isinstance(s, RadarSensor):
+            if frame is None or s.site is None:
+                sites.append((s.id, 0.0, 0.0))
+            else:
+                px, pz = frame.to_plane(np.array([s.site.lat_deg]), np.array([s.site.lon_deg]))
+                sites.append((s.id, float(px[0]), float(pz[0])))
+    return save(recording_map(lines, sites, title=f"{len(lines)} tracks"), out / "map.png")
+
+
+def _write_sensor_csv(out: Path, rows: list[dict[str, Any]]) -> None:
+    cols = {k: [r[k] for r in rows] for k in SENSOR_COLUMNS}
+    types = {k: pa.string() if k in ("sensor", "kind") else
+             pa.int64() if k in ("tracks", "plots", "plots_gated") else pa.float64()
+             for k in SENSOR_COLUMNS}
+    pacsv.write_csv(pa.table({k: pa.array(v, types[k]) for k, v in cols.items()}),
+                    out / "sensors.csv")
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The whole pipeline; returns the summary (also written as ``summary.json``)."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    loaded = load(Path(args.recording), Path(args.sensors))
+    config = ReconstructionConfig(method=args.method)
+    stats = SensorStats(loaded.sensors, loaded.scan_periods)
+    stats_path = out / "sensor_stats.jsonl"
+    previous = _read_stats(stats_path)
+    first_result: list[float] = []
+    bar = _progress(args.no_progress)
+
+    def on_outcome(o: TrackOutcome) -> None:
+        if not first_result:
+            first_result.append(time.perf_counter() - started)
+        if isinstance(o, AssessedTrack) and o.sensors:
+            previous[o.key] = o.sensors
+            with open(stats_path, "a", encoding="utf-8") as f:
+                f.write(json.dumps({"aircraft": o.key, "sensors": o.sensors}) + "\n")
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(plots=o.plots, failed=o.status == "failed", refresh=False)
+
+    figures = str(out / "figures") if args.figures else None
+    from functools import partial
+
+    task = partial(assess_track, figures_dir=figures)
+    summary: BatchSummary = reconstruct_many(
+        loaded.tracks, out, config=config, scheduler=args.scheduler, workers=args.workers,
+        time_limit_s=args.time_limit or None, retry_failed=args.retry_failed,
+        on_outcome=on_outcome, task=task)
+    if bar is not None:
+        bar.close()
+    for reports in previous.values():
+        stats.add(reports)
+    sensor_rows = stats.rows()
+    _write_sensor_csv(out, sensor_rows)
+    csv_rows, geo_tracks = write_csv_and_geojson(out)
+    write_map(out, loaded.sensors, loaded.rows)
+    (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
+    result = {
+        "recording": str(args.recording), "tracks": summary.tracks, "done": summary.done,
+        "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
+        "rows_in_recording": len(loaded.rows), "elapsed_s": time.perf_counter() - started,
+        "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
+        "time_to_first_result_s": first_result[0] if first_result else None,
+        "problems": dict(loaded.problems.counts), "failures": summary.failures,
+        "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "sensors": sensor_rows}
+    (out / "summary.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+    return result
+
+
+def _read_stats(path: Path) -> dict[str, list[dict[str, Any]]]:
+    """Per-track sensor statistics of earlier runs (a resumed run keeps them; last wins)."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    if path.exists():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                entry = json.loads(line)
+            except ValueError:  # torn by a killed run
+                continue
+            out[entry["aircraft"]] = entry["sensors"]
+    return out
+
+
+def _progress(disabled: bool) -> Any:
+    if disabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(unit="track", desc="reconstructing", dynamic_ncols=True)
+
+
+def print_summary(result: dict[str, Any], file: Any = None) -> None:
+    """The end-of-run summary: counts, rate, problems, failures, the sensors' table."""
+    file = file or sys.stdout
+    p = result
+    print(f"tracks: {p['tracks']} ({p['done']} reconstructed, {p['failed']} failed, "
+          f"{p['skipped']} finished before); plots: {p['plots']}; "
+          f"{p['plots_per_s']:.0f} plots/s; {p['elapsed_s']:.1f} s in all", file=file)
+    if p["problems"]:
+        print("left out or reported: " + ", ".join(f"{k} {n}" for k, n in
+                                                   p["problems"].items()), file=file)
+    for key, why in list(p["failures"].items())[:10]:
+        print(f"failed {key}: {why}", file=file)
+    print(f"{'sensor':<12}{'plots':>8}{'det.':>7}{'wild':>6}{'range bias':>12}{'sigma':>8}"
+          f"{'az bias':>10}{'sigma':>8}", file=file)
+    for r in p["sensors"]:
+        def f(v: Any, fmt: str) -> str:
+            return format(v, fmt) if v is not None else "-"
+        print(f"{r['sensor']:<12}{r['plots']:>8}{f(r['detection_rate'], '.2f'):>7}"
+              f"{r['plots_gated']:>6}{f(r['range_residual_mean_m'], '.1f'):>12}"
+              f"{f(r['range_residual_sigma_m'], '.1f'):>8}"
+              f"{f(r['azimuth_residual_mean_deg'], '.3f'):>10}"
+              f"{f(r['azimuth_residual_sigma_deg'], '.3f'):>8}", file=file)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="trajrecon", description="Reconstruct every aircraft of a recording (ASTERIX "
+        "CAT048/021/034, pcap, or a CSV/Parquet plot table) with its sensors' statistics.")
+    ap.add_argument("recording", help="raw ASTERIX file, pcap capture, or .csv/.parquet table")
+    ap.add_argument("--sensors", required=True, help="sensor file (JSON, solver/io/README.md)")
+    ap.add_argument("--out", required=True, help="output directory (a rerun resumes it)")
+    ap.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler "
+                    "(default: an embedded LocalCluster)")
+    ap.add_argument("--workers", type=int, default=None, help="embedded cluster's worker "
+                    "processes (default: the usable cores)")
+    ap.add_argument("--time-limit", type=float, default=300.0, help="per-track limit (s; 0: "
+                    "none)")
+    ap.add_argument("--method", choices=("refined",), default="refined")
+    ap.add_argument("--figures", action="store_true", help="also draw every track's figure")
+    ap.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
+                    "an earlier run")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        result = run(args)
+    except (InputError, FileNotFoundError) as e:
+        print(f"trajrecon: {e}", file=sys.stderr)
+        return 2
+    print_summary(result)
+    return 1 if result["failed"] else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,101 @@
+"""The command line end to end: an ASTERIX recording (encoded with libasterix) and a CSV plot
+table in, Parquet/CSV/GeoJSON, sensor statistics, map and figures out, on a real 2-worker
+Dask LocalCluster; a rerun resumes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from test_io_asterix import FLIGHTS, SENSOR_FILE, encode_recording
+
+from solver.cli import main
+from solver.io.asterix import read_recording
+from solver.io.sensors_file import parse_sensors
+from solver.io.tables import write_table
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rec")
+    enc = encode_recording(tod0=86_300.0, duration=200.0)  # crosses midnight
+    (d / "day.ast").write_bytes(enc.data[:-7])  # the last block truncated: reported
+    (d / "sensors.json").write_text(json.dumps(SENSOR_FILE))
+    return d, enc
+
+
+def test_recording_to_tables_statistics_and_map(recording, capsys):
+    d, enc = recording
+    out = d / "out"
+    code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
+                 "--workers", "2", "--no-progress", "--figures"])
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["tracks"] == summary["done"] == len(FLIGHTS) and summary["failed"] == 0
+    assert summary["problems"].get("truncated_block") == 1
+    table = pq.read_table(out / "tracks.parquet")
+    tracks = {name: table.column(name).to_numpy(zero_copy_only=False)
+              for name in ("aircraft", "t", "lat_deg", "lon_deg")}
+    keys = tracks["aircraft"].astype(str)
+    assert set(keys) == {f"{f.address:06X}" for f in FLIGHTS}
+    assert table.num_rows == summary["plots"] and summary["plots"] > 0.95 * len(enc.plots)
+    for k, f in enumerate(FLIGHTS):
+        sel = keys == f"{f.address:06X}"
+        t = tracks["t"][sel]
+        assert np.diff(np.sort(t)).max() < 10.0  # through midnight without a jump
+        # exact plots: every reconstructed position within 60 m of the flight
+        lat, lon, _ = f.at(t - t.min() + _first_t(enc, k))
+        dy = (tracks["lat_deg"][sel] - lat) * 111_000
+        dx = (tracks["lon_deg"][sel] - lon) * 111_000 * np.cos(np.deg2rad(lat))
+        assert np.hypot(dx, dy).max() < 60.0
+    lines = (out / "tracks.geojsonl").read_text().splitlines()
+    assert len(lines) == len(FLIGHTS)
+    feature = json.loads(lines[0])
+    assert feature["geometry"]["type"] == "LineString" and len(feature["geometry"]
+                                                                ["coordinates"]) > 10
+    csv_rows = (out / "tracks.csv").read_text().count("\n") - 1
+    assert csv_rows == table.num_rows
+    sensors = {r["sensor"]: r for r in summary["sensors"]}
+    assert set(sensors) == {"R1", "R2", "ADSB"}
+    assert sensors["R1"]["scan_period_s"] == pytest.approx(4.0)  # from CAT034 I041
+    assert sensors["R1"]["detection_rate"] > 0.95
+    assert abs(sensors["R1"]["range_residual_mean_m"]) < 10  # exact plots: no bias
+    assert (out / "sensors.csv").read_text().startswith('"sensor","kind"')
+    assert (out / "map.png").stat().st_size > 10_000
+    assert len(list((out / "figures").glob("*.png"))) == len(FLIGHTS)
+    printed = capsys.readouterr().out
+    assert "tracks: 2 (2 reconstructed, 0 failed" in printed and "R1" in printed
+
+    # a rerun resumes: nothing redone, outputs the same
+    code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
+                 "--workers", "2", "--no-progress"])
+    again = json.loads((out / "summary.json").read_text())
+    assert code == 0 and again["skipped"] == len(FLIGHTS) and again["done"] == 0
+    assert pq.read_table(out / "tracks.parquet").num_rows == table.num_rows
+    assert {r["sensor"]: r["plots"] for r in again["sensors"]} == {
+        k: v["plots"] for k, v in sensors.items()}
+
+
+def _first_t(enc, k: int) -> float:
+    """Seconds from the recording's start of flight k's first plot."""
+    tods = [p["tod"] for p in enc.plots if p["flight"] == k]
+    t = (np.array(tods) - 86_300.0) % 86_400.0
+    return float(t.min())
+
+
+def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
+    d, _ = recording
+    rec = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE))
+    write_table(rec.rows, tmp_path / "plots.csv")
+    code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
+                 str(tmp_path / "out"), "--workers", "1", "--no-progress"])
+    assert code == 0
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps([{**SENSOR_FILE[0], "lat_deg": 95.0}]))
+    code = main([str(tmp_path / "plots.csv"), "--sensors", str(bad), "--out",
+                 str(tmp_path / "out2"), "--no-progress"])
+    assert code == 2
+    assert "sensors[0].lat_deg" in capsys.readouterr().err
