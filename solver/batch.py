@@ -32,6 +32,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import json
 import os
+import re
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
@@ -55,6 +56,7 @@ velocity (m/s), heading (deg clockwise from north), the covariance over ``(x, z,
 (upper triangle) and the estimated height with its sigma where it was estimated (else null)."""
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
 PROGRESS = "progress.jsonl"
+_PART = re.compile(r"part-(\d{6})\.parquet|\.part-\d{6}\.parquet\.tmp")
 
 
 @dataclass(frozen=True)
@@ -206,10 +208,13 @@ class _Store:
         numbers = [0]
         for d in (self.tracks_dir, self.segments_dir):
             for f in d.iterdir():
+                ours = _PART.fullmatch(f.name)
+                if ours is None:
+                    continue  # not this module's file: left alone
                 if f.name not in parts:  # not committed: a killed run's, redone now
                     f.unlink()
-                elif f.name.startswith("part-"):
-                    numbers.append(int(f.name[5:11]))
+                elif ours.group(1):
+                    numbers.append(int(ours.group(1)))
         self.next_part = max(numbers) + 1
 
     def _rewrite(self, lines: list[bytes]) -> None:

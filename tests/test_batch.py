@@ -121,9 +121,13 @@ def test_rerun_resumes_and_every_track_appears_once(tmp_path, tracks):
     last_done = next(e for e in reversed(entries) if e["status"] == "done")
     kept = [e for e in entries if e is not last_done]
     (out / PROGRESS).write_text("".join(json.dumps(e) + "\n" for e in kept) + '{"airc')
+    foreign = out / "tracks.parquet" / "notes.txt"
+    foreign.write_text("not the engine's")
     with ThreadPoolExecutor(1) as ex:
         resumed = reconstruct_many(tracks, out, executor=ex)
     assert (resumed.skipped, resumed.done) == (2, 1)
+    assert foreign.exists()  # only the engine's own uncommitted parts are deleted
+    foreign.unlink()
     states = pq.read_table(out / "tracks.parquet")
     counts = {k: states["aircraft"].to_pylist().count(k) for k in ("4CA2D1", "3C6DD4")}
     assert counts == {p.key: len(p.table) for p in (tracks[0], tracks[2])}
