@@ -335,6 +335,8 @@ def test_unknown_sac_sic_and_category_are_counted_and_skipped():
     (cat,) = rec.problems.of_kind("unknown_category")
     assert cat.where == f"byte {len(stranger[0]) + len(enc.data)}" and "CAT062" in cat.message
     assert_same_plots(rec.rows, enc.plots)
+    # every target report is a row or a counted, dropped one (CAT034 records are not plots)
+    assert rec.records == len(rec.rows) + sum(rec.problems.dropped.values()) + rec.blocks[34]
 
 
 def test_flagged_and_incomplete_reports_are_counted():
@@ -353,6 +355,7 @@ def test_flagged_and_incomplete_reports_are_counted():
     assert len(rec.rows) == 1 and np.isnan(rec.rows.altitude_m[0])
     assert rec.problems.counts == {"invalid_code": 1, "missing_item": 1, "not_aircraft": 1}
     assert rec.problems.dropped == {"invalid_code": 0, "missing_item": 1, "not_aircraft": 1}
+    assert rec.records == 3
 
 
 def test_radar_code_sending_adsb_is_reported():

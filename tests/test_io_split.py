@@ -8,6 +8,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_io_asterix import SENSOR_FILE, SENSORS
 
 from solver.frames import LocalFrame
@@ -178,3 +180,34 @@ def test_sensor_file_json_errors():
         parse_sensors('[{"id": "A", "kind": "position", "position_sigma_m": NaN}]')
     with pytest.raises(InputError, match=r"^sensors\[1\]\.id 'R1' repeats"):
         parse_sensors([SENSOR_FILE[0], {**SENSOR_FILE[1], "id": "R1"}])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(
+    st.integers(0, 40),                                   # time (s)
+    st.sampled_from(["R1", "R2", "ADSB", "NOPE"]),        # sensor
+    st.sampled_from([-1, 0xA, 0xB]),                      # Mode S
+    st.sampled_from([-1, 1, 2]),                          # track number
+    st.booleans()),                                       # measurement fits the sensor
+    min_size=1, max_size=60))
+def test_every_row_is_in_one_track_or_counted(plots):
+    """Nothing is dropped silently: each row lands in exactly one track, or is counted in the
+    problems' dropped plots."""
+    n = len(plots)
+    t = np.array([p[0] for p in plots], dtype=float)
+    sensor = np.array([p[1] for p in plots], dtype=object)
+    radar_like = np.array([(p[1] != "ADSB") == p[4] for p in plots])
+    rows = PlotRows.from_columns(
+        n, t=t, sensor=sensor, mode_s=[p[2] for p in plots], track_number=[p[3] for p in plots],
+        range_m=np.where(radar_like, 50_000.0 + 100 * t, np.nan),
+        azimuth_deg=np.where(radar_like, 30.0, np.nan),
+        lat_deg=np.where(radar_like, np.nan, 46.3 + 1e-3 * t),
+        lon_deg=np.where(radar_like, np.nan, 14.4))
+    problems = Problems()
+    tracks = list(split_aircraft(rows, SENSORS, problems=problems))
+    used = np.concatenate([tr.rows for tr in tracks]) if tracks else np.array([], int)
+    assert len(set(used.tolist())) == used.size  # no row twice
+    assert used.size + sum(problems.dropped.values()) == n
+    for tr in tracks:
+        assert len(tr.table) == tr.rows.size >= 3
+        np.testing.assert_array_equal(tr.table.t, rows.t[tr.rows])
