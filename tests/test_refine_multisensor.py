@@ -208,3 +208,32 @@ def test_deadline_stops_the_refinement():
     with pytest.raises(DeadlineExceeded):
         reconstruct(table, deadline=start + 0.05)
     assert time.monotonic() - start < 1.5
+
+
+def test_blocks_with_altitude_and_offsets_agree_with_one_block():
+    """A two-radar track with the height estimated, cut into blocks: continuous and close to
+    the one-block solution. With one radar's range offset estimated, the offset comes from the
+    first block alone and is held after it; its reported sigma is then the first block's
+    (consider states in the covariance), and the truth lies within 3 of them."""
+    table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=11)
+    one = reconstruct(table)
+    cut = reconstruct(table, config=ReconstructionConfig(
+        refine=RefineSettings(block_nodes=96, overlap_nodes=48)))
+    assert cut.diagnostics.extra["refine_blocks"] > 5
+    d = np.hypot(one.at_plots.x - cut.at_plots.x, one.at_plots.z - cut.at_plots.z)
+    assert np.sqrt(np.mean(d**2)) < 15.0 and d.max() < 40.0, (np.sqrt(np.mean(d**2)), d.max())
+
+    a = RadarSensor(150.0, np.deg2rad(0.24), id="A", site=Site(46.2, 14.4, 380.0),
+                    estimate_bias=True)
+    table, x, z, _ = _simulate((a, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=11,
+                               biases={0: (100.0, 0.0, 0.0)})
+    one = reconstruct(table)
+    cut = reconstruct(table, config=ReconstructionConfig(
+        refine=RefineSettings(block_nodes=256, overlap_nodes=128)))
+    assert cut.diagnostics.extra["refine_blocks"] == 3
+    for rec in (one, cut):
+        r = rec.sensors[0]
+        assert abs(r.range_bias_m - 100.0) < 3 * r.range_bias_sigma_m, r
+    # the first block alone knows the offset less well than the whole track
+    assert cut.sensors[0].range_bias_sigma_m > 1.5 * one.sensors[0].range_bias_sigma_m
+    assert _rms(cut, x, z) < 1.2 * _rms(one, x, z)

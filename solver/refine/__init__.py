@@ -173,8 +173,10 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
                              "was kept")
     report_bounds(t_nodes, sol, bounds, diag)
     segs = segments(t_nodes, sol, bounds)
+    # offsets estimated in the first block only are consider states after it
+    consider = blocks[0][2] + 1 if variant.biases and len(blocks) > 1 else None
     cov_nodes = node_covariance(t_nodes, sol, biases, data, variant, st, delta, bounds,
-                                pb.hd_info, bias_sigma)
+                                pb.hd_info, bias_sigma, consider)
     # each plot's own node (plots of several sensors may share an instant)
     at_plots_own = series(t_nodes, sol, cov_nodes, table.t, variant, nodes=plot_node)
     samples = series(t_nodes, sol, cov_nodes,

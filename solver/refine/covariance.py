@@ -58,8 +58,14 @@ def state_size(variant: Variant) -> int:
 
 def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, data: NodeData,
                     variant: Variant, st: RefineSettings, delta: float, bounds: Bounds,
-                    hd_info: FloatArray, bias_sigma: FloatArray) -> np.ndarray:
-    """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets)."""
+                    hd_info: FloatArray, bias_sigma: FloatArray,
+                    consider_from: int | None = None) -> np.ndarray:
+    """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets).
+
+    ``consider_from``: from this node on the offsets were held, not estimated (later blocks of
+    a long track), so they are *consider* states there (Schmidt-Kalman: their gain is zero, the
+    Joseph form keeps the covariance right): the plots after it carry the offsets' uncertainty
+    into the track without pretending to have informed them."""
     n = t_nodes.size
     nx = state_size(variant)
     dt = np.append(np.diff(t_nodes), 0.0)
@@ -93,13 +99,26 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
         if k:
             _, P = predict(xs, P, Phi[k - 1], Q[k - 1])
         Pp[k] = P
-        if measured[k]:
+        if measured[k] and consider_from is not None and k >= consider_from:
+            P = _consider_update(P, H[k], R[k], NH + 2 * variant.altitude)
+        elif measured[k]:
             _, P, _, _ = update(xs, P, nu2, H[k], R[k])
         if variant.altitude and data.alt_info[k] > 0:
             _, P, _, _ = update(xs, P, np.zeros(1), alt_H, np.array([[1 / data.alt_info[k]]]))
         Pf[k] = P
     _, Ps = rts_smoother(xf, Pf, xp, Pp, Phi)
     return Ps
+
+
+def _consider_update(P: np.ndarray, H: np.ndarray, R: np.ndarray, first_consider: int
+                     ) -> np.ndarray:
+    """Joseph-form update with the Kalman gain of the states from ``first_consider`` on set to
+    zero: ``K = P H^T S^-1``, ``K[c:] = 0``, ``P = (I - K H) P (I - K H)^T + K R K^T``."""
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    K[first_consider:] = 0.0
+    IKH = np.eye(P.shape[0]) - K @ H
+    return IKH @ P @ IKH.T + K @ R @ K.T
 
 
 def _plot_jacobians(sol: np.ndarray, biases: np.ndarray, data: NodeData, variant: Variant,
