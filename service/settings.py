@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from functools import cache
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
@@ -66,6 +67,25 @@ class Settings(BaseSettings):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         "INFO", description="Level of the JSON logs on stderr.")
     access_log: bool = Field(True, description="Log every request (method, path, status, ms).")
+    data_dir: Path | None = Field(
+        None, description="Directory of the durable job store (SQLite database, job inputs and "
+        "results). Default: $XDG_STATE_HOME/trajrecon (~/.local/state/trajrecon), else "
+        "./trajrecon-data.")
+    dask_scheduler: str | None = Field(
+        None, description="Address of an existing Dask scheduler that runs the jobs' tracks "
+        "(default: an embedded LocalCluster, started with the first job).")
+    jobs_workers: int = Field(default_factory=_cores, ge=1, description="Worker processes of "
+                              "the embedded Dask cluster for jobs (default: the usable cores).")
+    jobs_max_running: int = Field(1, ge=1, description="Jobs running at once; later ones wait "
+                                  "in the queue.")
+    jobs_max_queued: int = Field(16, ge=0, description="Jobs allowed to wait beyond the running "
+                                 "ones; beyond this POST /v1/jobs answers 503 with Retry-After.")
+    jobs_max_upload_bytes: int = Field(1 << 30, ge=1024, description="Largest accepted job "
+                                       "upload or JSON body (bytes); larger ones get 413.")
+    jobs_track_time_limit_s: float = Field(300.0, ge=0, description="Longest one track of a "
+                                           "job may be solved (s); then it fails. 0 = none.")
+    jobs_track_figures: bool = Field(True, description="Draw every job track's figure on the "
+                                     "worker (GET /v1/jobs/{id}/tracks/{key}/figure.png).")
 
     @property
     def solve_slots(self) -> int:
