@@ -8,12 +8,15 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
+import swagger_ui_bundle
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException
 from starlette.middleware.gzip import GZipMiddleware
+from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from solver import compiled
@@ -52,6 +55,9 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     503: {"model": ErrorResponse, "description": "Solvers busy and queue full; retry after "
           "`Retry-After` seconds."},
 }
+
+
+DOCS_ASSETS = "/docs/assets"
 
 
 def _error(status: int, message: str, detail: list[dict[str, Any]] | None = None,
@@ -236,7 +242,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             {"name": "reconstruction", "description": "Trajectory reconstruction."},
             {"name": "operations", "description": "Health, readiness and metrics."},
         ],
+        docs_url=None,  # FastAPI's pages load their scripts from a CDN: see /docs below
+        redoc_url=None,
     )
+    # Swagger UI from the swagger-ui-bundle package, so /docs works on an offline network
+    app.mount(DOCS_ASSETS, StaticFiles(directory=swagger_ui_bundle.swagger_ui_path),
+              name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    async def docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url="/openapi.json", title="Radar trajectory reconstruction - API",
+            swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{DOCS_ASSETS}/favicon-32x32.png")
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.pool = pool

@@ -39,7 +39,8 @@ class JsonFormatter(logging.Formatter):
 
 
 def setup_logging(level: str) -> None:
-    """JSON lines on stderr for the service's logger and uvicorn's error logger."""
+    """JSON lines on stderr for the service's logger, uvicorn's, and every other (the root
+    logger: the solver's warnings, in the server and in each worker process)."""
     handler = logging.StreamHandler()
     handler.setFormatter(JsonFormatter())
     for name in ("service", "uvicorn", "uvicorn.error"):
@@ -47,3 +48,6 @@ def setup_logging(level: str) -> None:
         log.handlers[:] = [handler]
         log.setLevel(level)
         log.propagate = False
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)

@@ -46,7 +46,7 @@ class Worker:
         self.number = number
         self.conn, child = ctx.Pipe(duplex=True)
         args = (child, os.getpid(), list(s.warmup_window_plots), s.nlp_solver, s.warmup,
-                s.worker_niceness, s.worker_memory_mb * 2**20)
+                s.worker_niceness, s.worker_memory_mb * 2**20, s.log_level)
         self.process: BaseProcess = ctx.Process(target=worker_main, args=args,
                                                 name=f"trajrecon-solver-{number}", daemon=True)
         self.process.start()

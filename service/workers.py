@@ -26,6 +26,7 @@ from solver.motion import propagate
 from solver.results import FilterEstimate, Reconstruction
 
 from .convert import Job, response_dict
+from .logs import setup_logging
 from .models import ReconstructionResponse
 
 
@@ -103,13 +104,15 @@ def limit_memory(max_bytes: int) -> None:
 
 
 def worker_main(conn: Connection, parent_pid: int, window_sizes: list[int], nlp_solver: str,
-                warm: bool, niceness: int = 0, memory_bytes: int = 0) -> None:
+                warm: bool, niceness: int = 0, memory_bytes: int = 0,
+                log_level: str = "INFO") -> None:
     """A worker process: follow the parent's death, lower the CPU priority by ``niceness`` (so
     the event loop keeps answering when solves saturate the cores), warm the solvers, report
     ``("ready", error or None)``, then answer ``(job, enqueued_at, time_limit_s)`` messages
     with an :class:`Outcome` (or a :class:`SolveError`) until the pipe closes or ``None``
     arrives."""
     exit_with_parent(parent_pid)
+    setup_logging(log_level)  # a spawned process starts with no logging configuration
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the server, which stops us
     if niceness:
         os.nice(niceness)

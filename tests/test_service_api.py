@@ -430,3 +430,18 @@ def test_json_syntax_errors_name_line_and_column(client):
     assert r.json()["message"].startswith("body: is not valid JSON: "), r.json()
     assert "at line 3 column 28 (char 63)" in r.json()["message"], r.json()
     assert r.json()["detail"][0]["loc"] == ["body"]
+
+
+def test_docs_are_served_offline(client):
+    """/docs refers to no other host, and every script and style sheet it names is served."""
+    import re
+
+    page = client.get("/docs")
+    assert page.status_code == 200
+    urls = re.findall(r"""(?:src|href)=["']([^"']+)["']""", page.text)
+    urls += re.findall(r"""url: ?["']([^"']+)["']""", page.text)
+    assert urls and not [u for u in urls if "://" in u or u.startswith("//")], urls
+    for url in urls:
+        r = client.get(url)
+        assert r.status_code == 200 and r.content, url
+    assert client.get("/redoc").status_code == 404  # its script would come from a CDN

@@ -1,18 +1,22 @@
 """docker/Dockerfile without a Docker engine: lint it (hadolint) and replay its steps.
 
-The replay reads the Dockerfile itself (so it cannot drift from it): ENV, WORKDIR, COPY and
-the RUN commands run in a fresh virtual environment under a temporary root; then the CMD
-serves on a free port and the HEALTHCHECK command must pass. Only user management (``useradd``)
-and the system packages (``apt-get``: the C compiler, which this machine has) are
-skipped. The fresh venv sees the dependencies already in this venv through a ``.pth`` line
-plus uvicorn's console script (the slow part of a real build, downloading wheels, is not what can
-break here); the project itself is built and installed by the Dockerfile's own ``pip install``.
+The replay reads the Dockerfile itself (so it cannot drift from it): both stages' ENV,
+WORKDIR, COPY and RUN steps run under a temporary root (the image's absolute paths, ``/opt``,
+``/src``, ``/home``, are moved under it), with a fresh virtual environment as the base image's
+Python; then the CMD serves on a free port (``-e TRAJRECON_PORT=...`` as ``docker run`` would)
+and the HEALTHCHECK command must pass. Skipped: user management (``useradd``) and the system
+packages (``apt-get``: gcc, which this machine has and the final stage must not need: it runs
+with the real compiler hidden); and the download of the locked dependencies (the slow part of
+a real build), which the replay takes from this environment after checking that its versions
+are exactly the lock's. The project itself is built and installed by the Dockerfile's own
+``pip install``, and the motion model is compiled into the cache by its own warm-up step.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import shutil
 import socket
@@ -20,14 +24,20 @@ import subprocess
 import sys
 import sysconfig
 import time
+import tomllib
+from importlib import metadata
 from pathlib import Path
 
 import httpx
 import yaml
+from packaging.markers import default_environment
+from packaging.requirements import Requirement
 from procs import stop
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "docker" / "Dockerfile"
+LOCK = ROOT / "requirements.lock"
+DEV_LOCK = ROOT / "requirements-dev.lock"
 BIN = Path(sys.executable).parent
 
 
@@ -36,7 +46,7 @@ def instructions(text: str) -> list[tuple[str, str]]:
     out: list[tuple[str, str]] = []
     logical = ""
     for line in text.splitlines():
-        if not logical and (not line.strip() or line.lstrip().startswith("#")):
+        if not line.strip() or line.lstrip().startswith("#"):
             continue
         if line.rstrip().endswith("\\"):
             logical += line.rstrip()[:-1] + " "
@@ -48,20 +58,83 @@ def instructions(text: str) -> list[tuple[str, str]]:
     return out
 
 
+def stages() -> list[list[tuple[str, str]]]:
+    """The instructions of each ``FROM`` stage (the ``FROM`` line first)."""
+    out: list[list[tuple[str, str]]] = []
+    for word, args in instructions(DOCKERFILE.read_text()):
+        if word == "FROM":
+            out.append([])
+        out[-1].append((word, args))
+    return out
+
+
+def locked(path: Path) -> dict[str, str]:
+    """``name -> version`` of the pins in a lock file whose markers hold here."""
+    env = default_environment()
+    pins = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            req = Requirement(line)
+            if req.marker is None or req.marker.evaluate(env):
+                (spec,) = req.specifier
+                pins[req.name.lower().replace("_", "-")] = spec.version
+    return pins
+
+
 def test_dockerfile_passes_hadolint():
     r = subprocess.run([BIN / "hadolint", str(DOCKERFILE)], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
 
 
 def test_dockerfile_has_what_the_image_needs():
-    steps = dict(instructions(DOCKERFILE.read_text()))
-    assert steps["FROM"].startswith("python:3.11-slim")
+    build, final = stages()
+    assert build[0][1].startswith("python:3.11-slim AS ")
+    assert final[0][1].startswith("python:3.11-slim")
+    steps = dict(final)
     assert steps["USER"] not in ("root", "0")
-    assert "/healthz" in steps["HEALTHCHECK"]
-    assert json.loads(steps["CMD"])[:2] == ["uvicorn", "service.app:app"]
-    runs = [args for word, args in instructions(DOCKERFILE.read_text()) if word == "RUN"]
-    assert any("install" in r and " gcc " in r and "libc6-dev" in r for r in runs), \
-        "the image needs a C compiler to compile the motion model"
+    assert "/readyz" in steps["HEALTHCHECK"] and "--start-interval=1s" in steps["HEALTHCHECK"]
+    assert json.loads(steps["CMD"]) == ["python", "-m", "service"]
+    assert "TRAJRECON_HOST=0.0.0.0" in steps["ENV"]
+    # the locked dependencies are installed before any source is copied (layer caching)
+    words = [(w, a) for w, a in build if w in ("COPY", "RUN")]
+    lock_install = next(i for i, (w, a) in enumerate(words) if "requirements.lock" in a and
+                        w == "RUN")
+    first_source = next(i for i, (w, a) in enumerate(words)
+                        if w == "COPY" and a.split()[0] in ("solver", "service"))
+    assert lock_install < first_source
+    # the compiler is in the build stage only
+    assert any("gcc" in a for w, a in build if w == "RUN")
+    assert not any("gcc" in a or "apt-get" in a for w, a in final if w == "RUN")
+
+
+def test_dockerignore_keeps_the_context_small():
+    ignore = (ROOT / ".dockerignore").read_text().splitlines()
+    assert "*" in ignore, "everything is ignored unless listed"
+    copied = {a.split()[0].rstrip("/") for w, a in instructions(DOCKERFILE.read_text())
+              if w == "COPY" and not a.startswith("--from")}
+    allowed = {line[1:].rstrip("/") for line in ignore if line.startswith("!")}
+    assert copied <= allowed, copied - allowed
+
+
+def test_lock_files_cover_pyproject():
+    """Every dependency of pyproject.toml (the extras in the dev lock) is pinned in the lock at a
+    version its specifier allows; CI and the README install with the dev lock as constraints."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    for path, reqs in ((LOCK, project["dependencies"]),
+                       (DEV_LOCK, [r for extra in project["optional-dependencies"].values()
+                                   for r in extra] + project["dependencies"])):
+        pins = locked(path)
+        for text in reqs:
+            req = Requirement(text)
+            name = req.name.lower().replace("_", "-")
+            assert name in pins, f"{name} is not in {path.name}: regenerate it (README)"
+            assert req.specifier.contains(pins[name], prereleases=True), (name, pins[name])
+    assert set(locked(LOCK).items()) <= set(locked(DEV_LOCK).items())
+    ci = (ROOT / ".ci" / "run").read_text()
+    readme = (ROOT / "README.md").read_text()
+    command = next(ln.strip() for ln in ci.splitlines() if "pytest" in ln)
+    assert "-c requirements-dev.lock" in command and command in readme
 
 
 def _free_port() -> int:
@@ -71,70 +144,90 @@ def _free_port() -> int:
 
 
 def test_dockerfile_steps_install_and_serve(tmp_path):
-    root = tmp_path / "root"  # stands for the image's /
-    venv = tmp_path / "venv"  # stands for the base image's Python
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-    site = next((venv / "lib").glob("python3*/site-packages"))
-    (site / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
-    script = venv / "bin" / "uvicorn"  # the console script pip would install with uvicorn
-    script.write_text(f"#!{venv / 'bin' / 'python'}\nimport sys\nfrom uvicorn.main import main\n"
-                      "if __name__ == '__main__':\n    sys.exit(main())\n")
-    script.chmod(0o755)
-    env = {"PATH": f"{venv / 'bin'}{os.pathsep}/usr/bin:/bin", "HOME": str(tmp_path),
-           "PIP_FIND_LINKS": os.environ.get("PIP_FIND_LINKS", "")}
-    workdir = root
+    # the replay's stand-in for the lock download: this environment, which must match the lock
+    installed = {d.metadata["Name"].lower().replace("_", "-"): d.version
+                 for d in metadata.distributions()}
+    pins = locked(LOCK)
+    assert {k: installed.get(k) for k in pins} == pins, "this venv differs from the lock"
 
+    root = tmp_path / "root"  # stands for the image's /
+    base = tmp_path / "base"  # stands for the base image's Python
+    subprocess.run([sys.executable, "-m", "venv", str(base)], check=True)
+    moved = re.compile(r"(?<![\w.$/-])/(opt|src|home)(?=/|\b)")
+
+    def here(text: str) -> str:
+        return moved.sub(lambda m: f"{root}/{m.group(1)}", text)
+
+    env = {"PATH": f"{base / 'bin'}{os.pathsep}/usr/bin:/bin", "HOME": str(tmp_path),
+           "PIP_FIND_LINKS": os.environ.get("PIP_FIND_LINKS", "")}
     port = str(_free_port())
     healthcheck: list[str] = []
     cmd: list[str] = []
-    for word, args in instructions(DOCKERFILE.read_text()):
-        if word == "ENV":
-            parts = shlex.split(args)
-            env.update(p.split("=", 1) for p in parts)
-        elif word == "WORKDIR":
-            workdir = root / args.lstrip("/")
-            workdir.mkdir(parents=True, exist_ok=True)
-        elif word == "COPY":
-            *sources, dest = args.split()
-            target = workdir / dest
-            for src in sources:
-                path = ROOT / src
-                assert path.exists(), f"COPY {src}: missing in the repository"
-                if path.is_dir():
-                    shutil.copytree(path, target, ignore=shutil.ignore_patterns("__pycache__"))
-                else:
-                    target.mkdir(parents=True, exist_ok=True)
-                    shutil.copy(path, target / path.name)
-        elif word == "RUN":
-            for command in args.split("&&"):
-                command = command.strip()
-                if command.startswith(("useradd ", "apt-get ", "rm -rf /var/lib/apt")):
-                    continue  # root and the system's packages: users and the C compiler
-                r = subprocess.run(["bash", "-c", command], cwd=workdir, env=env,
-                                   capture_output=True, text=True, timeout=300)
-                assert r.returncode == 0, f"RUN {command}\n{r.stdout}\n{r.stderr}"
-        elif word == "HEALTHCHECK":
-            healthcheck = json.loads(args[args.index("CMD") + 3:])
-        elif word == "CMD":
-            cmd = json.loads(args)
-        else:
-            assert word in ("FROM", "USER", "EXPOSE"), f"the replay does not know {word}"
+    workdir = root
+    for stage in stages():
+        for word, args in stage:
+            if word == "ENV":
+                for part in shlex.split(args):
+                    key, value = part.split("=", 1)
+                    env[key] = here(re.sub(r"\$(\w+)", lambda m: env.get(m.group(1), ""), value))
+            elif word == "WORKDIR":
+                workdir = Path(here(args))
+                workdir.mkdir(parents=True, exist_ok=True)
+            elif word == "COPY":
+                if args.startswith("--from="):  # the same root holds both stages' files
+                    for path in args.split()[1:]:
+                        assert Path(here(path)).exists(), path
+                    continue
+                *sources, dest = args.split()
+                target = Path(here(dest)) if dest.startswith("/") else workdir / dest
+                for src in sources:
+                    path = ROOT / src
+                    assert path.exists(), f"COPY {src}: missing in the repository"
+                    if path.is_dir():
+                        shutil.copytree(path, target,
+                                        ignore=shutil.ignore_patterns("__pycache__"))
+                    elif dest.endswith("/"):
+                        target.mkdir(parents=True, exist_ok=True)
+                        shutil.copy(path, target / path.name)
+                    else:
+                        target.parent.mkdir(parents=True, exist_ok=True)
+                        shutil.copy(path, target)
+            elif word == "RUN":
+                for command in args.split("&&"):
+                    command = command.strip()
+                    if command.startswith(("useradd ", "apt-get ", "rm -rf /var/lib/apt")):
+                        continue  # root and the system's packages: users and gcc
+                    if "--requirement requirements.lock" in command:
+                        venv = Path(env["VIRTUAL_ENV"])
+                        site = next((venv / "lib").glob("python3*/site-packages"))
+                        (site / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+                        continue
+                    r = subprocess.run(["bash", "-c", here(command)], cwd=workdir, env=env,
+                                       capture_output=True, text=True, timeout=300)
+                    assert r.returncode == 0, f"RUN {command}\n{r.stdout}\n{r.stderr}"
+            elif word == "HEALTHCHECK":
+                healthcheck = json.loads(args[args.index("CMD") + 3:])
+            elif word == "CMD":
+                cmd = json.loads(args)
+            else:
+                assert word in ("FROM", "USER", "EXPOSE"), f"the replay does not know {word}"
 
     # the installed package, not a source tree, is what runs from the final WORKDIR
     where = subprocess.run(["python", "-c", "import service, solver; print(service.__file__)"],
                            cwd=workdir, env=env, capture_output=True, text=True, check=True)
-    assert where.stdout.startswith(str(site)), where.stdout
+    assert where.stdout.startswith(env["VIRTUAL_ENV"]), where.stdout
+    assert list(Path(env["TRAJRECON_JITCC_CACHE"]).glob("*.so")), "nothing compiled at build"
 
-    cmd = [port if a == "8000" else a for a in cmd]  # the only change: a free port
-    cmd = ["127.0.0.1" if a == "0.0.0.0" else a for a in cmd]
-    healthcheck = [a.replace(":8000/", f":{port}/") for a in healthcheck]
-    proc = subprocess.Popen(cmd, cwd=workdir, env={**env, "TRAJRECON_WORKERS": "1"},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # docker run -e TRAJRECON_PORT=<port> -e TRAJRECON_HOST=127.0.0.1, and no compiler
+    run_env = {**env, "TRAJRECON_WORKERS": "1", "TRAJRECON_PORT": port,
+               "TRAJRECON_HOST": "127.0.0.1", "TRAJRECON_JITCC_REAL": "/nonexistent/gcc"}
+    proc = subprocess.Popen(cmd, cwd=workdir, env=run_env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
     try:
-        end = time.monotonic() + 60
-        while subprocess.run(healthcheck, cwd=workdir, env=env,
+        end = time.monotonic() + 90
+        while subprocess.run(healthcheck, cwd=workdir, env=run_env,
                              capture_output=True).returncode != 0:
-            assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
             assert time.monotonic() < end, "HEALTHCHECK never passed"
             time.sleep(0.2)
         url = f"http://127.0.0.1:{port}"
@@ -143,8 +236,15 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
         r = httpx.post(url + "/v1/reconstructions", json=body, timeout=60)
         assert r.status_code == 200, r.text
         assert len(r.json()["trajectory"]["at_plots"]) == 8
+        assert httpx.get(url + "/docs").status_code == 200
     finally:
         stop(proc)
+    log = [json.loads(line) for line in proc.stderr.read().splitlines()]  # JSON from line 1
+    starting = next(line for line in log if line["msg"] == "starting")
+    assert (starting["host"], starting["port"]) == ("127.0.0.1", int(port))
+    assert starting["c_compiler"].endswith("trajrecon-jitcc")
+    failed = [line for line in log if "failed, interpreting it instead" in line["msg"]]
+    assert not failed, "the build-time cache missed: " + str(failed[:1])
 
 
 def test_compose_builds_this_dockerfile():
