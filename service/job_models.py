@@ -1,0 +1,154 @@
+"""Request and response bodies of the jobs endpoints (``/v1/jobs``; contract:
+``../shared/spec/recordings.md``, "Jobs (HTTP)")."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import ConfigDict, Field
+
+from .models import (
+    BoundsIn,
+    PlotIn,
+    ReferenceIn,
+    SegmentOut,
+    SensorIn,
+    SensorOut,
+    StateOut,
+    _In,
+    _Out,
+)
+
+JobState = Literal["queued", "running", "done", "failed", "cancelled"]
+TrackStatus = Literal["pending", "done", "failed"]
+
+_EXAMPLE_TRACKS = {
+    "sensors": [{"id": "R1", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0,
+                 "height_m": 300.0, "range_error_m": 150.0, "azimuth_error_deg": 0.24}],
+    "tracks": {"4CA2D1": [{"t": 0.0, "sensor": "R1", "range_m": 30512.0, "azimuth_deg": 61.2},
+                          {"t": 4.0, "sensor": "R1", "range_m": 31240.5, "azimuth_deg": 61.9},
+                          {"t": 8.0, "sensor": "R1", "range_m": 31972.1, "azimuth_deg": 62.5}]},
+}
+
+
+class JobTracksRequest(_In):
+    """Many aircraft's plots as JSON: the sensors (as in the sensor file, without ASTERIX
+    codes) and, per aircraft key, its plots (each naming its sensor)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [_EXAMPLE_TRACKS]})
+
+    sensors: list[SensorIn] = Field(  # type: ignore[valid-type]
+        min_length=1, max_length=64, description="The sensors (sensors.md): radars at their "
+        "sites, position sensors.")
+    reference: ReferenceIn | None = Field(
+        None, description="Tangent point of the plane every track is reconstructed in. "
+        "Default: the first radar's site, else the first position plot.")
+    tracks: dict[str, list[PlotIn]] = Field(
+        min_length=1, description="Plots per aircraft key (the key is the track's name in "
+        "every result). Plots of one sensor in time order; at least 3 plots per track (shorter "
+        "tracks are reported in the job's problems).")
+    bounds: BoundsIn = Field(default_factory=BoundsIn,
+                             description="Control and speed bounds, for every track.")
+
+
+class ProblemsOut(_Out):
+    """What the ingest left out or noticed, counted by kind (nothing is dropped silently)."""
+
+    total: int = Field(description="Problems in all.")
+    counts: dict[str, int] = Field(description="Problems per kind (e.g. `truncated_block`, "
+                                   "`unknown_sensor`, `short_track`).")
+    dropped: dict[str, int] = Field(default_factory=dict, description="Plots (or records) "
+                                    "left out per kind.")
+    examples: list[str] = Field(description="The first problems, each with its location "
+                                "(byte offset, row, aircraft).")
+
+
+class JobStatus(_Out):
+    """A job's state, progress and timing."""
+
+    id: str = Field(description="Job id.")
+    kind: Literal["recording", "tracks"] = Field(description="`recording`: an uploaded "
+                                                 "recording; `tracks`: a JSON body of tracks.")
+    state: JobState = Field(description="queued, running, done, failed or cancelled.")
+    tracks_total: int | None = Field(None, description="Aircraft tracks found (null until the "
+                                     "recording has been read).")
+    tracks_done: int = Field(0, description="Tracks reconstructed and stored.")
+    tracks_failed: int = Field(0, description="Tracks whose reconstruction failed (see "
+                               "/tracks for the reasons).")
+    plots: int | None = Field(None, description="Plots in the job's tracks.")
+    plots_done: int = Field(0, description="Plots of the reconstructed tracks.")
+    rows: int | None = Field(None, description="Plots read from the recording (before the "
+                             "split; see `problems` for the ones left out).")
+    problems: ProblemsOut | None = Field(None, description="Partial problems of the input "
+                                         "(not fatal).")
+    error: str | None = Field(None, description="Why the job failed (or that it was "
+                              "cancelled).")
+    created: str = Field(description="When the job was accepted (ISO 8601, UTC).")
+    started: str | None = Field(None, description="When it first started running.")
+    finished: str | None = Field(None, description="When it ended (done, failed, cancelled).")
+    elapsed_s: float | None = Field(None, description="From start to end (or to now).")
+    runs: int = Field(0, description="Times it was started (more than 1: resumed after a "
+                      "restart of the service).")
+    input_bytes: int = Field(description="Size of the stored inputs (bytes).")
+
+
+class JobTrack(_Out):
+    """One aircraft of a job."""
+
+    aircraft: str = Field(description="The track's key.")
+    plots: int = Field(description="Its plots.")
+    status: TrackStatus = Field(description="pending, done or failed.")
+    error: str | None = Field(None, description="Why it failed.")
+    elapsed_s: float | None = Field(None, description="Its solve time (s).")
+    warnings: list[str] = Field(default_factory=list, description="Non-fatal remarks.")
+
+
+class JobStateOut(StateOut):
+    """The state at one plot of a job's track."""
+
+    plot: int = Field(description="Index of the plot in the track (time order).")
+    sensor: str = Field(description="The plot's sensor.")
+
+
+class JobTrajectoryOut(_Out):
+    """A job track's trajectory: the segments and the state at every plot."""
+
+    segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
+    at_plots: list[JobStateOut] = Field(description="State at every plot, in time order.")
+
+
+class JobTrackDiagnostics(_Out):
+    """What the reconstruction of a job's track did."""
+
+    elapsed_ms: float = Field(description="Solve time (ms).")
+    warnings: list[str] = Field(default_factory=list, description="Non-fatal remarks.")
+
+
+class JobTrackResult(_Out):
+    """One reconstructed track of a job (the single-track answer, states at the plots)."""
+
+    aircraft: str = Field(description="The track's key.")
+    trajectory: JobTrajectoryOut
+    sensors: list[SensorOut] = Field(default_factory=list, description="Each sensor's plots "
+                                     "of this track against its reconstruction.")
+    diagnostics: JobTrackDiagnostics
+
+
+class SensorSummaryOut(_Out):
+    """One sensor over all tracks of a finished job (plot-weighted)."""
+
+    sensor: str
+    kind: str
+    tracks: int
+    plots: int
+    plots_gated: int = Field(description="Plots given no weight as wild.")
+    scan_period_s: float | None = Field(None, description="From CAT034, else estimated.")
+    detection_rate: float | None = Field(None, description="Plots over expected scans.")
+    range_residual_mean_m: float | None = None
+    range_residual_sigma_m: float | None = None
+    azimuth_residual_mean_deg: float | None = None
+    azimuth_residual_sigma_deg: float | None = None
+    position_residual_rms_m: float | None = None
+    range_bias_m: float | None = None
+    azimuth_bias_deg: float | None = None
+    time_bias_s: float | None = None

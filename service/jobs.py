@@ -1,0 +1,731 @@
+"""Durable asynchronous jobs: whole recordings (or many tracks) reconstructed in the background.
+
+Layout of the data directory (``Settings.data_dir``)::
+
+    DATA/jobs.sqlite3              job records and each job's track list (SQLite, WAL)
+    DATA/jobs/<id>/inputs/         recording.<ast|csv|parquet>, sensors.json, params.json
+    DATA/jobs/<id>/out/            solver.batch's out_dir: tracks.parquet/, segments.parquet/,
+                                   progress.jsonl (the commit log of finished tracks),
+                                   sensor_stats.jsonl, figures/<digest>/<key>.png; when done:
+                                   tracks.csv, tracks.geojsonl, sensors.json, map.png,
+                                   problems.txt, summary.json, export/ (single-file downloads)
+
+Durability: an accepted job's inputs are written (and synced) under a temporary name, renamed,
+and only then its record is inserted (committed) before the 202; a track is finished exactly
+when :func:`solver.batch.reconstruct_many` has written its line to ``progress.jsonl``. On start,
+every job left ``queued`` or ``running`` is queued again and rerun on the same ``out/``:
+``reconstruct_many`` skips the finished tracks and deletes uncommitted parts, so a restart
+loses no accepted job and no finished track and never duplicates one.
+
+Jobs run in threads of this process (``jobs_max_running`` of them), off the event loop; their
+tracks are tasks on a Dask cluster (an embedded ``LocalCluster`` started with the first job, or
+the scheduler at ``dask_scheduler``), separate from the request solver pool.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import sqlite3
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any, Literal
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from solver.batch import TrackOutcome, reconstruct_many
+from solver.cli import (
+    AssessedTrack,
+    SensorStats,
+    assess_track,
+    load,
+    write_csv_and_geojson,
+    write_map,
+)
+from solver.config import ReconstructionConfig
+from solver.inputs import Bounds, InputError, format_loc
+
+from .logs import LOGGER
+from .settings import Settings
+
+State = Literal["queued", "running", "done", "failed", "cancelled"]
+FINISHED: frozenset[str] = frozenset({"done", "failed", "cancelled"})
+ACTIVE: frozenset[str] = frozenset({"queued", "running"})
+RESULT_FILES = ("tracks.parquet", "segments.parquet", "tracks.csv", "tracks.geojsonl",
+                "sensors.json", "problems.txt", "summary.json", "map.png", "results.zip")
+PROBLEM_EXAMPLES = 20  # problems listed in a job's status (every kind is counted)
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+  id TEXT PRIMARY KEY, kind TEXT NOT NULL, state TEXT NOT NULL, created REAL NOT NULL,
+  started REAL, finished REAL, error TEXT, tracks_total INTEGER, plots INTEGER,
+  rows INTEGER, problems TEXT, input_bytes INTEGER NOT NULL, runs INTEGER NOT NULL DEFAULT 0);
+CREATE TABLE IF NOT EXISTS tracks (
+  job TEXT NOT NULL, seq INTEGER NOT NULL, aircraft TEXT NOT NULL, plots INTEGER NOT NULL,
+  PRIMARY KEY (job, aircraft));
+"""
+
+
+def default_data_dir() -> Path:
+    """``$XDG_STATE_HOME/trajrecon``, else ``~/.local/state/trajrecon``, else
+    ``./trajrecon-data`` (no home directory)."""
+    state = os.environ.get("XDG_STATE_HOME")
+    if state:
+        return Path(state) / "trajrecon"
+    try:
+        return Path.home() / ".local" / "state" / "trajrecon"
+    except RuntimeError:
+        return Path("trajrecon-data").resolve()
+
+
+class Full(Exception):
+    """No room for another job (running and queued at their limits)."""
+
+
+class Unavailable(Exception):
+    """The job store could not be opened (the message says why)."""
+
+
+class Aborted(Exception):
+    """A running job was cancelled or the service is stopping."""
+
+
+@dataclass
+class JobRecord:
+    """One job's row: state, timing (epoch seconds), counts, problems, failure reason."""
+
+    id: str
+    kind: str
+    state: State
+    created: float
+    started: float | None
+    finished: float | None
+    error: str | None
+    tracks_total: int | None
+    plots: int | None
+    rows: int | None
+    problems: dict[str, Any] | None
+    input_bytes: int
+    runs: int
+
+
+@dataclass
+class Progress:
+    """Finished tracks of a job, from its commit log (``progress.jsonl``)."""
+
+    done: int = 0
+    failed: int = 0
+    plots_done: int = 0
+    entries: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------ store
+
+
+class JobStore:
+    """Job records in SQLite (WAL, synchronous FULL); one connection behind a lock."""
+
+    def __init__(self, path: Path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+        self._db.row_factory = sqlite3.Row
+        self._lock = threading.Lock()
+        with self._lock:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA busy_timeout=5000")
+            self._db.executescript(_SCHEMA)
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    @contextlib.contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    @staticmethod
+    def _record(row: sqlite3.Row) -> JobRecord:
+        d = dict(row)
+        d["problems"] = json.loads(d["problems"]) if d["problems"] else None
+        return JobRecord(**d)
+
+    def insert(self, job_id: str, kind: str, input_bytes: int, capacity: int) -> JobRecord:
+        """Insert a queued job unless ``capacity`` jobs are already queued or running."""
+        with self._tx() as db:
+            (active,) = db.execute("SELECT count(*) FROM jobs WHERE state IN "
+                                   "('queued', 'running')").fetchone()
+            if active >= capacity:
+                raise Full(f"{active} jobs are queued or running (the limit is {capacity})")
+            db.execute("INSERT INTO jobs (id, kind, state, created, input_bytes) VALUES "
+                       "(?, ?, 'queued', ?, ?)", (job_id, kind, time.time(), input_bytes))
+        got = self.get(job_id)
+        assert got is not None
+        return got
+
+    def active(self) -> int:
+        with self._lock:
+            return int(self._db.execute("SELECT count(*) FROM jobs WHERE state IN "
+                                        "('queued', 'running')").fetchone()[0])
+
+    def get(self, job_id: str) -> JobRecord | None:
+        with self._lock:
+            row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return None if row is None else self._record(row)
+
+    def ids(self) -> set[str]:
+        with self._lock:
+            return {r[0] for r in self._db.execute("SELECT id FROM jobs")}
+
+    def requeue_unfinished(self) -> list[str]:
+        """Jobs a stopped service left running: queued again (resumed in creation order)."""
+        with self._tx() as db:
+            ids = [r[0] for r in db.execute("SELECT id FROM jobs WHERE state = 'running'")]
+            db.execute("UPDATE jobs SET state = 'queued' WHERE state = 'running'")
+        return ids
+
+    def claim(self) -> JobRecord | None:
+        """The oldest queued job, now running."""
+        with self._tx() as db:
+            row = db.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY created, "
+                             "rowid LIMIT 1").fetchone()
+            if row is None:
+                return None
+            db.execute("UPDATE jobs SET state = 'running', started = coalesce(started, ?), "
+                       "runs = runs + 1 WHERE id = ?", (time.time(), row[0]))
+        return self.get(row[0])
+
+    def set_tracks(self, job_id: str, tracks: list[tuple[str, int]], rows: int,
+                   problems: dict[str, Any]) -> None:
+        """The job's track list (replaced: a resumed run splits the same recording again)."""
+        with self._tx() as db:
+            db.execute("DELETE FROM tracks WHERE job = ?", (job_id,))
+            db.executemany("INSERT INTO tracks (job, seq, aircraft, plots) VALUES (?, ?, ?, ?)",
+                           [(job_id, i, k, n) for i, (k, n) in enumerate(tracks)])
+            db.execute("UPDATE jobs SET tracks_total = ?, plots = ?, rows = ?, problems = ? "
+                       "WHERE id = ?", (len(tracks), sum(n for _, n in tracks), rows,
+                                        json.dumps(problems), job_id))
+
+    def tracks(self, job_id: str) -> list[tuple[str, int]]:
+        with self._lock:
+            return [(r[0], r[1]) for r in self._db.execute(
+                "SELECT aircraft, plots FROM tracks WHERE job = ? ORDER BY seq", (job_id,))]
+
+    def track(self, job_id: str, aircraft: str) -> int | None:
+        with self._lock:
+            row = self._db.execute("SELECT plots FROM tracks WHERE job = ? AND aircraft = ?",
+                                   (job_id, aircraft)).fetchone()
+        return None if row is None else int(row[0])
+
+    def finish(self, job_id: str, state: State, error: str | None = None,
+               only_from: frozenset[str] = ACTIVE) -> bool:
+        """Move a job to a final state (if it is in ``only_from``); False if it was not."""
+        with self._tx() as db:
+            cur = db.execute(
+                f"UPDATE jobs SET state = ?, finished = ?, error = coalesce(?, error) "
+                f"WHERE id = ? AND state IN ({','.join('?' * len(only_from))})",
+                (state, time.time(), error, job_id, *sorted(only_from)))
+            return cur.rowcount == 1
+
+    def delete(self, job_id: str) -> None:
+        with self._tx() as db:
+            db.execute("DELETE FROM tracks WHERE job = ?", (job_id,))
+            db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+
+
+# ------------------------------------------------------------------------------- executor
+
+
+class _DaskPool:
+    """A ``concurrent.futures``-style view of a Dask client for one job, so that
+    :func:`solver.batch.reconstruct_many` waits on futures this runner can settle: on
+    :meth:`abort` every pending future fails at once (its Dask task is cancelled) and the
+    job's ``on_outcome`` stops the run."""
+
+    def __init__(self, client: Any):
+        self._client = client
+        self._max_workers = max(len(client.scheduler_info()["workers"]), 1)
+        self._pending: dict[cf.Future[Any], Any] = {}
+        self._lock = threading.Lock()
+        self.aborted = threading.Event()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> cf.Future[Any]:
+        f: cf.Future[Any] = cf.Future()
+        if self.aborted.is_set():
+            f.set_exception(Aborted("the job was stopped"))
+            return f
+        task = self._client.submit(fn, *args, pure=False)
+        with self._lock:
+            self._pending[f] = task
+        task.add_done_callback(partial(self._settle, f))
+        return f
+
+    def _settle(self, f: cf.Future[Any], task: Any) -> None:
+        with self._lock:
+            if self._pending.pop(f, None) is None:
+                return
+        try:
+            result = task.result()
+        except BaseException as e:  # the task's own error, a cancellation, a dead worker
+            _set(f, exc=e)
+        else:
+            _set(f, result=result)
+
+    def abort(self) -> None:
+        self.aborted.set()
+        with self._lock:
+            pending, self._pending = self._pending, {}
+        for f in pending:
+            _set(f, exc=Aborted("the job was stopped"))
+        if pending:
+            with contextlib.suppress(Exception):
+                self._client.cancel(list(pending.values()))
+
+
+def _set(f: cf.Future[Any], result: Any = None, exc: BaseException | None = None) -> None:
+    with contextlib.suppress(cf.InvalidStateError):
+        if exc is not None:
+            f.set_exception(exc)
+        else:
+            f.set_result(result)
+
+
+def job_track(key: str, table: Any, config: ReconstructionConfig | None,
+              time_limit_s: float | None, figures_root: str | None = None) -> AssessedTrack:
+    """The per-track task of a job (on a worker): :func:`solver.cli.assess_track`, with the
+    figure in a directory of its own per key (:func:`figure_dir`)."""
+    figures = None if figures_root is None else str(figure_dir(Path(figures_root), key))
+    return assess_track(key, table, config, time_limit_s, figures_dir=figures)
+
+
+def figure_dir(root: Path, key: str) -> Path:
+    """Where a track's figure is drawn: one directory per key (keys that differ only in
+    characters a file name cannot hold do not share a figure)."""
+    return root / hashlib.sha256(key.encode()).hexdigest()[:24]
+
+
+# --------------------------------------------------------------------------------- runner
+
+
+class JobRunner:
+    """The job store, the background threads that run jobs, and the jobs' read side."""
+
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.root = Path(settings.data_dir or default_data_dir())
+        self.store: JobStore | None = None
+        self.unavailable: str | None = "the job runner is not started"
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._threads: list[threading.Thread] = []
+        self._running: dict[str, _DaskPool | None] = {}
+        self._cancelled: set[str] = set()
+        self._client: Any = None
+        self._cluster: Any = None
+        self._client_lock = threading.Lock()
+        self._progress_cache: dict[str, tuple[tuple[int, int], Progress]] = {}
+
+    # -- life cycle
+
+    @property
+    def capacity(self) -> int:
+        """Jobs that may be queued or running at once."""
+        return self.settings.jobs_max_running + self.settings.jobs_max_queued
+
+    def start(self) -> None:
+        """Open the store, queue again the jobs a stopped service left running, drop the
+        inputs of posts that never became jobs, start the job threads."""
+        try:
+            (self.root / "jobs").mkdir(parents=True, exist_ok=True)
+            self.store = JobStore(self.root / "jobs.sqlite3")
+        except (OSError, sqlite3.Error) as e:  # the service still serves single tracks
+            self.unavailable = f"the job store at {self.root} cannot be opened: {e}"
+            LOGGER.error("jobs unavailable", extra={"fields": {"error": self.unavailable}})
+            return
+        self.unavailable = None
+        resumed = self.store.requeue_unfinished()
+        known = self.store.ids()
+        for d in (self.root / "jobs").iterdir():
+            if d.name not in known:  # a post interrupted before its 202 (or a deleted job)
+                shutil.rmtree(d, ignore_errors=True)
+        if resumed:
+            LOGGER.info("resuming jobs", extra={"fields": {"jobs": resumed}})
+        self._stopping = False
+        for i in range(self.settings.jobs_max_running):
+            t = threading.Thread(target=self._loop, name=f"job-runner-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Stop the job threads (running jobs stay ``running`` in the store: resumed at the
+        next start), then the Dask client and the embedded cluster."""
+        with self._wake:
+            self._stopping = True
+            self._wake.notify_all()
+            pools = list(self._running.values())
+        for pool in pools:
+            if pool is not None:
+                pool.abort()
+        end = time.monotonic() + timeout_s
+        for t in self._threads:
+            t.join(max(0.0, end - time.monotonic()))
+        self._threads.clear()
+        with self._client_lock:
+            for thing in (self._client, self._cluster):
+                if thing is not None:
+                    with contextlib.suppress(Exception):
+                        thing.close()
+            self._client = self._cluster = None
+        if self.store is not None:
+            self.store.close()
+            self.store = None
+
+    async def aclose(self) -> None:
+        """:meth:`close` off the event loop."""
+        import asyncio
+
+        await asyncio.to_thread(self.close)
+
+    def _db(self) -> JobStore:
+        if self.store is None:
+            raise Unavailable(self.unavailable or "the job store is closed")
+        return self.store
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.root / "jobs" / job_id
+
+    # -- accepting
+
+    def check_room(self) -> None:
+        """Raise :class:`Full` when no job can be accepted now (before reading an upload)."""
+        active = self._db().active()
+        if active >= self.capacity:
+            raise Full(f"{active} jobs are queued or running (the limit is {self.capacity})")
+
+    def new_inputs(self) -> Path:
+        """A fresh directory to write a job's inputs into (see :meth:`accept`)."""
+        d = self.root / "jobs" / f".incoming-{uuid.uuid4().hex}"
+        (d / "inputs").mkdir(parents=True)
+        return d
+
+    def accept(self, incoming: Path, kind: str) -> JobRecord:
+        """Make the inputs in ``incoming`` (from :meth:`new_inputs`) a queued job: synced,
+        renamed to the job's directory, then the record committed."""
+        job_id = uuid.uuid4().hex
+        size = 0
+        for f in (incoming / "inputs").iterdir():
+            size += f.stat().st_size
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        target = self.job_dir(job_id)
+        os.replace(incoming, target)
+        _fsync_dir(target.parent)
+        try:
+            record = self._db().insert(job_id, kind, size, self.capacity)
+        except BaseException:
+            shutil.rmtree(target, ignore_errors=True)
+            raise
+        with self._wake:
+            self._wake.notify()
+        return record
+
+    # -- running
+
+    def _loop(self) -> None:
+        while True:
+            with self._wake:
+                if self._stopping:
+                    return
+                job = self._db().claim()
+                if job is None:
+                    self._wake.wait(timeout=5.0)
+                    continue
+                self._running[job.id] = None
+            try:
+                self._run(job)
+            except Exception as e:  # a bug here must not stop the runner
+                LOGGER.error("job runner error", exc_info=e)
+                self._db().finish(job.id, "failed", f"internal error: {type(e).__name__}: {e}")
+            finally:
+                with self._wake:
+                    self._running.pop(job.id, None)
+
+    def _dask(self) -> Any:
+        with self._client_lock:
+            if self._client is None:
+                from distributed import Client, LocalCluster
+
+                if self.settings.dask_scheduler:
+                    self._client = Client(self.settings.dask_scheduler, timeout=30)
+                else:
+                    self._cluster = LocalCluster(
+                        n_workers=self.settings.jobs_workers, threads_per_worker=1,
+                        processes=True, dashboard_address=None)
+                    self._client = Client(self._cluster)
+            return self._client
+
+    def _run(self, job: JobRecord) -> None:
+        d = self.job_dir(job.id)
+        out = d / "out"
+        out.mkdir(exist_ok=True)
+        LOGGER.info("job started", extra={"fields": {"job": job.id, "run": job.runs}})
+        try:
+            recording = next((d / "inputs").glob("recording.*"))
+            loaded = load(recording, d / "inputs" / "sensors.json")
+            tracks = list(loaded.tracks)
+        except (InputError, ValueError, OSError, StopIteration) as e:
+            reason = (f"{format_loc(e.loc)} {e.message}" if isinstance(e, InputError)
+                      else f"the recording could not be read: {type(e).__name__}: {e}")
+            self._db().finish(job.id, "failed", reason)
+            LOGGER.info("job failed", extra={"fields": {"job": job.id, "error": reason[:300]}})
+            return
+        self._db().set_tracks(job.id, [(t.key, len(t.table)) for t in tracks],
+                              len(loaded.rows), problems_summary(loaded.problems))
+        if self._stop_requested(job.id):
+            return
+        params = _read_json(d / "inputs" / "params.json") or {}
+        bounds = params.get("bounds")
+        config = ReconstructionConfig(**({"bounds": Bounds(**{k: tuple(v) for k, v in
+                                                              bounds.items()})}
+                                         if bounds else {}))
+        pool = _DaskPool(self._dask())
+        with self._wake:
+            self._running[job.id] = pool
+        if self._stop_requested(job.id):
+            return
+        stats_path = out / "sensor_stats.jsonl"
+
+        def on_outcome(o: TrackOutcome) -> None:
+            if pool.aborted.is_set():
+                raise Aborted("stopped")
+            if isinstance(o, AssessedTrack) and o.sensors:
+                with open(stats_path, "a", encoding="utf-8") as f:
+                    f.write(json.dumps({"aircraft": o.key, "sensors": o.sensors}) + "\n")
+
+        s = self.settings
+        figures = str(out / "figures") if s.jobs_track_figures else None
+        try:
+            reconstruct_many(tracks, out, config=config, executor=pool,
+                             time_limit_s=s.jobs_track_time_limit_s or None, flush_tracks=8,
+                             flush_s=1.0, on_outcome=on_outcome,
+                             task=partial(job_track, figures_root=figures))
+        except Aborted:
+            LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
+            return
+        if self._stop_requested(job.id):
+            return
+        self._finish_outputs(job.id, loaded)
+        self._db().finish(job.id, "done")
+        LOGGER.info("job done", extra={"fields": {"job": job.id}})
+
+    def _stop_requested(self, job_id: str) -> bool:
+        return self._stopping or job_id in self._cancelled
+
+    def _finish_outputs(self, job_id: str, loaded: Any) -> None:
+        """The whole-recording outputs of :mod:`solver.cli` (CSV, GeoJSON lines, map,
+        sensors' statistics, problems, summary) and single-file Parquet downloads."""
+        out = self.job_dir(job_id) / "out"
+        stats = SensorStats(loaded.sensors, loaded.scan_periods)
+        for reports in _sensor_reports(out).values():
+            stats.add(reports)
+        (out / "sensors.json").write_text(json.dumps(stats.rows(), indent=1) + "\n",
+                                          encoding="utf-8")
+        write_csv_and_geojson(out)
+        write_map(out, loaded.sensors, loaded.rows)
+        (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
+        export = out / "export"
+        export.mkdir(exist_ok=True)
+        progress = self.progress(job_id)
+        for name in ("tracks.parquet", "segments.parquet"):
+            _combine(out / name, _committed_parts(progress), export / name)
+        record = self._db().get(job_id)
+        summary = {"tracks": len(progress.entries), "done": progress.done,
+                   "failed": progress.failed, "plots": progress.plots_done,
+                   "rows_in_recording": len(loaded.rows),
+                   "problems": dict(loaded.problems.counts),
+                   "failures": {k: e["error"] for k, e in progress.entries.items()
+                                if e["status"] == "failed"},
+                   "runs": record.runs if record else None}
+        (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
+                                          encoding="utf-8")
+
+    # -- cancelling and deleting
+
+    def cancel(self, job_id: str) -> JobRecord | None:
+        """Cancel a queued or running job (its finished tracks stay readable); delete a
+        finished job with its data. None: no such job (or deleted now)."""
+        db = self._db()
+        job = db.get(job_id)
+        if job is None:
+            return None
+        if job.state in FINISHED:
+            with self._wake:
+                if job_id in self._running:  # its thread is still winding down
+                    return job
+            db.delete(job_id)
+            shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+            self._progress_cache.pop(job_id, None)
+            return None
+        with self._wake:
+            self._cancelled.add(job_id)
+            pool = self._running.get(job_id)
+        db.finish(job_id, "cancelled", "cancelled by DELETE /v1/jobs/{id}")
+        if pool is not None:
+            pool.abort()
+        return db.get(job_id)
+
+    # -- reading
+
+    def get(self, job_id: str) -> JobRecord | None:
+        return self._db().get(job_id)
+
+    def progress(self, job_id: str) -> Progress:
+        """The job's finished tracks from its commit log (cached on the file's size and
+        modification time)."""
+        path = self.job_dir(job_id) / "out" / "progress.jsonl"
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            return Progress()
+        stamp = (st.st_size, st.st_mtime_ns)
+        cached = self._progress_cache.get(job_id)
+        if cached is not None and cached[0] == stamp:
+            return cached[1]
+        p = Progress()
+        for line in path.read_bytes().split(b"\n"):
+            try:
+                entry = json.loads(line)
+            except ValueError:  # a torn last line (it is redone on resume)
+                continue
+            p.entries[entry["aircraft"]] = entry
+        for e in p.entries.values():
+            if e["status"] == "done":
+                p.done += 1
+                p.plots_done += int(e.get("plots") or 0)
+            else:
+                p.failed += 1
+        self._progress_cache[job_id] = (stamp, p)
+        return p
+
+    def tracks(self, job_id: str) -> list[tuple[str, int]]:
+        return self._db().tracks(job_id)
+
+    def track_plots(self, job_id: str, aircraft: str) -> int | None:
+        return self._db().track(job_id, aircraft)
+
+    def track_rows(self, job_id: str, aircraft: str) -> tuple[pa.Table, pa.Table] | None:
+        """A finished track's states and segments (from its committed part), or None."""
+        entry = self.progress(job_id).entries.get(aircraft)
+        if entry is None or entry["status"] != "done" or not entry.get("part"):
+            return None
+        out = self.job_dir(job_id) / "out"
+        flt = pa.compute.field("aircraft") == aircraft
+        states = pq.read_table(out / "tracks.parquet" / entry["part"], filters=flt)
+        segments = pq.read_table(out / "segments.parquet" / entry["part"], filters=flt)
+        return states, segments
+
+    def track_sensors(self, job_id: str, aircraft: str) -> list[dict[str, Any]]:
+        return _sensor_reports(self.job_dir(job_id) / "out").get(aircraft, [])
+
+    def figure(self, job_id: str, aircraft: str) -> Path | None:
+        d = figure_dir(self.job_dir(job_id) / "out" / "figures", aircraft)
+        return next(iter(sorted(d.glob("*.png"))), None) if d.is_dir() else None
+
+    def result_file(self, job_id: str, name: str) -> Path | None:
+        """A finished job's download (``RESULT_FILES``); the zip is built on first use."""
+        out = self.job_dir(job_id) / "out"
+        if name in ("tracks.parquet", "segments.parquet"):
+            path = out / "export" / name
+        elif name == "results.zip":
+            path = out / "export" / "results.zip"
+            if not path.exists():
+                _zip(out, path)
+        else:
+            path = out / name
+        return path if path.is_file() else None
+
+
+# ---------------------------------------------------------------------------------- helpers
+
+
+def problems_summary(problems: Any) -> dict[str, Any]:
+    """Counts by kind, their total, and the first examples (each locating its problem)."""
+    return {"total": problems.total, "counts": dict(problems.counts),
+            "examples": [str(p) for p in list(problems.entries)[:PROBLEM_EXAMPLES]]}
+
+
+def _sensor_reports(out: Path) -> dict[str, list[dict[str, Any]]]:
+    """Per-track sensor statistics (the last line of a key wins: a redone track's)."""
+    path = out / "sensor_stats.jsonl"
+    reports: dict[str, list[dict[str, Any]]] = {}
+    if path.exists():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                entry = json.loads(line)
+            except ValueError:
+                continue
+            reports[entry["aircraft"]] = entry["sensors"]
+    return reports
+
+
+def _committed_parts(progress: Progress) -> list[str]:
+    return sorted({e["part"] for e in progress.entries.values() if e.get("part")})
+
+
+def _combine(parts_dir: Path, parts: list[str], target: Path) -> None:
+    """One Parquet file of the committed parts, written part by part (memory bounded)."""
+    tmp = target.with_suffix(".tmp")
+    writer: pq.ParquetWriter | None = None
+    for name in parts:
+        table = pq.read_table(parts_dir / name)
+        if writer is None:
+            writer = pq.ParquetWriter(tmp, table.schema)
+        writer.write_table(table)
+    if writer is None:
+        return
+    writer.close()
+    os.replace(tmp, target)
+
+
+def _zip(out: Path, target: Path) -> None:
+    import zipfile
+
+    tmp = target.with_suffix(".tmp")
+    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+        for name in RESULT_FILES:
+            src = out / "export" / name if name.endswith(".parquet") else out / name
+            if name != "results.zip" and src.is_file():
+                z.write(src, name)
+    os.replace(tmp, target)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -1,0 +1,505 @@
+"""The jobs endpoints (``/v1/jobs``): whole recordings or many tracks, reconstructed in the
+background by :class:`service.jobs.JobRunner` (contract: ``../shared/spec/recordings.md``)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import shutil
+import time
+from collections.abc import AsyncGenerator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, FastAPI, HTTPException, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response
+from pydantic import ValidationError
+from starlette.datastructures import UploadFile
+from starlette.formparsers import MultiPartException, MultiPartParser
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from solver.config import ReconstructionConfig
+from solver.inputs import Bounds, InputError
+from solver.io.sensors_file import parse_sensors
+from solver.io.tables import PlotRows, write_table
+from solver.sensors import RadarSensor
+
+from .job_models import (
+    JobStatus,
+    JobTrack,
+    JobTrackResult,
+    JobTracksRequest,
+    SensorSummaryOut,
+)
+from .jobs import FINISHED, RESULT_FILES, Full, JobRecord, JobRunner
+from .models import ErrorResponse
+from .settings import Settings
+
+JOBS_PATH = "/v1/jobs"
+TABLE_SUFFIXES = {".csv": ".csv", ".parquet": ".parquet", ".pq": ".parquet"}
+MAX_SENSORS_PART = 16 << 20  # a sensor file sent as a plain form field (bytes)
+_COV_NAMES = ("x", "z", "vx", "vz")
+
+
+def _err(description: str) -> dict[str, Any]:
+    return {"model": ErrorResponse, "description": description}
+
+
+_NOT_FOUND = {404: _err("No such job (or track).")}
+_NOT_YET = {409: _err("Not available in the job's (or track's) current state.")}
+_PNG = {200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
+              "description": "A PNG image."}}
+
+router = APIRouter(tags=["jobs"])
+
+
+class TooLarge(Exception):
+    """An upload over ``jobs_max_upload_bytes``."""
+
+
+class JobsBodyLimit:
+    """The service's body limit (``limit``, e.g. :class:`service.app.BodyLimit`) for every
+    request but ``POST /v1/jobs``, whose uploads the route limits itself (with its own 413, at
+    ``jobs_max_upload_bytes``)."""
+
+    def __init__(self, app: ASGIApp, limit: type, max_bytes: int):
+        self.app = app
+        self.limited = limit(app, max_bytes=max_bytes)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (scope["type"] == "http" and scope["method"] == "POST"
+                and scope["path"].rstrip("/") == JOBS_PATH):
+            await self.app(scope, receive, send)
+        else:
+            await self.limited(scope, receive, send)
+
+
+def install_jobs(app: FastAPI, settings: Settings) -> JobRunner:
+    """Add the jobs routes to ``app``; the returned runner is started and closed by the
+    application's lifespan."""
+    runner = JobRunner(settings)
+    app.state.jobs = runner
+    app.include_router(router)
+    return runner
+
+
+def _runner(request: Request) -> JobRunner:
+    """The app's job runner; 503 while its store is not open (the reason in the message)."""
+    runner: JobRunner = request.app.state.jobs
+    if runner.store is None:
+        raise HTTPException(503, f"jobs are unavailable: {runner.unavailable}",
+                            headers={"Retry-After": str(runner.settings.retry_after_s)})
+    return runner
+
+
+def _error(status: int, message: str, loc: list[str | int] | None = None,
+           headers: dict[str, str] | None = None) -> JSONResponse:
+    detail = [] if loc is None else [{"loc": loc, "msg": message, "type": "value_error"}]
+    body = ErrorResponse.model_validate({"message": message, "detail": detail})
+    return JSONResponse(body.model_dump(), status_code=status, headers=headers)
+
+
+def _busy(runner: JobRunner, why: str) -> JSONResponse:
+    return _error(503, f"too many jobs: {why}; retry later",
+                  headers={"Retry-After": str(runner.settings.retry_after_s)})
+
+
+# ----------------------------------------------------------------------------------- create
+
+
+_CREATE_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {"schema": {
+            "type": "object", "required": ["recording", "sensors"],
+            "properties": {
+                "recording": {"type": "string", "format": "binary", "description":
+                              "The recording: raw ASTERIX (CAT048/021/034), a pcap capture of "
+                              "it, or a plot table (.csv or .parquet; the file name's suffix "
+                              "or the content tells which)."},
+                "sensors": {"type": "string", "format": "binary", "description":
+                            "The sensor file (JSON, recordings.md): a file part or a text "
+                            "field."}}}},
+        "application/json": {"schema": {k: v for k, v in JobTracksRequest.model_json_schema(
+            ref_template="#/components/schemas/{model}").items() if k != "$defs"}},
+    },
+}
+
+
+@router.post(JOBS_PATH, status_code=202, response_model=JobStatus,
+             summary="Reconstruct a whole recording (or many tracks) in the background",
+             openapi_extra={"requestBody": _CREATE_BODY},
+             responses={202: {"headers": {"Location": {
+                            "description": "The job's URL.", "schema": {"type": "string"}}}},
+                        413: _err("Upload over the jobs' size limit."),
+                        415: _err("Neither multipart/form-data nor JSON."),
+                        422: _err("Invalid input; the message names the part or field."),
+                        503: _err("Too many jobs queued or running; retry after "
+                                  "`Retry-After` seconds.")})
+async def create_job(request: Request) -> Response:
+    """Accept a job: a multipart upload of a `recording` file and its `sensors` file, or a
+    JSON body of tracks (`JobTracksRequest`). The inputs are stored durably before the 202;
+    the job runs in the background (`GET` its `Location` for progress). A recording whose
+    content cannot be read is accepted and ends `failed` with the reason; partial problems
+    (damaged blocks, unknown sensors, short tracks) are counted in the job's `problems`."""
+    runner = _runner(request)
+    try:
+        runner.check_room()
+    except Full as e:
+        return _busy(runner, str(e))
+    limit = runner.settings.jobs_max_upload_bytes
+    length = request.headers.get("content-length", "")
+    if length.isdigit() and int(length) > limit:
+        return _too_large(limit)
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in ("multipart/form-data", "application/json"):
+        return _error(415, "send the recording as multipart/form-data (parts `recording` and "
+                      "`sensors`) or the tracks as application/json", ["headers",
+                                                                       "content-type"])
+    incoming = await run_in_threadpool(runner.new_inputs)
+    accepted = False
+    try:
+        if ctype == "multipart/form-data":
+            kind = "recording"
+            await _save_upload(request, incoming / "inputs", limit)
+        else:
+            kind = "tracks"
+            body = b"".join([c async for c in _limited(request, limit)])
+            await run_in_threadpool(_save_tracks, body, incoming / "inputs")
+        record = await run_in_threadpool(runner.accept, incoming, kind)
+        accepted = True
+    except TooLarge:
+        return _too_large(limit)
+    except Full as e:
+        return _busy(runner, str(e))
+    finally:
+        if not accepted:
+            shutil.rmtree(incoming, ignore_errors=True)
+    body_out = _status(runner, record)
+    return JSONResponse(body_out.model_dump(mode="json"), status_code=202,
+                        headers={"Location": f"{JOBS_PATH}/{record.id}"})
+
+
+def _too_large(limit: int) -> JSONResponse:
+    return _error(413, f"request body is larger than the jobs' upload limit of {limit} bytes")
+
+
+async def _limited(request: Request, limit: int) -> AsyncGenerator[bytes, None]:
+    received = 0
+    async for chunk in request.stream():
+        received += len(chunk)
+        if received > limit:
+            raise TooLarge
+        yield chunk
+
+
+async def _save_upload(request: Request, inputs: Path, limit: int) -> None:
+    """Stream the multipart body (counted against ``limit``) and store its two parts."""
+    parser = MultiPartParser(request.headers, _limited(request, limit), max_files=4,
+                             max_fields=4, max_part_size=MAX_SENSORS_PART)
+    try:
+        form = await parser.parse()
+    except MultiPartException as e:
+        raise InputError(("body",), f"is not a valid multipart/form-data body: {e.message}"
+                         ) from None
+    try:
+        unknown = sorted(set(form.keys()) - {"recording", "sensors"})
+        if unknown:
+            raise InputError((unknown[0],), "is not a part of a job upload (parts: recording, "
+                             "sensors)")
+        recording, sensors = form.get("recording"), form.get("sensors")
+        if not isinstance(recording, UploadFile):
+            raise InputError(("recording",), "is required: a file part with the recording "
+                             "(raw ASTERIX, pcap, CSV or Parquet)")
+        if sensors is None:
+            raise InputError(("sensors",), "is required: the sensor file (JSON) as a file "
+                             "part or a text field")
+        text = (await sensors.read()).decode("utf-8", "replace") if isinstance(
+            sensors, UploadFile) else str(sensors)
+        await run_in_threadpool(_store_upload, recording, text, inputs)
+    finally:
+        await form.close()
+
+
+def _store_upload(recording: UploadFile, sensors_text: str, inputs: Path) -> None:
+    parse_sensors(sensors_text)  # 422 at sensors[j].field for a bad sensor file
+    src = recording.file
+    src.seek(0)
+    head = src.read(4096)
+    if not head:
+        raise InputError(("recording",), "is empty")
+    suffix = TABLE_SUFFIXES.get(Path(recording.filename or "").suffix.lower())
+    if suffix is None:
+        suffix = ".parquet" if head[:4] == b"PAR1" else ".csv" if _looks_like_csv(head) \
+            else ".ast"
+    src.seek(0)
+    with open(inputs / f"recording{suffix}", "wb") as f:
+        shutil.copyfileobj(src, f, 1 << 20)
+    (inputs / "sensors.json").write_text(sensors_text, encoding="utf-8")
+    (inputs / "params.json").write_text("{}\n", encoding="utf-8")
+
+
+def _looks_like_csv(head: bytes) -> bool:
+    """A text header line naming the table's columns (the table's spec)."""
+    try:
+        first = head.decode("utf-8").splitlines()[0]
+    except (UnicodeDecodeError, IndexError):
+        return False
+    return "," in first and "sensor" in first
+
+
+def _save_tracks(body: bytes, inputs: Path) -> None:
+    """Validate a JSON body of tracks and store it as a plot table with its sensor file."""
+    try:
+        req = JobTracksRequest.model_validate_json(body)
+    except ValidationError as e:
+        raise RequestValidationError(e.errors(include_url=False), body=body) from None
+    doc: dict[str, Any] = {"sensors": [s.model_dump(exclude_none=True) for s in req.sensors]}
+    if req.reference is not None:
+        doc["reference"] = req.reference.model_dump()
+    sensors = parse_sensors(doc)
+    b = req.bounds
+    ReconstructionConfig(bounds=Bounds(u=tuple(b.u), w=tuple(b.w), v=tuple(b.v))).validate()  # type: ignore[arg-type]
+    radar = {s.id: isinstance(s, RadarSensor) for s in sensors.sensors}
+    cols: dict[str, list[Any]] = {k: [] for k in ("t", "sensor", "range_m", "azimuth_deg",
+                                                  "lat_deg", "lon_deg", "altitude_m",
+                                                  "aircraft")}
+    for key, plots in req.tracks.items():
+        if not key.strip():
+            raise InputError(("tracks",), "has an empty key: every track needs a name")
+        for i, p in enumerate(plots):
+            loc: tuple[str | int, ...] = ("tracks", key, i)
+            if p.sensor is None:
+                raise InputError((*loc, "sensor"), "is required (one of the `sensors` ids)")
+            if p.sensor not in radar:
+                raise InputError((*loc, "sensor"), f"{p.sensor!r} is not a sensor id (ids: "
+                                 f"{', '.join(radar)})")
+            need = ("range_m", "azimuth_deg") if radar[p.sensor] else ("lat_deg", "lon_deg")
+            for name in need:
+                if getattr(p, name) is None:
+                    raise InputError((*loc, name), f"is required for a plot of {p.sensor}")
+            for name in cols:
+                value = key if name == "aircraft" else getattr(p, name)
+                cols[name].append(np.nan if value is None else value)
+    n = len(cols["t"])
+    rows = PlotRows.from_columns(n, **{k: np.asarray(v, dtype=object if k in (
+        "sensor", "aircraft") else float) for k, v in cols.items()})
+    write_table(rows, inputs / "recording.parquet")
+    (inputs / "sensors.json").write_text(json.dumps(doc), encoding="utf-8")
+    (inputs / "params.json").write_text(json.dumps({"bounds": b.model_dump()}),
+                                        encoding="utf-8")
+
+
+# ------------------------------------------------------------------------------------- read
+
+
+def _iso(t: float | None) -> str | None:
+    return None if t is None else dt.datetime.fromtimestamp(t, dt.UTC).isoformat()
+
+
+def _status(runner: JobRunner, job: JobRecord) -> JobStatus:
+    p = runner.progress(job.id)
+    end = job.finished if job.state in FINISHED else time.time()
+    return JobStatus(
+        id=job.id, kind=job.kind, state=job.state,  # type: ignore[arg-type]
+        tracks_total=job.tracks_total, tracks_done=p.done, tracks_failed=p.failed,
+        plots=job.plots, plots_done=p.plots_done, rows=job.rows,
+        problems=job.problems,  # type: ignore[arg-type]
+        error=job.error, created=_iso(job.created) or "", started=_iso(job.started),
+        finished=_iso(job.finished),
+        elapsed_s=None if job.started is None or end is None else max(end - job.started, 0.0),
+        runs=job.runs, input_bytes=job.input_bytes)
+
+
+def _job(runner: JobRunner, job_id: str) -> JobRecord:
+    job = runner.get(job_id)
+    if job is None:
+        raise HTTPException(404, f"job {job_id} not found")
+    return job
+
+
+@router.get(JOBS_PATH + "/{job_id}", response_model=JobStatus, responses=_NOT_FOUND,
+            summary="A job's state and progress")
+def get_job(job_id: str, request: Request) -> JobStatus:
+    """State (queued, running, done, failed, cancelled), tracks done/failed/total, plots, the
+    input's problems and timing."""
+    runner = _runner(request)
+    return _status(runner, _job(runner, job_id))
+
+
+@router.delete(JOBS_PATH + "/{job_id}", response_model=JobStatus,
+               responses={**_NOT_FOUND, 204: {"description": "The finished job and its data "
+                                                             "were removed."}},
+               summary="Cancel a job (or remove a finished one)")
+def delete_job(job_id: str, request: Request) -> Response:
+    """A queued or running job is cancelled (200 with its status; its finished tracks stay
+    readable until it is deleted); a finished job (done, failed, cancelled) is removed with
+    its data (204)."""
+    runner = _runner(request)
+    _job(runner, job_id)
+    job = runner.cancel(job_id)
+    if job is None:
+        return Response(status_code=204)
+    return JSONResponse(_status(runner, job).model_dump(mode="json"))
+
+
+@router.get(JOBS_PATH + "/{job_id}/tracks", response_model=list[JobTrack],
+            responses=_NOT_FOUND, summary="A job's tracks with their status")
+def list_job_tracks(job_id: str, request: Request) -> list[JobTrack]:
+    """Every aircraft of the job (empty until the recording has been read), in order of first
+    plot: pending, done or failed (with the reason)."""
+    runner = _runner(request)
+    _job(runner, job_id)
+    entries = runner.progress(job_id).entries
+    out = []
+    for key, plots in runner.tracks(job_id):
+        e = entries.get(key)
+        out.append(JobTrack(aircraft=key, plots=plots, status="pending") if e is None else
+                   JobTrack(aircraft=key, plots=plots, status=e["status"], error=e["error"],
+                            elapsed_s=e.get("elapsed_s"), warnings=e.get("warnings") or []))
+    return out
+
+
+def _track_entry(runner: JobRunner, job_id: str, aircraft: str) -> dict[str, Any]:
+    _job(runner, job_id)
+    if runner.track_plots(job_id, aircraft) is None:
+        raise HTTPException(404, f"job {job_id} has no track {aircraft!r}")
+    entry = runner.progress(job_id).entries.get(aircraft)
+    if entry is None:
+        raise HTTPException(409, f"track {aircraft!r} is not reconstructed yet (pending)")
+    if entry["status"] != "done":
+        raise HTTPException(409, f"track {aircraft!r} failed: {entry['error']}")
+    return entry
+
+
+@router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft}", response_model=JobTrackResult,
+            responses={**_NOT_FOUND, **_NOT_YET}, summary="One reconstructed track of a job")
+def get_job_track(job_id: str, aircraft: str, request: Request) -> JobTrackResult:
+    """The track's segments and its state at every plot (with latitude and longitude), and
+    its sensors' statistics; available as soon as the track is done."""
+    runner = _runner(request)
+    entry = _track_entry(runner, job_id, aircraft)
+    got = runner.track_rows(job_id, aircraft)
+    if got is None:  # pragma: no cover - a done entry always names its part
+        raise HTTPException(409, f"track {aircraft!r} has no stored rows")
+    states, segments = got
+    return JobTrackResult.model_validate({
+        "aircraft": aircraft,
+        "trajectory": {"segments": _segment_rows(segments), "at_plots": _state_rows(states)},
+        "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, aircraft)],
+        "diagnostics": {"elapsed_ms": 1e3 * float(entry.get("elapsed_s") or 0.0),
+                        "warnings": entry.get("warnings") or []}})
+
+
+def _state_rows(t: Any) -> list[dict[str, Any]]:
+    cols = t.to_pydict()
+    out = []
+    for i in range(t.num_rows):
+        cov = [[0.0] * 4 for _ in range(4)]
+        finite = True
+        for a in range(4):
+            for b in range(a, 4):
+                v = cols[f"cov_{_COV_NAMES[a]}_{_COV_NAMES[b]}"][i]
+                finite &= v is not None and bool(np.isfinite(v))
+                cov[a][b] = cov[b][a] = v
+        row = {k: cols[k][i] for k in ("plot", "sensor", "t", "x", "z", "vx", "vz", "speed",
+                                       "heading_deg", "lat_deg", "lon_deg")}
+        row["heading_deg"] = row["heading_deg"] % 360.0
+        row["cov"] = cov if finite else None
+        if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:
+            row["altitude_m"], row["altitude_sigma_m"] = cols["h_m"][i], cols["h_sigma_m"][i]
+        out.append(row)
+    return out
+
+
+def _segment_rows(t: Any) -> list[dict[str, Any]]:
+    cols = t.to_pydict()
+    rows = [{k: cols[k][i] for k in ("t_start", "t_end", "u", "w", "x", "z", "heading_deg",
+                                     "speed")} for i in range(t.num_rows)]
+    for r in rows:
+        r["heading_deg"] %= 360.0
+    return rows
+
+
+def _sensor_out(r: dict[str, Any]) -> dict[str, Any]:
+    """A sensor report in degrees (the worker's dict carries radians)."""
+    out = {k: v for k, v in r.items() if not k.endswith("_rad")}
+    for k, v in r.items():
+        if k.endswith("_rad"):
+            out[k[:-4] + "_deg"] = None if v is None else float(np.rad2deg(v))
+    return out
+
+
+@router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft}/figure.png", response_class=Response,
+            responses={**_PNG, **_NOT_FOUND, **_NOT_YET}, summary="A job track's figure")
+def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> Response:
+    """The track's plots with their ellipses, the reconstruction and its controls over time
+    (drawn on the worker when the track was solved)."""
+    runner = _runner(request)
+    _track_entry(runner, job_id, aircraft)
+    path = runner.figure(job_id, aircraft)
+    if path is None:
+        raise HTTPException(404, f"no figure was drawn for track {aircraft!r} (figures are "
+                            "off, or its worker's disk is not this service's)")
+    return FileResponse(path, media_type="image/png")
+
+
+def _finished(runner: JobRunner, job_id: str) -> JobRecord:
+    job = _job(runner, job_id)
+    if job.state != "done":
+        raise HTTPException(409, f"job {job_id} is {job.state}; whole-job results are made "
+                            "when it is done (finished tracks: GET .../tracks/{aircraft})")
+    return job
+
+
+@router.get(JOBS_PATH + "/{job_id}/map.png", response_class=Response,
+            responses={**_PNG, **_NOT_FOUND, **_NOT_YET}, summary="Map of a job's tracks")
+def get_job_map(job_id: str, request: Request) -> Response:
+    """Every reconstructed track of a done job on one map, with the radar sites."""
+    runner = _runner(request)
+    _finished(runner, job_id)
+    path = runner.result_file(job_id, "map.png")
+    if path is None:
+        raise HTTPException(404, f"job {job_id} has no reconstructed track to map")
+    return FileResponse(path, media_type="image/png")
+
+
+@router.get(JOBS_PATH + "/{job_id}/sensors", response_model=list[SensorSummaryOut],
+            responses={**_NOT_FOUND, **_NOT_YET}, summary="Per-sensor statistics of a job")
+def get_job_sensors(job_id: str, request: Request) -> list[SensorSummaryOut]:
+    """Each sensor over all tracks of a done job: plots, detection rate, wild plots, bias and
+    sigma of the range and azimuth residuals (the radar assessment of SASS-C/TRES)."""
+    runner = _runner(request)
+    _finished(runner, job_id)
+    path = runner.result_file(job_id, "sensors.json")
+    rows = json.loads(path.read_text(encoding="utf-8")) if path else []
+    return [SensorSummaryOut.model_validate(r) for r in rows]
+
+
+_MEDIA = {".parquet": "application/vnd.apache.parquet", ".csv": "text/csv",
+          ".geojsonl": "application/geo+json-seq", ".json": "application/json",
+          ".txt": "text/plain", ".png": "image/png", ".zip": "application/zip"}
+
+
+@router.get(JOBS_PATH + "/{job_id}/results/{name}", response_class=Response,
+            responses={200: {"content": {"application/octet-stream": {"schema": {
+                "type": "string", "format": "binary"}}}, "description": "The file."},
+                **_NOT_FOUND, **_NOT_YET}, summary="A done job's result file")
+def get_job_result(job_id: str, name: str, request: Request) -> Response:
+    """`tracks.parquet` (states at every plot), `segments.parquet`, `tracks.csv`,
+    `tracks.geojsonl` (one LineString per aircraft), `sensors.json`, `problems.txt`,
+    `summary.json`, `map.png`, or all of them as `results.zip`."""
+    runner = _runner(request)
+    if name not in RESULT_FILES:
+        raise HTTPException(404, f"no result file {name!r} (files: {', '.join(RESULT_FILES)})")
+    _finished(runner, job_id)
+    path = runner.result_file(job_id, name)
+    if path is None:
+        raise HTTPException(404, f"job {job_id} has no {name} (no track was reconstructed)")
+    return FileResponse(path, media_type=_MEDIA.get(Path(name).suffix,
+                                                    "application/octet-stream"),
+                        filename=name)
+
