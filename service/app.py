@@ -28,6 +28,7 @@ from .logs import LOGGER, setup_logging
 from .metrics import Metrics
 from .models import ErrorResponse, Health, ReconstructionRequest, ReconstructionResponse
 from .pool import Busy, SolverPool
+from .routes_jobs import JobsBodyLimit, install_jobs
 from .settings import Settings, get_settings
 from .workers import SolveError
 
@@ -228,7 +229,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             **settings.model_dump(),
             "c_compiler": compiled.compiler() or "none: the motion model is interpreted"}})
         pool.start()
+        jobs.start()
         yield
+        await jobs.aclose()
         await pool.close()
 
     app = FastAPI(
@@ -259,10 +262,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.pool = pool
+    jobs = install_jobs(app, settings)  # /v1/jobs (service.routes_jobs)
     # outermost last: Observe sees every answer (framing and size refusals included); gzip
     # at level 1: the 2.56-MB sample answer becomes 1.04 MB in 25 ms (level 6: 0.97 MB in
     # 120 ms); answers over 128 KiB are compressed in a thread, off the event loop
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(JobsBodyLimit, limit=BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=1)
     app.add_middleware(Framing)
     app.add_middleware(Observe, metrics=metrics, access_log=settings.access_log)
