@@ -466,6 +466,7 @@ class JobRunner:
             finally:
                 with self._wake:
                     self._running.pop(job.id, None)
+                    self._wake.notify_all()
 
     def _dask(self) -> Any:
         with self._client_lock:
@@ -486,6 +487,7 @@ class JobRunner:
         out = d / "out"
         out.mkdir(exist_ok=True)
         LOGGER.info("job started", extra={"fields": {"job": job.id, "run": job.runs}})
+        began = time.monotonic()
         try:
             recording = next((d / "inputs").glob("recording.*"))
             loaded = load(recording, d / "inputs" / "sensors.json")
@@ -498,6 +500,9 @@ class JobRunner:
             return
         self._db().set_tracks(job.id, [(t.key, len(t.table)) for t in tracks],
                               len(loaded.rows), problems_summary(loaded.problems))
+        LOGGER.info("job read", extra={"fields": {
+            "job": job.id, "rows": len(loaded.rows), "tracks": len(tracks),
+            "problems": loaded.problems.total, "read_s": round(time.monotonic() - began, 3)}})
         if self._stop_requested(job.id):
             return
         params = _read_json(d / "inputs" / "params.json") or {}
@@ -506,6 +511,8 @@ class JobRunner:
                                                               bounds.items()})}
                                          if bounds else {}))
         pool = _DaskPool(self._dask())
+        LOGGER.info("job submitting", extra={"fields": {
+            "job": job.id, "seconds": round(time.monotonic() - began, 3)}})
         with self._wake:
             self._running[job.id] = pool
         if self._stop_requested(job.id):
@@ -531,9 +538,12 @@ class JobRunner:
             return
         if self._stop_requested(job.id):
             return
+        solved = time.monotonic()
         self._finish_outputs(job.id, loaded)
         self._db().finish(job.id, "done")
-        LOGGER.info("job done", extra={"fields": {"job": job.id}})
+        LOGGER.info("job done", extra={"fields": {
+            "job": job.id, "seconds": round(time.monotonic() - began, 3),
+            "outputs_s": round(time.monotonic() - solved, 3)}})
 
     def _stop_requested(self, job_id: str) -> bool:
         return self._stopping or job_id in self._cancelled
@@ -568,9 +578,10 @@ class JobRunner:
 
     # -- cancelling and deleting
 
-    def cancel(self, job_id: str) -> JobRecord | None:
-        """Cancel a queued or running job (its finished tracks stay readable); delete a
-        finished job with its data. None: no such job (or deleted now)."""
+    def cancel(self, job_id: str, wait_s: float = 10.0) -> JobRecord | None:
+        """Cancel a queued or running job (its finished tracks stay readable), waiting up to
+        ``wait_s`` for it to stop; delete a finished job with its data. None: no such job
+        (or deleted now)."""
         db = self._db()
         job = db.get(job_id)
         if job is None:
@@ -589,6 +600,8 @@ class JobRunner:
         db.finish(job_id, "cancelled", "cancelled by DELETE /v1/jobs/{id}")
         if pool is not None:
             pool.abort()
+        with self._wake:  # until its thread has let go of it (no part written after this)
+            self._wake.wait_for(lambda: job_id not in self._running, timeout=wait_s)
         return db.get(job_id)
 
     # -- reading

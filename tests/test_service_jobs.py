@@ -1,0 +1,244 @@
+"""Jobs (``/v1/jobs``) in process: the app with its real job runner, SQLite store and a real
+one-worker Dask LocalCluster (shared by this module's jobs). An ASTERIX recording encoded with
+libasterix runs to done with every track once; a JSON body of tracks too; cancel, the 413 and
+503 limits, and bad inputs (422 naming the part or field, a recording that cannot be read
+accepted and failed with the reason)."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+import zipfile
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from fastapi.testclient import TestClient
+from test_io_asterix import FLIGHTS, SENSOR_FILE, Flight, encode_recording
+
+from service.app import create_app
+from service.settings import Settings
+
+UPLOAD_LIMIT = 200_000
+MANY = tuple(Flight(0x400000 + k, 5_000.0 * k, -20_000.0 + 4_000.0 * k, 180.0, 60.0 - 20 * k,
+                    300.0, (110 + k, 210 + k)) for k in range(6))
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
+                        data_dir=tmp_path_factory.mktemp("jobs"), jobs_workers=1,
+                        jobs_max_running=1, jobs_max_queued=1,
+                        jobs_max_upload_bytes=UPLOAD_LIMIT)
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+def upload(client: TestClient, data: bytes, name: str = "day.ast", sensors=SENSOR_FILE):
+    return client.post("/v1/jobs", files={"recording": (name, data),
+                                          "sensors": ("sensors.json", json.dumps(sensors))})
+
+
+def wait(client: TestClient, location: str, states=("done", "failed", "cancelled"),
+         timeout: float = 120.0) -> dict:
+    end = time.monotonic() + timeout
+    while True:
+        status = client.get(location).json()
+        if status["state"] in states:
+            return status
+        assert time.monotonic() < end, status
+        time.sleep(0.2)
+
+
+def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
+    enc = encode_recording(duration=60.0)
+    r = upload(client, enc.data[:-7])  # the last block truncated: a problem, not fatal
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert job["state"] == "queued" and r.headers["location"] == f"/v1/jobs/{job['id']}"
+    status = wait(client, r.headers["location"])
+    loc = r.headers["location"]
+    assert status["state"] == "done", status
+    keys = {f"{f.address:06X}" for f in FLIGHTS}
+    assert status["tracks_total"] == status["tracks_done"] == len(FLIGHTS)
+    assert status["tracks_failed"] == 0 and status["error"] is None
+    assert status["problems"]["counts"] == {"truncated_block": 1}
+    assert status["plots"] == status["plots_done"] == status["rows"] > 0.95 * len(enc.plots)
+    assert status["runs"] == 1 and status["elapsed_s"] > 0 and status["finished"]
+
+    tracks = client.get(loc + "/tracks").json()
+    assert {t["aircraft"] for t in tracks} == keys and len(tracks) == len(FLIGHTS)
+    assert all(t["status"] == "done" and t["error"] is None for t in tracks)
+
+    table = pq.read_table(io.BytesIO(client.get(loc + "/results/tracks.parquet").content))
+    pairs = list(zip(table.column("aircraft").to_pylist(), table.column("plot").to_pylist(),
+                     strict=True))
+    assert len(pairs) == len(set(pairs)) == status["plots"]  # every plot of every track once
+    for t in tracks:
+        assert sum(a == t["aircraft"] for a, _ in pairs) == t["plots"]
+
+    for k, f in enumerate(FLIGHTS):
+        key = f"{f.address:06X}"
+        one = client.get(f"{loc}/tracks/{key}")
+        assert one.status_code == 200, one.text
+        body = one.json()
+        states = body["trajectory"]["at_plots"]
+        plots = next(t["plots"] for t in tracks if t["aircraft"] == key)
+        assert len(states) == plots and [s["plot"] for s in states] == list(range(plots))
+        assert body["trajectory"]["segments"] and {s["id"] for s in body["sensors"]} == {
+            "R1", "R2", "ADSB"}
+        t = np.array([s["t"] for s in states])
+        lat, lon, _ = f.at(t - t.min() + _first_t(enc, k))
+        dy = (np.array([s["lat_deg"] for s in states]) - lat) * 111_000
+        dx = (np.array([s["lon_deg"] for s in states]) - lon) * 111_000 * np.cos(
+            np.deg2rad(lat))
+        assert np.hypot(dx, dy).max() < 60.0  # exact plots: the flight within 60 m
+        figure = client.get(f"{loc}/tracks/{key}/figure.png")
+        assert figure.headers["content-type"] == "image/png"
+        assert figure.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+    assert client.get(loc + "/map.png").content[:4] == b"\x89PNG"
+    sensors = {s["sensor"]: s for s in client.get(loc + "/sensors").json()}
+    assert set(sensors) == {"R1", "R2", "ADSB"} and sensors["R1"]["scan_period_s"] == 4.0
+    archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
+    assert {"tracks.parquet", "segments.parquet", "tracks.csv", "tracks.geojsonl",
+            "sensors.json", "summary.json", "problems.txt", "map.png"} <= set(
+                archive.namelist())
+    lines = client.get(loc + "/results/tracks.geojsonl").text.splitlines()
+    assert sorted(json.loads(x)["properties"]["aircraft"] for x in lines) == sorted(keys)
+    assert client.get(f"{loc}/tracks/NOPE").status_code == 404
+    assert client.get(loc + "/results/nope.txt").status_code == 404
+
+    # a finished job is removed with its data
+    assert client.delete(loc).status_code == 204
+    assert client.get(loc).status_code == 404
+    assert client.get(loc + "/tracks").status_code == 404
+
+
+def _first_t(enc, k: int) -> float:
+    return min(p["tod"] for p in enc.plots if p["flight"] == k) - 36_000.0
+
+
+def test_json_tracks_job(client):
+    enc = encode_recording(duration=40.0)
+    tracks: dict[str, list[dict]] = {"A": [], "B": []}
+    for p in enc.plots:
+        plot = {"t": p["tod"], "sensor": p["sensor"]}
+        if "range_m" in p:
+            plot |= {"range_m": p["range_m"], "azimuth_deg": p["azimuth_deg"]}
+        else:
+            plot |= {"lat_deg": p["lat"], "lon_deg": p["lon"]}
+        tracks["AB"[p["flight"]]].append(plot)
+    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
+    tracks["short"] = tracks["A"][:2]  # too short: reported, not dropped silently
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
+    assert r.status_code == 202, r.text
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "done" and status["kind"] == "tracks", status
+    assert status["tracks_total"] == status["tracks_done"] == 2
+    assert status["problems"]["counts"] == {"short_track": 1}
+    listed = client.get(r.headers["location"] + "/tracks").json()
+    assert [(t["aircraft"], t["plots"]) for t in listed] == [("A", len(tracks["A"])),
+                                                            ("B", len(tracks["B"]))]
+
+
+def test_cancel_and_the_concurrent_job_limit(client):
+    data = encode_recording(duration=120.0, flights=MANY).data
+    first = upload(client, data)
+    second = upload(client, data)
+    assert first.status_code == second.status_code == 202
+    busy = upload(client, data)  # one running and one queued: the limit
+    assert busy.status_code == 503 and busy.headers["retry-after"]
+    assert busy.json()["message"].startswith("too many jobs")
+
+    queued = client.delete(second.headers["location"])
+    assert queued.status_code == 200 and queued.json()["state"] == "cancelled"
+    running = wait(client, first.headers["location"], states=("running",))
+    assert running["state"] == "running"
+    cancelled = client.delete(first.headers["location"]).json()
+    assert cancelled["state"] == "cancelled" and cancelled["error"]
+    time.sleep(2.0)  # nothing of a cancelled job goes on
+    later = client.get(first.headers["location"]).json()
+    assert later["state"] == "cancelled" and later["tracks_done"] < len(MANY)
+    assert later["tracks_done"] == cancelled["tracks_done"]
+    assert client.get(first.headers["location"] + "/map.png").status_code == 409
+    assert client.get(second.headers["location"] + "/tracks").json() == []
+    for r in (first, second):  # deleting a finished (cancelled) job removes it
+        assert client.delete(r.headers["location"]).status_code == 204
+        assert client.get(r.headers["location"]).status_code == 404
+    assert upload(client, b"\x00" * 10, name="x.csv").status_code == 202  # room again
+
+
+def test_upload_over_the_limit_is_413(client):
+    r = upload(client, b"\x30" * (UPLOAD_LIMIT + 1))
+    assert r.status_code == 413
+    assert "upload limit of 200000 bytes" in r.json()["message"]
+
+    def chunks():  # no Content-Length: counted while streaming
+        for _ in range(30):
+            yield b"x" * 10_000
+
+    r = client.post("/v1/jobs", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 413 and r.json()["detail"] == []
+
+
+@pytest.mark.parametrize(("files", "field"), [
+    ({"sensors": ("s.json", json.dumps(SENSOR_FILE))}, "recording"),
+    ({"recording": ("r.ast", b"\x30\x00\x03")}, "sensors"),
+    ({"recording": ("r.ast", b"\x30\x00\x03"), "sensors": ("s.json", "[{\"id\": \"R1\"}]")},
+     "sensors[0].kind"),
+    ({"recording": ("r.ast", b"\x30\x00\x03"),
+      "sensors": ("s.json", json.dumps([{**SENSOR_FILE[0], "range_error_m": -1.0}]))},
+     "sensors[0].range_error_m"),
+    ({"recording": ("r.ast", b""), "sensors": ("s.json", json.dumps(SENSOR_FILE))},
+     "recording"),
+    ({"recording": ("r.ast", b"\x30"), "sensors": ("s.json", json.dumps(SENSOR_FILE)),
+      "extra": ("e", b"1")}, "extra"),
+])
+def test_bad_upload_is_422_naming_the_part(client, files, field):
+    r = client.post("/v1/jobs", files=files)
+    assert r.status_code == 422, r.text
+    assert r.json()["message"].startswith(field), r.json()
+
+
+def test_bad_json_tracks_are_422_naming_the_field(client):
+    sensors = [{k: v for k, v in SENSOR_FILE[0].items() if k not in ("sac", "sic")}]
+    plot = {"t": 0.0, "sensor": "R1", "range_m": 1000.0, "azimuth_deg": 10.0}
+    cases = [
+        ({"sensors": sensors, "tracks": {"A": [plot, {**plot, "sensor": "X"}]}},
+         "tracks.A[1].sensor"),
+        ({"sensors": sensors, "tracks": {"A": [plot, {"t": 1.0, "sensor": "R1",
+                                                      "range_m": 1.0}]}},
+         "tracks.A[1].azimuth_deg"),
+        ({"sensors": sensors, "tracks": {}}, "tracks"),
+        ({"sensors": sensors}, "tracks"),
+        ({"sensors": sensors, "tracks": {"A": [{**plot, "range_m": "far"}]}},
+         "tracks.A[0].range_m"),
+        ({"sensors": sensors, "tracks": {"A": [plot]}, "bounds": {"v": [300.0, 30.0]}},
+         "bounds.v"),
+    ]
+    for body, field in cases:
+        r = client.post("/v1/jobs", json=body)
+        assert r.status_code == 422, (body, r.text)
+        assert r.json()["message"].startswith(field), (field, r.json()["message"])
+    r = client.post("/v1/jobs", content=b"{not json", headers={"content-type":
+                                                                "application/json"})
+    assert r.status_code == 422 and "not valid JSON" in r.json()["message"]
+    r = client.post("/v1/jobs", content=b"x", headers={"content-type": "text/plain"})
+    assert r.status_code == 415
+
+
+def test_unreadable_recording_is_accepted_and_fails_with_the_reason(client):
+    r = upload(client, b"a,b\n1,2\n", name="plots.csv")
+    assert r.status_code == 202
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "failed" and "sensor" in status["error"], status
+    assert client.get(r.headers["location"] + "/results/tracks.csv").status_code == 409
+
+
+def test_unknown_job_is_404(client):
+    for method, path in (("GET", "/v1/jobs/nope"), ("GET", "/v1/jobs/nope/tracks"),
+                         ("DELETE", "/v1/jobs/nope"), ("GET", "/v1/jobs/nope/map.png")):
+        r = client.request(method, path)
+        assert r.status_code == 404 and r.json()["message"] == "job nope not found"
