@@ -26,7 +26,7 @@ see :data:`TUNED`) and are frozen here.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timedelta
 
 import numpy as np
@@ -54,13 +54,15 @@ class ImmTuning:
 class ImmSmootherTuning:
     """IMM smoother tuning (``solver.estimation.imm_smoother`` parameters): CV and turn
     white-acceleration densities (m^2/s^3), the turn models' rate (deg/s), mean sojourn times in
-    CV and in a turn (s). Defaults: the product's."""
+    CV and in a turn (s); ``future_modes=False``: Kim's backward mode weights (faster, less
+    accurate). Defaults: the product's."""
 
-    q_cv: float = 10.0
+    q_cv: float = 3.0
     q_ct: float = 30.0
-    omega_deg: float = 2.0
-    tau_cv: float = 200.0
+    omega_deg: float = 1.0
+    tau_cv: float = 600.0
     tau_ct: float = 60.0
+    future_modes: bool = True
 
 
 @dataclass(frozen=True)
@@ -73,6 +75,7 @@ class Tuning:
     q_rts: float = 30.0
     imm: ImmTuning = ImmTuning()
     imm_smoother: ImmSmootherTuning = ImmSmootherTuning()
+    imm_smoother_kim: ImmSmootherTuning = ImmSmootherTuning(future_modes=False)
 
 
 # Frozen by `python -m benchmarks.tune` (dev set: the six ADS-B tracks; see the report).
@@ -84,6 +87,16 @@ TUNED: dict[str, Tuning] = {
     "ssr": Tuning(q_kf=30, q_rts=10, imm=ImmTuning(q_cv=0.3, q_ct=10.0, q_omega=1e-05,
                                                    sojourn_s=60.0)),
 }
+# Frozen by `python -m benchmarks.tune imm_smoother` (+ `--fine`, `--kim`): each profile's best
+# point over the stages (results/tuning_imm_smoother*.json, dev seeds 100 and 101).
+_IMM_SMOOTHER = {"seed000": ImmSmootherTuning(3.0, 30.0, 1.0, 600.0, 60.0),
+                 "seed001": ImmSmootherTuning(3.0, 30.0, 1.0, 600.0, 60.0),
+                 "ssr": ImmSmootherTuning(1.0, 10.0, 1.0, 200.0, 60.0)}
+_IMM_SMOOTHER_KIM = {"seed000": ImmSmootherTuning(10.0, 30.0, 2.0, 200.0, 60.0, False),
+                     "seed001": ImmSmootherTuning(10.0, 30.0, 2.0, 200.0, 60.0, False),
+                     "ssr": ImmSmootherTuning(3.0, 10.0, 1.0, 200.0, 60.0, False)}
+TUNED = {p: replace(t, imm_smoother=_IMM_SMOOTHER[p], imm_smoother_kim=_IMM_SMOOTHER_KIM[p])
+         for p, t in TUNED.items()}
 
 
 def converted_measurements(plots: Plots, radar: Radar) -> tuple[FloatArray, FloatArray]:

@@ -2,7 +2,8 @@
 
 Names: ``raw`` (the plot points); baselines ``ss-cv-kf``, ``ss-cv-rts`` (Stone Soup), ``fp-imm``
 (FilterPy), ``imm-smoother`` (IMM fixed-interval smoother tuned per profile; neither library has
-one); the product's filters ``filter-<name>`` (``solver.estimation.run_filter``); the
+one) and ``imm-smoother-kim`` (the same with Kim's backward mode weights: faster, less accurate);
+the product's filters ``filter-<name>`` (``solver.estimation.run_filter``); the
 product's reconstruction ``recon-<method>-m<window>-<criterion>`` (``solver.reconstruct``), e.g.
 ``recon-refined-m3-R2``. A ``+alt`` suffix runs the estimator on plots that carry the true
 altitude (an SSR's Mode C); those run on the ``ssr`` profile only.
@@ -63,9 +64,12 @@ def _fp_imm(plots: Plots, radar: Radar, profile: str) -> StateSeries:
                                                                     baselines.Tuning()).imm)
 
 
-def _imm_smoother(plots: Plots, radar: Radar, profile: str) -> StateSeries:
-    return baselines.imm_smoother(plots, radar, baselines.TUNED.get(
-        profile, baselines.Tuning()).imm_smoother)
+def _imm_smoother(kim: bool):
+    def run(plots: Plots, radar: Radar, profile: str) -> StateSeries:
+        tuning = baselines.TUNED.get(profile, baselines.Tuning())
+        return baselines.imm_smoother(plots, radar,
+                                      tuning.imm_smoother_kim if kim else tuning.imm_smoother)
+    return run
 
 
 def _filter(name: str):
@@ -105,7 +109,8 @@ def registry() -> dict[str, Estimator]:
         Estimator("ss-cv-kf", "baseline", _baseline(_ss_cv(False))),
         Estimator("ss-cv-rts", "baseline", _baseline(_ss_cv(True))),
         Estimator("fp-imm", "baseline", _baseline(_fp_imm)),
-        Estimator("imm-smoother", "baseline", _baseline(_imm_smoother)),
+        Estimator("imm-smoother", "baseline", _baseline(_imm_smoother(False))),
+        Estimator("imm-smoother-kim", "baseline", _baseline(_imm_smoother(True))),
         Estimator("ss-cv-rts+alt", "baseline", _baseline(_ss_cv(True)), with_altitude=True),
     ]
     est += [Estimator(f"filter-{n}", "filter", _filter(n)) for n in filter_names()]

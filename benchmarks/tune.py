@@ -37,6 +37,10 @@ IMM_SMOOTHER_GRID = {"q_cv": (1.0, 3.0, 10.0, 30.0), "q_ct": (10.0, 30.0, 100.0)
                      "omega_deg": (1.0, 2.0, 3.0), "sojourn": ((60.0, 30.0), (200.0, 60.0))}
 """``solver.estimation.imm_smoother``: white-acceleration densities of the CV and turn models
 (m^2/s^3), the turn models' rate (deg/s), and the mean sojourn times ``(tau_cv, tau_ct)`` (s)."""
+IMM_SMOOTHER_FINE = {"q_cv": (1.0, 3.0), "q_ct": (30.0,), "omega_deg": (0.5, 1.0, 1.5),
+                     "sojourn": ((200.0, 60.0), (600.0, 60.0), (200.0, 180.0), (600.0, 180.0))}
+"""Second stage (``--fine``): around the coarse grid's best point, which sat at the coarse grid's
+edges in the turn rate and the sojourn times."""
 RECON_DEFAULT = {"window_plots": 3, "trial_step_s": 5.0, "criterion": "R2",
                  "nlp_solver": "sqpmethod"}
 RECON_AXES = {"window_plots": (3, 4, 5), "trial_step_s": (2.5, 5.0, 10.0, 20.0),
@@ -101,32 +105,37 @@ def tune_baselines(profiles: list[str], seeds: list[int]) -> dict:
     return out
 
 
-def imm_smoother_points() -> list[dict]:
-    """Every point of :data:`IMM_SMOOTHER_GRID` as ``run_imm_smoother`` keyword arguments."""
+def imm_smoother_points(grid: dict | None = None) -> list[dict]:
+    """Every point of ``grid`` (default :data:`IMM_SMOOTHER_GRID`) as ``run_imm_smoother``
+    keyword arguments."""
     pts = []
-    for q_cv, q_ct, om, (tau_cv, tau_ct) in itertools.product(*IMM_SMOOTHER_GRID.values()):
+    for q_cv, q_ct, om, (tau_cv, tau_ct) in itertools.product(
+            *(grid or IMM_SMOOTHER_GRID).values()):
         pts.append({"q_cv": q_cv, "q_ct": q_ct, "omega_deg": om, "tau_cv": tau_cv,
                     "tau_ct": tau_ct})
     return pts
 
 
-def _imm_smoother(params: dict) -> Estimator:
+def _imm_smoother(params: dict, kim: bool = False) -> Estimator:
     from solver.estimation import run_filter
 
     name = "imm-smoother " + "/".join(f"{v:g}" for v in params.values())
     return Estimator(name, "baseline", lambda p, r, _: Estimate(
-        run_filter("imm_smoother", p, r, **params).states))
+        run_filter("imm_smoother", p, r, future_modes=not kim, **params).states))
 
 
-def tune_imm_smoother(profiles: list[str], seeds: list[int]) -> dict:
+def tune_imm_smoother(profiles: list[str], seeds: list[int], fine: bool = False,
+                      kim: bool = False) -> dict:
     """Pooled RMS position and speed errors of every grid point per profile; the best point per
     profile (the benchmark's ``imm-smoother`` baseline) and the point with the lowest mean over
-    the profiles of RMS / the profile's best RMS (the product's defaults)."""
-    points = imm_smoother_points()
-    ests = [_imm_smoother(pt) for pt in points]
+    the profiles of RMS / the profile's best RMS (the product's defaults). ``fine``: the second
+    stage :data:`IMM_SMOOTHER_FINE`; ``kim``: Kim's backward mode weights."""
+    grid = IMM_SMOOTHER_FINE if fine else IMM_SMOOTHER_GRID
+    points = imm_smoother_points(grid)
+    ests = [_imm_smoother(pt, kim) for pt in points]
     res = run_benchmark(dev_set(), profiles, seeds, ests, figure_cases=())
     overall, _ = summaries(res)
-    out: dict = {"seeds": seeds, "tracks": dev_set(), "grid": IMM_SMOOTHER_GRID,
+    out: dict = {"seeds": seeds, "tracks": dev_set(), "grid": grid, "fine": fine, "kim": kim,
                  "points": points, "profiles": {}}
     rel = [0.0] * len(points)
     for p in profiles:
@@ -239,8 +248,10 @@ def render(out_dir: Path) -> str:
         rec = out_dir / f"tuning_recon_{method}.json"
         if rec.exists():
             md += _render_recon(json.loads(rec.read_text()))
-    if (out_dir / "tuning_imm_smoother.json").exists():
-        md += _render_imm_smoother(json.loads((out_dir / "tuning_imm_smoother.json").read_text()))
+    for name in ("tuning_imm_smoother.json", "tuning_imm_smoother_fine.json",
+                 "tuning_imm_smoother_kim.json"):
+        if (out_dir / name).exists():
+            md += _render_imm_smoother(json.loads((out_dir / name).read_text()))
     for name in ("tuning_refine.json", "tuning_refine_grid.json"):
         if (out_dir / name).exists():
             md += _render_refine(json.loads((out_dir / name).read_text()))
@@ -252,12 +263,16 @@ def _render_imm_smoother(r: dict) -> list[str]:
     profiles = list(r["profiles"])
     pts = r["points"]
     grid = "; ".join(f"{k} {list(v)}" for k, v in r["grid"].items())
-    md = [f"IMM smoother (`python -m benchmarks.tune imm_smoother`): {len(pts)} points of "
-          f"{grid}; the six ADS-B tracks, seeds {r['seeds']}. RMS position error (m), RMS speed "
-          "error (m/s), 95 % ellipse coverage. Rows: the best point of each profile (frozen per "
-          "profile in `baselines.TUNED`, estimator `imm-smoother`) and the point with the lowest "
-          "mean RMS relative to each profile's best (the defaults of "
-          "`solver.estimation.imm_smoother`, `filter-imm_smoother`).", "",
+    fine = (" --fine" if r.get("fine") else "") + (" --kim" if r.get("kim") else "")
+    how = " with Kim's backward mode weights" if r.get("kim") else ""
+    md = [f"IMM smoother (`python -m benchmarks.tune imm_smoother{fine}`): {len(pts)} points of "
+          f"{grid}{how}; "
+          f"the six ADS-B tracks, seeds {r['seeds']}. RMS position error (m), RMS speed "
+          "error (m/s), 95 % ellipse coverage. Rows: the best point of each profile and the "
+          "point with the lowest mean RMS relative to each profile's best. The choices over the "
+          "stages (per profile: `baselines.TUNED`, estimators `imm-smoother`, "
+          "`imm-smoother-kim`; common: the defaults of `solver.estimation.imm_smoother`) are in "
+          "the tuning notes.", "",
           "| point (q_cv/q_ct/omega_deg/tau_cv/tau_ct) | chosen for | " + " | ".join(profiles)
           + " | mean RMS / best |", "|---|---|" + "---|" * len(profiles) + "---:|"]
     chosen: dict[int, list[str]] = {}
@@ -335,6 +350,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="recon: only the default and the refinement's start variants")
     ap.add_argument("--grid", action="store_true",
                     help="refine: the grid REFINE_GRID instead of one factor at a time")
+    ap.add_argument("--fine", action="store_true",
+                    help="imm_smoother: the second-stage grid IMM_SMOOTHER_FINE")
+    ap.add_argument("--kim", action="store_true",
+                    help="imm_smoother: with Kim's backward mode weights (future_modes=False)")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR)
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -356,8 +375,10 @@ def main(argv: list[str] | None = None) -> int:
             data = old
         path.write_text(json.dumps(data, indent=1))
     elif args.part == "imm_smoother":
-        data = tune_imm_smoother(args.profiles, args.seeds)
-        (args.out / "tuning_imm_smoother.json").write_text(json.dumps(data, indent=1))
+        data = tune_imm_smoother(args.profiles, args.seeds, args.fine, args.kim)
+        name = ("tuning_imm_smoother_kim.json" if args.kim else
+                "tuning_imm_smoother_fine.json" if args.fine else "tuning_imm_smoother.json")
+        (args.out / name).write_text(json.dumps(data, indent=1))
         for p, d in data["profiles"].items():
             print(f'    "{p}": {d["best"]},')
         print("defaults:", data["common"])
