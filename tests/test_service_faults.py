@@ -217,3 +217,25 @@ def test_a_solve_over_the_memory_limit_is_a_422():
         await pool.close()
 
     asyncio.run(scenario())
+
+
+def test_a_non_finite_result_is_a_422_not_a_failed_response_validation():
+    """The worker checks the result's arrays before it builds the answer: a NaN anywhere is
+    a 422 naming the part (the response validation found it late, as a 500)."""
+    import numpy as np
+
+    from service.workers import _finite
+    from solver.estimation import run_filters
+    from solver.reconstruct import reconstruct
+
+    body = copy.deepcopy(SEED_BATCH)
+    body["plots"] = body["plots"][:12]
+    job = job_of(body)
+    rec = reconstruct(job.plots, job.radar, job.config)
+    est = run_filters(["cv_rts"], job.plots, job.radar)
+    assert _finite(rec, est) is None
+    rec.samples.vz[3] = np.inf
+    assert _finite(rec, est) == "trajectory.samples"
+    rec.samples.vz[3] = 0.0
+    est["cv_rts"].states.cov[2, 1, 1] = np.nan
+    assert _finite(rec, est) == "filters.cv_rts"
