@@ -3,10 +3,11 @@
 Names: ``raw`` (the plot points); baselines ``ss-cv-kf``, ``ss-cv-rts`` (Stone Soup), ``fp-imm``
 (FilterPy), ``imm-smoother`` (IMM fixed-interval smoother tuned per profile; neither library has
 one) and ``imm-smoother-kim`` (the same with Kim's backward mode weights: faster, less accurate);
-the product's filters ``filter-<name>`` (``solver.estimation.run_filter``); the
-product's reconstruction ``recon-<method>-m<window>-<criterion>`` (``solver.reconstruct``), e.g.
-``recon-refined-m3-R2``. A ``+alt`` suffix runs the estimator on plots that carry the true
-altitude (an SSR's Mode C); those run on the ``ssr`` profile only.
+the product's filters ``filter-<name>`` (``solver.estimation.run_filter``); the product's
+reconstruction ``recon-<method>-m<window>-<criterion>`` (``solver.reconstruct``), e.g.
+``recon-refined-m3-R2``. A ``+alt`` suffix (``ss-cv-rts+alt``, ``imm-smoother+alt``,
+``recon-refined-m3-R2+alt``) runs the estimator on plots that carry the true altitude (an SSR's
+Mode C); those run on the ``ssr`` profile only.
 """
 
 from __future__ import annotations
@@ -111,6 +112,8 @@ def registry() -> dict[str, Estimator]:
         Estimator("fp-imm", "baseline", _baseline(_fp_imm)),
         Estimator("imm-smoother", "baseline", _baseline(_imm_smoother(False))),
         Estimator("imm-smoother-kim", "baseline", _baseline(_imm_smoother(True))),
+        Estimator("imm-smoother+alt", "baseline", _baseline(_imm_smoother(False)),
+                  with_altitude=True),
         Estimator("ss-cv-rts+alt", "baseline", _baseline(_ss_cv(True)), with_altitude=True),
     ]
     est += [Estimator(f"filter-{n}", "filter", _filter(n)) for n in filter_names()]
@@ -126,7 +129,8 @@ def registry() -> dict[str, Estimator]:
 
 
 DEFAULT_SET = (
-    "raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "imm-smoother", "ss-cv-rts+alt", "filter-*",
+    "raw", "ss-cv-kf", "ss-cv-rts", "fp-imm", "imm-smoother", "ss-cv-rts+alt",
+    "imm-smoother+alt", "filter-*",
     "recon-refined-m3-R2", "recon-sliding-m3-R2", "recon-refined-m3-R2+alt",
 )
 """The full run's estimators: every baseline and filter, the reconstruction's default and the

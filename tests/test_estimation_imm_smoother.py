@@ -293,3 +293,23 @@ def test_future_mode_likelihood_ignores_negative_information():
     far[1, :, :2] = 100.0  # and far off in position, where there is information: less weight
     b_pos = ims._future_weights(W, *args, far, Ppair)
     assert np.all(b_pos[1] < 0.01) and np.allclose(b_pos.sum(0), 1.0)
+
+
+def test_benchmark_baseline_is_the_smoother_with_its_profile_tuning():
+    """``imm-smoother`` in the benchmark is a baseline (the report's strongest-baseline column)
+    running this smoother with the per-profile tuning frozen in ``baselines.TUNED``."""
+    from dataclasses import asdict
+
+    from benchmarks.baselines import TUNED
+    from benchmarks.estimators import registry
+
+    reg = registry()
+    assert reg["imm-smoother"].kind == reg["imm-smoother-kim"].kind == "baseline"
+    assert reg["imm-smoother+alt"].with_altitude
+    assert "filter-imm_smoother" in reg
+    tr = noisy_track(5)
+    got = reg["imm-smoother"].run(tr.plots, RADAR, "ssr").states
+    tuning = asdict(TUNED["ssr"].imm_smoother)
+    ref = run_filter("imm_smoother", tr.plots, RADAR, **tuning).states
+    np.testing.assert_array_equal(got.states, ref.states)
+    assert tuning["future_modes"] and not TUNED["ssr"].imm_smoother_kim.future_modes
