@@ -461,12 +461,20 @@ class JobRunner:
             try:
                 self._run(job)
             except Exception as e:  # a bug here must not stop the runner
+                if self._stopping:  # e.g. the store closed under it: resumed at next start
+                    return
                 LOGGER.error("job runner error", exc_info=e)
                 self._db().finish(job.id, "failed", f"internal error: {type(e).__name__}: {e}")
             finally:
                 with self._wake:
                     self._running.pop(job.id, None)
                     self._wake.notify_all()
+
+    @property
+    def dask_address(self) -> str | None:
+        """The scheduler address the jobs' tracks run on (None until the first job)."""
+        client = self._client
+        return None if client is None else str(client.scheduler.address)
 
     def _dask(self) -> Any:
         with self._client_lock:

@@ -485,9 +485,10 @@ _MEDIA = {".parquet": "application/vnd.apache.parquet", ".csv": "text/csv",
 
 
 @router.get(JOBS_PATH + "/{job_id}/results/{name}", response_class=Response,
-            responses={200: {"content": {"application/octet-stream": {"schema": {
-                "type": "string", "format": "binary"}}}, "description": "The file."},
-                **_NOT_FOUND, **_NOT_YET}, summary="A done job's result file")
+            responses={200: {"content": {m: {"schema": {"type": "string", "format": "binary"}}
+                                         for m in dict.fromkeys(_MEDIA.values())},
+                              "description": "The file (media type by its suffix)."},
+                       **_NOT_FOUND, **_NOT_YET}, summary="A done job's result file")
 def get_job_result(job_id: str, name: str, request: Request) -> Response:
     """`tracks.parquet` (states at every plot), `segments.parquet`, `tracks.csv`,
     `tracks.geojsonl` (one LineString per aircraft), `sensors.json`, `problems.txt`,

@@ -242,3 +242,21 @@ def test_unknown_job_is_404(client):
                          ("DELETE", "/v1/jobs/nope"), ("GET", "/v1/jobs/nope/map.png")):
         r = client.request(method, path)
         assert r.status_code == 404 and r.json()["message"] == "job nope not found"
+
+
+def test_a_named_dask_scheduler_runs_the_jobs(client, tmp_path):
+    """``dask_scheduler``: the tracks run on that cluster (here the first app's, which stays
+    up when this app closes its client)."""
+    address = client.app.state.jobs.dask_address
+    assert address is not None  # the jobs above started the embedded cluster
+    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
+                        data_dir=tmp_path, dask_scheduler=address, jobs_track_figures=False)
+    enc = encode_recording(duration=40.0)
+    with TestClient(create_app(settings)) as other:
+        r = upload(other, enc.data)
+        assert r.status_code == 202
+        status = wait(other, r.headers["location"])
+        assert status["state"] == "done" and status["tracks_done"] == len(FLIGHTS), status
+    assert client.get("/healthz").status_code == 200
+    r = upload(client, enc.data)  # the first app's cluster still serves
+    assert wait(client, r.headers["location"])["state"] == "done"
