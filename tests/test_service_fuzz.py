@@ -1,7 +1,8 @@
 """A fuzz run of the whole API against a real server (``python -m service``): schemathesis
 generates valid and invalid requests for every operation of the app's OpenAPI document, and
 hypothesis sends raw bodies that are not JSON or not the schema's shape. No answer may be a
-5xx; every error answer is the documented ``ErrorResponse``.
+5xx; every answer is as documented (status, content type, headers, schema), every error
+answer the ``ErrorResponse``.
 
 Bounded: 200 generated requests and 100 raw bodies to ``POST /v1/reconstructions``, 15 to each
 other operation; one worker, no warm-up, at most 60 plots per request and a 10-s solve limit."""
@@ -23,6 +24,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from procs import stop
 from schemathesis.checks import not_a_server_error
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    response_headers_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
 
 from service.app import create_app
 from service.settings import Settings
@@ -71,7 +78,9 @@ def is_error_body(r: httpx.Response) -> bool:
 
 def check(case, server: str) -> None:
     response = case.call(base_url=server, timeout=60)
-    case.validate_response(response, checks=[not_a_server_error])
+    case.validate_response(response, checks=[
+        not_a_server_error, status_code_conformance, content_type_conformance,
+        response_headers_conformance, response_schema_conformance])
     if response.status_code >= 400 and response.status_code != 405:
         assert is_error_body(response), response.text[:300]
 

@@ -1,5 +1,6 @@
 """The real server (``python -m service`` on a free loopback port): a client generated from the
-committed OpenAPI document, schemathesis fuzzing, and responsiveness while solving."""
+committed OpenAPI document and responsiveness while solving (the fuzz run of the API is in
+test_service_fuzz.py)."""
 
 from __future__ import annotations
 
@@ -16,16 +17,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-import schemathesis
-from hypothesis import HealthCheck, settings
 from procs import stop
-from schemathesis.checks import not_a_server_error
-from schemathesis.specs.openapi.checks import (
-    content_type_conformance,
-    response_headers_conformance,
-    response_schema_conformance,
-    status_code_conformance,
-)
 from test_service_sensors import _body as two_sensor_body
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -160,17 +152,3 @@ def test_healthz_answers_while_every_worker_solves(server):
     assert results == [200] * 4
     latencies.sort()
     assert latencies[5] < 0.25 and latencies[-1] < 1.0, latencies
-
-
-schema = schemathesis.openapi.from_path(OPENAPI)
-
-
-@schema.parametrize()
-@settings(max_examples=60, deadline=None, derandomize=True,
-          suppress_health_check=list(HealthCheck))
-def test_fuzz_from_the_openapi_document(case, server):
-    """Generated requests (valid and invalid): no 5xx, every answer as documented."""
-    case.call_and_validate(
-        base_url=server, timeout=60,
-        checks=[not_a_server_error, status_code_conformance, content_type_conformance,
-                response_headers_conformance, response_schema_conformance])
