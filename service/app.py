@@ -23,7 +23,7 @@ from solver import compiled
 from solver.inputs import InputError, format_loc
 
 from . import __version__
-from .convert import to_job
+from .convert import client_loc, to_job
 from .logs import LOGGER, setup_logging
 from .metrics import Metrics
 from .models import ErrorResponse, Health, ReconstructionRequest, ReconstructionResponse
@@ -285,8 +285,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(InputError)
     async def invalid_input(request: Request, exc: InputError) -> JSONResponse:
-        msg = f"{format_loc(exc.loc)} {exc.message}"
-        return _error(422, msg, [{"loc": list(exc.loc), "msg": msg, "type": "value_error"}])
+        """Every input error, early (``to_job``) or late (from a worker), is renamed to the
+        request's field names here, in one place (``azimuth_rad`` -> ``azimuth_deg``)."""
+        loc = client_loc(tuple(exc.loc))
+        msg = f"{format_loc(loc)} {exc.message}"
+        return _error(422, msg, [{"loc": list(loc), "msg": msg, "type": "value_error"}])
 
     @app.exception_handler(HTTPException)
     async def http_error(request: Request, exc: HTTPException) -> JSONResponse:

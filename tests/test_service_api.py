@@ -445,3 +445,21 @@ def test_docs_are_served_offline(client):
         r = client.get(url)
         assert r.status_code == 200 and r.content, url
     assert client.get("/redoc").status_code == 404  # its script would come from a CDN
+
+
+def test_late_input_errors_are_renamed_to_request_fields():
+    """An input error found by the solver (in a worker, after ``to_job``) names the request's
+    field, not the solver's radian one."""
+    from solver.inputs import InputError
+
+    app = create_app(Settings(workers=1, warmup=False))
+
+    @app.get("/late")
+    async def late() -> None:
+        raise InputError(("plots", 3, "azimuth_rad"), "is not usable")
+
+    with TestClient(app) as c:
+        r = c.get("/late")
+    assert r.status_code == 422
+    assert r.json()["message"] == "plots[3].azimuth_deg is not usable"
+    assert r.json()["detail"][0]["loc"] == ["plots", 3, "azimuth_deg"]
