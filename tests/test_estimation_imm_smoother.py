@@ -258,7 +258,8 @@ def test_future_mode_likelihood_against_a_pseudo_measurement():
     xpair = xs[None] + rng.normal(size=(3, 3, 4))
     Ppair = np.array([[spd(1.0) for _ in range(3)] for _ in range(3)])
     W = rng.dirichlet(np.ones(3), size=3).T  # columns sum to 1
-    b = ims._future_weights(W, xs, Ps, xp, np.linalg.inv(Pp), xpair, Ppair)
+    white = np.linalg.inv(np.linalg.cholesky(Pp))
+    b = ims._future_weights(W, xs, Ps, xp, white, xpair, Ppair)
     lik = np.array([[mvn_pdf(z[j], H @ xpair[i, j], H @ Ppair[i, j] @ H.T + np.eye(2))
                      for j in range(3)] for i in range(3)])
     ref = W * lik / (W * lik).sum(0)
@@ -285,7 +286,7 @@ def test_future_mode_likelihood_ignores_negative_information():
     near = np.zeros((3, 3, 4))
     far = near.copy()
     far[1, :, 2:] = 1e4  # mode 1's predictions far off in velocity
-    args = (xs, Ps, xp, np.linalg.inv(Pp))
+    args = (xs, Ps, xp, np.linalg.inv(np.linalg.cholesky(Pp)))
     b_near = ims._future_weights(W, *args, near, Ppair)
     b_far = ims._future_weights(W, *args, far, Ppair)
     np.testing.assert_allclose(b_near, 1 / 3)

@@ -224,7 +224,8 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
                    N(x; x^{ij}, P^{ij}) dx
 
     (the later plots' information about ``x_{k+1}``: the smoothed over the forward mixed
-    prediction ``xp``, ``Pp``; closed form in :func:`_future_weights`).
+    prediction ``xp``, ``Pp``, kept where it is positive; closed form in
+    :func:`_future_weights`).
 
     The pair gains depend on the forward pass only and are computed for all steps at once.
     Returns the smoothed mode-conditioned states, covariances and mode probabilities.
@@ -248,12 +249,14 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
     a = xf[:-1, :, None, :] - (C @ xpair[..., None])[..., 0]
     B = Pk - C @ Ppair @ CT
     if future_modes:
-        pred_inv = np.linalg.inv(fw.Pp)
+        # whitening by the forward prediction: Pp = U U^T, so the later plots' information is
+        # compared with the prediction's in a metric that does not depend on units
+        white = np.linalg.inv(np.linalg.cholesky(fw.Pp))
     uniform = np.full((N_MODES, N_MODES), 1.0 / N_MODES)
     for k in range(n - 2, -1, -1):
         b = W[k]
         if future_modes:
-            b = _future_weights(b, xs[k + 1], Ps[k + 1], fw.xp[k], pred_inv[k], xpair[k],
+            b = _future_weights(b, xs[k + 1], Ps[k + 1], fw.xp[k], white[k], xpair[k],
                                 Ppair[k])
         joint = b * mus[k + 1]
         m = joint.sum(1)
@@ -274,30 +277,34 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
 
 
 def _future_weights(W: FloatArray, xs: FloatArray, Ps: FloatArray, xp: FloatArray,
-                    Pp_inv: FloatArray, xpair: FloatArray, Ppair: FloatArray) -> FloatArray:
+                    white: FloatArray, xpair: FloatArray, Ppair: FloatArray) -> FloatArray:
     """``b_ij`` proportional to ``W_ij L_ij`` over ``i`` (see :func:`imm_backward`) for one step:
-    ``xs (j, 4)``, ``Ps (j, 4, 4)`` smoothed at ``k + 1``, ``xp``, ``Pp_inv`` the forward mixed
-    prediction, ``xpair (i, j, 4)``, ``Ppair (i, j, 4, 4)`` the pair predictions.
+    ``xs (j, 4)``, ``Ps (j, 4, 4)`` smoothed at ``k + 1``; ``xp`` the forward mixed prediction
+    and ``white = U^-1`` with ``Pp = U U^T`` its covariance; ``xpair (i, j, 4)``,
+    ``Ppair (i, j, 4, 4)`` the pair predictions.
 
-    The later plots' information about ``x_{k+1}`` is ``L = Ps^-1 - Pp^-1 = V diag(l) V^T`` with
-    the vector ``e = Pp^-1 (xs - xp)``, i.e. a pseudo-measurement ``y = L^+ e`` of weight ``L``;
-    negative ``l`` (the mixture approximations can make ``Ps`` exceed ``Pp``) are set to 0, since
-    information cannot be negative and would reward pair predictions for being far away. With
-    ``R = L^{1/2}``, ``r = R (x^{ij} - xs) - R^+ e`` and ``M = I + R P^{ij} R`` (positive definite):
+    The later plots' information about ``x_{k+1}`` is ``L = Ps^-1 - Pp^-1`` with the vector
+    ``e = Pp^-1 (xs - xp)``: a pseudo-measurement ``y = L^+ e`` of weight ``L``. In whitened
+    coordinates ``w = U^-1 x`` it is ``U^-1 Ps U^-T = V diag(s) V^T``, information
+    ``l = 1/s - 1`` along ``V``; directions with ``l <= 0`` (the mixture approximations can make
+    the smoothed spread exceed the prediction's) carry none and are dropped: negative
+    information would reward pair predictions for being far away. Whitening makes the split
+    independent of units (m against m/s). With ``T = diag(sqrt l) V^T U^-1``,
+    ``r = T (x^{ij} - xs) - diag(1/sqrt l) V^T U^-1 (xs - xp)`` and
+    ``M = I + T P^{ij} T^T`` (positive definite):
     ``log L_ij = -(log det M + r^T M^-1 r) / 2`` up to a constant per ``j``."""
-    L = np.linalg.inv(Ps) - Pp_inv
-    if not np.isfinite(L).all():  # absurd sigmas: no usable information, keep Kim's weights
+    Ws = white @ Ps @ np.swapaxes(white, -1, -2)
+    if not np.isfinite(Ws).all():  # absurd sigmas: no usable information, keep Kim's weights
         return W
-    lam, V = np.linalg.eigh(L)  # ascending; reads one triangle
-    keep = lam > 1e-9 * lam[:, -1:]
+    s, V = np.linalg.eigh(Ws)  # ascending; reads one triangle
+    lam = 1.0 / np.maximum(s, 1e-300) - 1.0
+    keep = lam > 1e-9 * lam[:, :1]
     sq = np.sqrt(np.where(keep, lam, 0.0))
-    Vt = np.swapaxes(V, -1, -2)
-    # R^+ e in the eigenbasis (0 where l was dropped)
-    y = np.where(keep, (Vt @ (Pp_inv @ (xs - xp)[:, :, None]))[:, :, 0] / np.where(keep, sq, 1.0),
-                 0.0)
-    Rh = sq[:, :, None] * Vt  # diag(sqrt l) V^T: R = V Rh, and V drops out of r^T M^-1 r
-    r = Rh[None] @ (xpair - xs[None])[..., None] - y[None, :, :, None]  # (i, j, 4, 1)
-    M = Rh[None] @ Ppair @ np.swapaxes(Rh, -1, -2)[None] + _EYE4
+    VtU = np.swapaxes(V, -1, -2) @ white  # (j, 4, 4)
+    y = np.where(keep, (VtU @ (xs - xp)[:, :, None])[:, :, 0] / np.where(keep, sq, 1.0), 0.0)
+    T = sq[:, :, None] * VtU
+    r = T[None] @ (xpair - xs[None])[..., None] - y[None, :, :, None]  # (i, j, 4, 1)
+    M = T[None] @ Ppair @ np.swapaxes(T, -1, -2)[None] + _EYE4
     chol = np.linalg.cholesky(M)
     z = np.linalg.solve(chol, r)
     logL = -np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1) - 0.5 * (z * z).sum((-2, -1))
