@@ -689,6 +689,7 @@ class JobRunner:
 def problems_summary(problems: Any) -> dict[str, Any]:
     """Counts by kind, their total, and the first examples (each locating its problem)."""
     return {"total": problems.total, "counts": dict(problems.counts),
+            "dropped": {k: n for k, n in problems.dropped.items() if n},
             "examples": [str(p) for p in list(problems.entries)[:PROBLEM_EXAMPLES]]}
 
 

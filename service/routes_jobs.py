@@ -363,6 +363,9 @@ def list_job_tracks(job_id: str, request: Request) -> list[JobTrack]:
     return out
 
 
+# ``{aircraft:path}``: a key may hold "/" (a user's own key); the figure's route comes first
+
+
 def _track_entry(runner: JobRunner, job_id: str, aircraft: str) -> dict[str, Any]:
     _job(runner, job_id)
     if runner.track_plots(job_id, aircraft) is None:
@@ -375,7 +378,21 @@ def _track_entry(runner: JobRunner, job_id: str, aircraft: str) -> dict[str, Any
     return entry
 
 
-@router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft}", response_model=JobTrackResult,
+@router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft:path}/figure.png", response_class=Response,
+            responses={**_PNG, **_NOT_FOUND, **_NOT_YET}, summary="A job track's figure")
+def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> Response:
+    """The track's plots with their ellipses, the reconstruction and its controls over time
+    (drawn on the worker when the track was solved)."""
+    runner = _runner(request)
+    _track_entry(runner, job_id, aircraft)
+    path = runner.figure(job_id, aircraft)
+    if path is None:
+        raise HTTPException(404, f"no figure was drawn for track {aircraft!r} (figures are "
+                            "off, or its worker's disk is not this service's)")
+    return FileResponse(path, media_type="image/png")
+
+
+@router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft:path}", response_model=JobTrackResult,
             responses={**_NOT_FOUND, **_NOT_YET}, summary="One reconstructed track of a job")
 def get_job_track(job_id: str, aircraft: str, request: Request) -> JobTrackResult:
     """The track's segments and its state at every plot (with latitude and longitude), and
@@ -431,20 +448,6 @@ def _sensor_out(r: dict[str, Any]) -> dict[str, Any]:
         if k.endswith("_rad"):
             out[k[:-4] + "_deg"] = None if v is None else float(np.rad2deg(v))
     return out
-
-
-@router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft}/figure.png", response_class=Response,
-            responses={**_PNG, **_NOT_FOUND, **_NOT_YET}, summary="A job track's figure")
-def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> Response:
-    """The track's plots with their ellipses, the reconstruction and its controls over time
-    (drawn on the worker when the track was solved)."""
-    runner = _runner(request)
-    _track_entry(runner, job_id, aircraft)
-    path = runner.figure(job_id, aircraft)
-    if path is None:
-        raise HTTPException(404, f"no figure was drawn for track {aircraft!r} (figures are "
-                            "off, or its worker's disk is not this service's)")
-    return FileResponse(path, media_type="image/png")
 
 
 def _finished(runner: JobRunner, job_id: str) -> JobRecord:

@@ -122,14 +122,14 @@ def _first_t(enc, k: int) -> float:
 
 def test_json_tracks_job(client):
     enc = encode_recording(duration=40.0)
-    tracks: dict[str, list[dict]] = {"A": [], "B": []}
+    tracks: dict[str, list[dict]] = {"A": [], "B/2#x": []}
     for p in enc.plots:
         plot = {"t": p["tod"], "sensor": p["sensor"]}
         if "range_m" in p:
             plot |= {"range_m": p["range_m"], "azimuth_deg": p["azimuth_deg"]}
         else:
             plot |= {"lat_deg": p["lat"], "lon_deg": p["lon"]}
-        tracks["AB"[p["flight"]]].append(plot)
+        tracks[("A", "B/2#x")[p["flight"]]].append(plot)
     sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
     tracks["short"] = tracks["A"][:2]  # too short: reported, not dropped silently
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
@@ -140,7 +140,14 @@ def test_json_tracks_job(client):
     assert status["problems"]["counts"] == {"short_track": 1}
     listed = client.get(r.headers["location"] + "/tracks").json()
     assert [(t["aircraft"], t["plots"]) for t in listed] == [("A", len(tracks["A"])),
-                                                            ("B", len(tracks["B"]))]
+                                                            ("B/2#x", len(tracks["B/2#x"]))]
+    # any key is addressable: "/" as is (or %2F), "#" percent-encoded
+    for path in ("B/2%23x", "B%2F2%23x"):
+        one = client.get(f"{r.headers['location']}/tracks/{path}")
+        assert one.status_code == 200 and one.json()["aircraft"] == "B/2#x"
+        assert len(one.json()["trajectory"]["at_plots"]) == len(tracks["B/2#x"])
+    figure = client.get(f"{r.headers['location']}/tracks/B/2%23x/figure.png")
+    assert figure.status_code == 200 and figure.content[:4] == b"\x89PNG"
 
 
 def test_cancel_and_the_concurrent_job_limit(client):
