@@ -3,8 +3,10 @@
 uvicorn answers a request it cannot parse itself, in plain text, and times a connection out only
 while it is idle *between* requests: a client that connects and sends nothing, or half a
 header, holds the connection for ever. :class:`Protocol` answers those parse errors with the
-documented JSON error body and gives every request a deadline to arrive complete (headers and
-body), answered 408 (JSON) and closed when it passes.
+documented JSON error body and bounds how long a request may take to arrive: its headers must
+arrive whole within ``request_timeout_s`` of the connection (or the previous answer), and its
+body may pause no longer than that between two reads; past either, 408 (JSON) and the
+connection is closed.
 """
 
 from __future__ import annotations
@@ -32,8 +34,8 @@ def error_bytes(status: int, reason: str, message: str, kind: str) -> bytes:
 
 
 class Protocol(H11Protocol):
-    """h11 protocol with JSON 400s and a deadline for each request to arrive
-    (``config.request_timeout_s``, set by :func:`serve`)."""
+    """h11 protocol with JSON 400s and the arrival limits of the module docstring
+    (``request_timeout_s``, set by :func:`config`)."""
 
     request_timeout_s: float = 30.0
 
@@ -48,8 +50,11 @@ class Protocol(H11Protocol):
 
     def data_received(self, data: bytes) -> None:
         super().data_received(data)
-        if self.conn.their_state in (h11.DONE, h11.MUST_CLOSE, h11.CLOSED, h11.ERROR):
+        state = self.conn.their_state
+        if state in (h11.DONE, h11.MUST_CLOSE, h11.CLOSED, h11.ERROR):
             self._disarm()  # the request has arrived whole: the app takes over
+        elif state is h11.SEND_BODY and self._arrival is not None:
+            self._arm()  # a body may be long (uploads): the limit is on each pause in it
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
@@ -74,7 +79,7 @@ class Protocol(H11Protocol):
             LOGGER.info("request timeout", extra={"fields": {
                 "client": (self.client or ("", 0))[0], "after_s": self.request_timeout_s}})
             self.transport.write(error_bytes(
-                408, "Request Timeout", f"the request did not arrive complete within "
+                408, "Request Timeout", f"the request did not arrive within "
                 f"{self.request_timeout_s:g} s", "request_timeout"))
         if self.cycle is not None and not self.cycle.response_complete:
             self.cycle.disconnected = True

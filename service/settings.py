@@ -57,8 +57,9 @@ class Settings(BaseSettings):
     warmup_window_plots: list[int] = Field(
         [3], description="Window sizes to warm up (JSON list, e.g. [3,4,5]).")
     request_timeout_s: float = Field(
-        30.0, gt=0, description="Time a client has to send a whole request (headers and body) "
-        "once connected or after the previous answer; then 408 and the connection is closed.")
+        30.0, gt=0, description="Time a client has to send a request's headers once connected "
+        "(or after the previous answer), and longest pause within its body; beyond: 408 and the "
+        "connection is closed.")
     keep_alive_s: int = Field(5, ge=1, description="Idle time after an answer before a "
                               "keep-alive connection is closed (s).")
     shutdown_timeout_s: int = Field(

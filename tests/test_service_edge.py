@@ -125,6 +125,25 @@ def test_silent_and_half_sent_requests_are_timed_out(server):
     assert time.monotonic() - start < 5
 
 
+def test_a_slow_but_steady_body_is_not_cut_off(server):
+    """The body's limit is on each pause (uploads may be long): 5 pieces 0.5 s apart take
+    2.5 s in all, longer than the 1.5-s limit, and the request is answered, not 408."""
+    body = json.dumps(dict(SEED_BATCH, plots=SEED_BATCH["plots"][:5], method="sliding"))
+    data = body.encode()
+    step = -(-len(data) // 5)
+    with socket.create_connection(("127.0.0.1", server.port), timeout=30) as s:
+        s.sendall(b"POST /v1/reconstructions HTTP/1.1\r\nhost: x\r\n"
+                  b"content-type: application/json\r\n"
+                  + f"content-length: {len(data)}\r\nconnection: close\r\n\r\n".encode())
+        for i in range(5):
+            time.sleep(0.5)
+            s.sendall(data[i * step:(i + 1) * step])
+        answer = b""
+        while chunk := s.recv(65536):
+            answer += chunk
+    assert answer.startswith(b"HTTP/1.1 200"), answer[:300]
+
+
 def test_idle_keep_alive_connection_is_closed(server):
     with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
         s.sendall(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
