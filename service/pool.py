@@ -15,7 +15,7 @@ from .convert import Job
 from .logs import LOGGER
 from .metrics import Metrics
 from .settings import Settings
-from .workers import Outcome, SolveError, worker_main
+from .workers import Outcome, SolveError, remedy, worker_main
 
 # a worker that has not answered this long after its solve time limit is killed: the limit
 # is enforced inside the worker (deadline, SIGALRM), so this only catches a solver call that
@@ -247,7 +247,7 @@ class SolverPool:
 def _overran(job: Job, limit_s: float) -> Outcome:
     return Outcome(None, error_loc=("plots",), error_message=(
         f"needs more than this service's solve time limit of {limit_s:g} s "
-        f"({len(job.plots)} plots); split the track or raise window.trial_step_s"))
+        f"({len(job.plots)} plots); {remedy(job)}"))
 
 
 def _died_twice(job: Job, exitcode: int | None) -> Outcome:
@@ -257,5 +257,5 @@ def _died_twice(job: Job, exitcode: int | None) -> Outcome:
     if exitcode == -signal.SIGKILL:
         return Outcome(None, error_loc=("plots",), error_message=(
             f"needs more memory than this service has ({len(job.plots)} plots): the solve "
-            "was killed twice; split the track or raise window.trial_step_s or sample_step_s"))
+            f"was killed twice; {remedy(job)}, or raise sample_step_s"))
     raise SolveError(f"the solver worker crashed twice on this request (exit code {exitcode})")

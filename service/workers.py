@@ -174,11 +174,18 @@ def _finite(rec: Reconstruction, estimates: dict[str, FilterEstimate]) -> str | 
     return None if np.isfinite(seg).all() else "trajectory.segments"
 
 
+def remedy(job: Job) -> str:
+    """What the client can change to make a too costly solve cheaper."""
+    if job.config.method == "sliding":
+        return "split the track or raise window.trial_step_s"
+    return "split the track (long gaps between plots are filled with nodes every 20 s)"
+
+
 def _too_long(job: Job, time_limit_s: float) -> Outcome:
     return Outcome(None, error_loc=("plots",), error_message=(
         f"needs more than this service's solve time limit of {time_limit_s:g} s "
         f"({len(job.plots)} plots over {float(job.plots.t[-1] - job.plots.t[0]):g} s); "
-        "split the track or raise window.trial_step_s"))
+        f"{remedy(job)}"))
 
 
 def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
