@@ -151,7 +151,7 @@ def test_json_tracks_job(client):
 
 
 def test_cancel_and_the_concurrent_job_limit(client):
-    data = encode_recording(duration=120.0, flights=MANY).data
+    data = encode_recording(duration=300.0, flights=MANY).data  # ~10 s of solving
     first = upload(client, data)
     second = upload(client, data)
     assert first.status_code == second.status_code == 202
