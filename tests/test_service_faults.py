@@ -239,3 +239,31 @@ def test_a_non_finite_result_is_a_422_not_a_failed_response_validation():
     rec.samples.vz[3] = 0.0
     est["cv_rts"].states.cov[2, 1, 1] = np.nan
     assert _finite(rec, est) == "filters.cv_rts"
+
+
+def test_a_worker_that_overruns_its_limit_is_killed():
+    """The pool's last resort when a solver call ignores both the deadline and the alarm: a
+    worker that has not answered in time is killed (here: a 0.3-s wait on a solve of seconds
+    sent without a limit)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.pool import Worker, WorkerDied
+
+    body = copy.deepcopy(SEED_BATCH)
+    body.update(method="sliding", window={"plots": 3, "trial_step_s": 0.05})
+    job = job_of(body)
+
+    async def scenario() -> None:
+        readers = ThreadPoolExecutor(2)
+        worker = Worker(Settings(workers=1, warmup=False), 1, readers)
+        assert await worker.receive(60) == ("ready", None)
+        worker.conn.send((job, time.time(), 0.0))
+        start = time.perf_counter()
+        with pytest.raises(WorkerDied) as died:
+            await worker.receive(0.3)
+        assert died.value.exitcode is None and time.perf_counter() - start < 2
+        worker.process.join(5)
+        assert worker.process.exitcode == -signal.SIGKILL
+        readers.shutdown()
+
+    asyncio.run(scenario())
