@@ -511,6 +511,12 @@ class JobRunner:
         LOGGER.info("job read", extra={"fields": {
             "job": job.id, "rows": len(loaded.rows), "tracks": len(tracks),
             "problems": loaded.problems.total, "read_s": round(time.monotonic() - began, 3)}})
+        if not len(loaded.rows):  # nothing of it is a plot: not a recording this reads
+            first = "; ".join(str(e) for e in list(loaded.problems.entries)[:3])
+            reason = "no plot could be read from the recording" + (f" ({first})" if first
+                                                                     else "")
+            self._db().finish(job.id, "failed", reason)
+            return
         if self._stop_requested(job.id):
             return
         params = _read_json(d / "inputs" / "params.json") or {}

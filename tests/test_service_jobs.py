@@ -240,8 +240,17 @@ def test_unreadable_recording_is_accepted_and_fails_with_the_reason(client):
     r = upload(client, b"a,b\n1,2\n", name="plots.csv")
     assert r.status_code == 202
     status = wait(client, r.headers["location"])
-    assert status["state"] == "failed" and "sensor" in status["error"], status
+    assert status["state"] == "failed", status
+    assert status["error"].startswith("a is not a column of the plot table"), status
     assert client.get(r.headers["location"] + "/results/tracks.csv").status_code == 409
+
+    garbage = bytes(np.random.default_rng(7).integers(0, 256, 5000, dtype=np.uint8))
+    r = upload(client, garbage, name="noise.bin")
+    assert r.status_code == 202
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "failed" and status["rows"] == 0, status
+    assert status["error"].startswith("no plot could be read from the recording ("), status
+    assert status["problems"]["total"] >= 1 and "byte 0" in status["problems"]["examples"][0]
 
 
 def test_unknown_job_is_404(client):
