@@ -21,6 +21,7 @@ from .workers import Outcome, SolveError, remedy, worker_main
 # is enforced inside the worker (deadline, SIGALRM), so this only catches a solver call that
 # ignores both
 KILL_GRACE_S = 5.0
+RESPAWN_DELAY_S = 5.0  # between attempts to replace a dead worker whose successor failed
 STOP_GRACE_S = 2.0  # on shutdown, a worker gets this long to leave before it is killed
 
 
@@ -182,9 +183,17 @@ class SolverPool:
         task.add_done_callback(self._starting.discard)
 
     async def _respawn(self) -> None:
-        error = await self._spawn()
-        if error is not None:
+        """Start a successor; while that fails (its warm-up), the pool is not ready and tries
+        again every :data:`RESPAWN_DELAY_S` (solves wait for the workers that are left)."""
+        while (error := await self._spawn()) is not None and not self._closing:
+            self.state, self.detail = "failed", f"a replacement worker failed: {error}"
+            self.metrics.ready.set(0)
             LOGGER.error("replacement worker failed", extra={"fields": {"error": error}})
+            await asyncio.sleep(RESPAWN_DELAY_S)
+        if error is None and self.state == "failed" and self._warm_all is not None and \
+                self._warm_all.done():
+            self.state, self.detail = "ready", ""
+            self.metrics.ready.set(1)
 
     async def close(self) -> None:
         """Stop warming, and stop every worker (killed after :data:`STOP_GRACE_S`): bounded
