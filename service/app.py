@@ -44,11 +44,18 @@ Velocities in m/s, accelerations in m/s^2, times in s (any origin, strictly incr
 
 **Errors.** Every error answer is an `ErrorResponse`: `message` names the field and, for plots,
 the index (`plots[17].t is not after plots[16].t (38.2 <= 40.0)`); `detail` lists every problem.
-422: malformed or physically impossible input (NaN and Infinity included); 413: body over the
-size limit; 503: all solvers busy and the queue full (see `Retry-After`).
+422: malformed or physically impossible input (NaN and Infinity included; JSON syntax errors
+with line and column), or a solve over the service's time or memory limit; 413: body over the
+size limit; 400: a request HTTP cannot parse, or with both `Content-Length` and
+`Transfer-Encoding` (the connection is closed); 408: a request that did not arrive in time;
+503: all solvers busy and the queue full (see `Retry-After`).
 """
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorResponse, "description": "Unparseable HTTP, or both Content-Length and "
+          "Transfer-Encoding (the connection is closed)."},
+    408: {"model": ErrorResponse, "description": "The request did not arrive in time (the "
+          "connection is closed)."},
     413: {"model": ErrorResponse, "description": "Request body over the size limit."},
     422: {"model": ErrorResponse, "description": "Invalid input; the message names the field "
           "and plot index."},
