@@ -16,7 +16,7 @@ from solver.frames import LocalFrame
 from solver.inputs import InputError
 from solver.io.problems import Problems
 from solver.io.sensors_file import load_sensors, parse_sensors
-from solver.io.split import aircraft_keys, recording_frame, split_aircraft
+from solver.io.split import aircraft_keys, recording_frame, split_aircraft, split_stream
 from solver.io.tables import PlotRows
 from solver.sensors import PositionSensor, RadarSensor
 
@@ -182,27 +182,87 @@ def test_sensor_file_json_errors():
         parse_sensors([SENSOR_FILE[0], {**SENSOR_FILE[1], "id": "R1"}])
 
 
-@settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(
-    st.integers(0, 40),                                   # time (s)
+PLOTS = st.lists(st.tuples(
+    st.integers(0, 120),                                  # time (s)
     st.sampled_from(["R1", "R2", "ADSB", "NOPE"]),        # sensor
     st.sampled_from([-1, 0xA, 0xB]),                      # Mode S
     st.sampled_from([-1, 1, 2]),                          # track number
     st.booleans()),                                       # measurement fits the sensor
-    min_size=1, max_size=60))
-def test_every_row_is_in_one_track_or_counted(plots):
-    """Nothing is dropped silently: each row lands in exactly one track, or is counted in the
-    problems' dropped plots."""
+    min_size=1, max_size=80)
+
+
+def random_rows(plots) -> PlotRows:
     n = len(plots)
     t = np.array([p[0] for p in plots], dtype=float)
     sensor = np.array([p[1] for p in plots], dtype=object)
     radar_like = np.array([(p[1] != "ADSB") == p[4] for p in plots])
-    rows = PlotRows.from_columns(
+    return PlotRows.from_columns(
         n, t=t, sensor=sensor, mode_s=[p[2] for p in plots], track_number=[p[3] for p in plots],
         range_m=np.where(radar_like, 50_000.0 + 100 * t, np.nan),
         azimuth_deg=np.where(radar_like, 30.0, np.nan),
         lat_deg=np.where(radar_like, np.nan, 46.3 + 1e-3 * t),
         lon_deg=np.where(radar_like, np.nan, 14.4))
+
+
+def test_streaming_split_gives_the_same_tracks():
+    """split_stream over random recordings in chunks, arriving out of time order by less than
+    disorder_s (5 s), gives the tracks, keys (gap pieces numbered alike), rows and problems of
+    split_aircraft on the whole, while closing tracks on the way (gap_s 8 s). Random cases of
+    Mode S addresses lent by sensor tracks, conflicting addresses, gaps and duplicates."""
+    rng = np.random.default_rng(0)  # a seed whose cases include out-of-order pieces
+    closed_early = 0
+    for _ in range(150):
+        n = int(rng.integers(5, 120))
+        rows = random_rows([(int(rng.integers(0, 121)),
+                             str(rng.choice(["R1", "R2", "ADSB", "NOPE"])),
+                             int(rng.choice([-1, 0xA, 0xB])), int(rng.choice([-1, 1, 2])),
+                             bool(rng.random() < 0.9)) for _ in range(n)])
+        rows = rows.take(np.argsort(rows.t + rng.uniform(0.0, 5.0, n), kind="stable"))
+        size = int(rng.integers(1, 12))
+        chunks = [rows.take(np.arange(a, min(a + size, n))) for a in range(0, n, size)]
+        whole_p, stream_p = Problems(), Problems()
+        whole = {tr.key: tr.rows.tolist()
+                 for tr in split_aircraft(rows, SENSORS, gap_s=8.0, problems=whole_p)}
+        consumed: list[int] = []
+        stream = {}
+        fed = (consumed.append(k) or c for k, c in enumerate(chunks))
+        for tr in split_stream(fed, SENSORS, gap_s=8.0, disorder_s=5.0, problems=stream_p,
+                               reference=recording_frame(SENSORS, rows)):
+            stream[tr.key] = tr.rows.tolist()
+            closed_early += len(consumed) < len(chunks)
+        assert stream == whole
+        assert (stream_p.counts, stream_p.dropped) == (whole_p.counts, whole_p.dropped)
+    assert closed_early > 100  # tracks did come out before the end of their recording
+
+
+def test_streaming_split_yields_an_aircraft_once_it_has_landed():
+    """Memory holds the aircraft in the air: a track comes out as soon as the recording is
+    gap_s + disorder_s past its last plot, long before the recording ends."""
+    early = radar_rows(np.arange(0, 100, 4), mode_s=0xA)
+    late = [radar_rows(np.arange(t0, t0 + 100, 4), mode_s=0xB) for t0 in range(100, 2000, 100)]
+    consumed = []
+
+    def chunks():
+        for k, c in enumerate([early, *late]):
+            consumed.append(k)
+            yield c
+
+    stream = split_stream(chunks(), SENSORS, gap_s=300.0, disorder_s=60.0)
+    first = next(stream)
+    assert first.key == "00000A" and first.rows.tolist() == list(range(25))
+    # closed once the recording passed 96 + 300 + 60 s: by the 5th chunk (t 400-496)
+    assert len(consumed) == 5
+    rest = list(stream)
+    assert [tr.key for tr in rest] == ["00000B"] and len(rest[0].table) == 19 * 25
+
+
+@settings(max_examples=60, deadline=None)
+@given(PLOTS)
+def test_every_row_is_in_one_track_or_counted(plots):
+    """Nothing is dropped silently: each row lands in exactly one track, or is counted in the
+    problems' dropped plots."""
+    rows = random_rows(plots)
+    n = len(rows)
     problems = Problems()
     tracks = list(split_aircraft(rows, SENSORS, problems=problems))
     used = np.concatenate([tr.rows for tr in tracks]) if tracks else np.array([], int)

@@ -8,11 +8,17 @@ Aircraft key of a row (``../shared/spec/recordings.md``), first that applies:
 3. the sensor's track number: ``<sensor>:track:<number>``;
 4. the Mode 3/A code: ``<sensor>:mode3a:<octal code>``.
 
-Before keying, a sensor's track (sensor, track number) whose plots carry one single Mode S
-address lends it to its plots without one, so a track with an intermittent address stays one
-aircraft. Keys 2-4 are split where the aircraft is not seen for more than ``gap_s`` (default
-300 s: track numbers and codes are reused, an address may fly twice in a recording); later
-pieces get ``#2``, ``#3`` ... Rows without any key are reported (``no_aircraft_key``).
+Before keying, a sensor's track (sensor, track number; pieces split at ``gap_s``) whose plots
+carry one single Mode S address lends it to its plots without one, so a track with an
+intermittent address stays one aircraft. Every key is split where the aircraft is not seen
+for more than ``gap_s`` (default 300 s: track numbers and codes are reused, an address may fly
+twice in a recording, a reconstruction across a long gap would be a guess); later pieces get
+``#2``, ``#3`` ... Rows without any key are reported (``no_aircraft_key``).
+
+:func:`split_stream` does the same on a recording that arrives in pieces and yields each
+aircraft once no later plot can change it (the same tracks, tested on random recordings):
+memory then holds the aircraft in the air, and those within ``gap_s`` of a sensor track
+without Mode S that is still in the air (its plots could still be lent an address).
 
 Each aircraft's rows are put in time order (stable); a sensor's second plot at the same time
 of the same aircraft is reported (``duplicate_time``) and left out (the first is kept), as are
@@ -27,7 +33,8 @@ one ``x``/``z`` plane.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import itertools
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,22 +77,40 @@ def recording_frame(sensors: SensorSet, rows: PlotRows) -> LocalFrame | None:
     return None
 
 
-def aircraft_keys(rows: PlotRows, gap_s: float = GAP_S) -> np.ndarray:
-    """The aircraft key of every row (``""``: none), see the module docstring."""
+def aircraft_keys(rows: PlotRows, gap_s: float = GAP_S,
+                  pieces_done: dict[str, int] | None = None) -> np.ndarray:
+    """The aircraft key of every row (``""``: none), see the module docstring.
+    ``pieces_done``: per base key, how many of its pieces were already split off (streaming:
+    the next piece is numbered after them)."""
+    return _segments(_unsplit_keys(rows, gap_s), rows.t, gap_s, pieces_done)
+
+
+TrackMemory = dict[str, list[tuple[float, int]]]
+"""Streaming: per sensor track (``<sensor>:track:<n>``) still in the air, ``(t, Mode S)`` of
+its plots already split off with an aircraft: they still decide what the track lends."""
+
+
+def _unsplit_keys(rows: PlotRows, gap_s: float, memory: TrackMemory | None = None
+                  ) -> np.ndarray:
+    """Aircraft keys before the split at time gaps (``str`` array)."""
     n = len(rows)
     mode_s = rows.mode_s.copy()
     sensor = rows.sensor.astype(str)
     # a sensor's track with one single Mode S address lends it to its plots without one
     has_tn = rows.track_number >= 0
     if np.any(has_tn & (mode_s < 0)):
-        tn_key = np.char.add(np.char.add(sensor, ":track:"), rows.track_number.astype(str))
-        seg = _segments(np.where(has_tn, tn_key, ""), rows.t, gap_s)
         idx = np.flatnonzero(has_tn)
-        for _, members in _groups(seg[idx]):
-            m = idx[members]
-            addresses = np.unique(mode_s[m][mode_s[m] >= 0])
+        tn_key = np.char.add(np.char.add(sensor[idx], ":track:"),
+                             rows.track_number[idx].astype(str))
+        ghosts = [(k, t, a) for k in set(tn_key.tolist()) for t, a in (memory or {}).get(k, [])]
+        keys = np.concatenate([tn_key, np.array([g[0] for g in ghosts], dtype=str)])
+        times = np.concatenate([rows.t[idx], np.array([g[1] for g in ghosts], dtype=float)])
+        addr = np.concatenate([mode_s[idx], np.array([g[2] for g in ghosts], dtype=np.int64)])
+        for _, members in _groups(_segments(keys, times, gap_s).astype(str)):
+            addresses = np.unique(addr[members][addr[members] >= 0])
             if addresses.size == 1:
-                mode_s[m[mode_s[m] < 0]] = addresses[0]
+                own = idx[members[members < idx.size]]
+                mode_s[own[mode_s[own] < 0]] = addresses[0]
     key = np.full(n, "", dtype=object)
     tn = np.char.add(np.char.add(sensor, ":track:"), rows.track_number.astype(str))
     code = np.char.add(np.char.add(sensor, ":mode3a:"),
@@ -95,10 +120,15 @@ def aircraft_keys(rows: PlotRows, gap_s: float = GAP_S) -> np.ndarray:
     key = np.where(rows.mode_3a >= 0, code, key)
     key = np.where(rows.track_number >= 0, tn, key)
     key = np.where(mode_s >= 0, hexs, key)
-    key = _segments(key.astype(str), rows.t, gap_s)
     user = rows.aircraft.astype(str) != ""
-    key = np.where(user, rows.aircraft.astype(str), key)
-    return key.astype(object)
+    return np.where(user, rows.aircraft.astype(str), key).astype(str)
+
+
+def _base_and_piece(rows: PlotRows, gap_s: float, pieces_done: dict[str, int],
+                    memory: TrackMemory) -> tuple[np.ndarray, np.ndarray]:
+    """(key before the gap split, key with its piece number) of every row."""
+    base = _unsplit_keys(rows, gap_s, memory)
+    return base, _segments(base, rows.t, gap_s, pieces_done).astype(str)
 
 
 def _groups(keys: np.ndarray) -> Iterator[tuple[str, np.ndarray]]:
@@ -114,13 +144,16 @@ def _groups(keys: np.ndarray) -> Iterator[tuple[str, np.ndarray]]:
             yield k, members
 
 
-def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float) -> np.ndarray:
-    """``keys`` with ``#2``, ``#3`` ... appended after each time gap of more than ``gap_s``."""
+def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float,
+              pieces_done: dict[str, int] | None = None) -> np.ndarray:
+    """``keys`` with ``#2``, ``#3`` ... appended after each time gap of more than ``gap_s``
+    (numbered after ``pieces_done[key]`` pieces split off before)."""
     out = keys.astype(object).copy()
+    done = pieces_done or {}
     for k, members in _groups(keys):
         tm = t[members]
         order = np.argsort(tm, kind="stable")
-        piece = np.concatenate([[0], np.cumsum(np.diff(tm[order]) > gap_s)])
+        piece = np.concatenate([[0], np.cumsum(np.diff(tm[order]) > gap_s)]) + done.get(k, 0)
         if piece[-1] == 0:
             continue
         labels = np.array([k if p == 0 else f"{k}#{p + 1}" for p in piece.tolist()],
@@ -134,10 +167,125 @@ def split_aircraft(rows: PlotRows, sensors: SensorSet, *, reference: LocalFrame 
                    problems: Problems | None = None) -> Iterator[AircraftTrack]:
     """Yield one :class:`AircraftTrack` per aircraft (in order of first plot), recording every
     row left out in ``problems`` (see the module docstring). ``reference``: the plane (default
-    :func:`recording_frame`)."""
-    problems = problems if problems is not None else Problems()
+    :func:`recording_frame`). ``AircraftTrack.rows`` index ``rows``."""
     frame = reference if reference is not None else recording_frame(sensors, rows)
+    yield from split_stream([rows], sensors, reference=frame, min_plots=min_plots,
+                            gap_s=gap_s, disorder_s=np.inf, problems=problems)
+
+
+def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
+                 reference: LocalFrame | None = None, min_plots: int = MIN_PLOTS,
+                 gap_s: float = GAP_S, disorder_s: float = 60.0,
+                 problems: Problems | None = None) -> Iterator[AircraftTrack]:
+    """:func:`split_aircraft` over a recording that arrives in pieces (in recording order):
+    an aircraft is yielded as soon as it cannot get another plot, i.e. when the recording has
+    moved ``gap_s + disorder_s`` past its last plot (a later plot of its key starts a new
+    piece anyway), so memory holds only the aircraft in the air. Same tracks as
+    :func:`split_aircraft` on the whole when no row arrives more than ``disorder_s`` after a
+    later-timed one. ``AircraftTrack.rows`` count rows across all chunks. ``reference``:
+    default :func:`recording_frame` of the first chunk."""
+    problems = problems if problems is not None else Problems()
+    frame = reference
     index = sensors.index()
+    is_radar_sensor = np.array([isinstance(s, RadarSensor) for s in sensors.sensors] + [False])
+    buffer: PlotRows | None = None
+    numbers = np.array([], dtype=np.int64)  # each buffered row's number in the recording
+    pieces_done: dict[str, int] = {}
+    memory: TrackMemory = {}
+    seen, latest = 0, -np.inf
+    first = True
+    for rows in itertools.chain(chunks, [None]):
+        if rows is not None:
+            if first and frame is None:
+                frame = recording_frame(sensors, rows)
+            first = False
+            keep = _usable(rows, sensors, index, is_radar_sensor, problems)
+            part = rows.take(keep)
+            buffer = part if buffer is None else PlotRows.concat([buffer, part])
+            numbers = np.concatenate([numbers, seen + np.flatnonzero(keep)])
+            seen += len(rows)
+            if len(part):
+                latest = max(latest, float(np.max(part.t)))
+            horizon = latest - disorder_s - gap_s
+        else:
+            horizon = np.inf
+        if buffer is None or not len(buffer):
+            continue
+        base, keys = _base_and_piece(buffer, gap_s, pieces_done, memory)
+        sensor_idx = np.array([index[s] for s in buffer.sensor.tolist()], dtype=int)
+        # a plot without Mode S of a sensor track that may still get plots may still be lent
+        # an address (or lose it): no aircraft within gap_s of such a plot is final yet
+        pending = np.sort(buffer.t[_undecided(buffer, memory, gap_s, horizon)])
+        pieces: dict[str, list[tuple[float, bool, str, np.ndarray]]] = {}
+        for key, members in _groups(keys):
+            first, last = (float(x) for x in (np.min(buffer.t[members]),
+                                              np.max(buffer.t[members])))
+            near = np.searchsorted(pending, first - gap_s, side="left") < np.searchsorted(
+                pending, last + gap_s, side="right")
+            pieces.setdefault(str(base[members[0]]), []).append(
+                (first, bool(last < horizon and not near), key, members))
+        complete = []
+        for group in pieces.values():  # a key's pieces go in time order (their numbers)
+            for _, done, key, members in sorted(group, key=lambda g: g[0]):
+                if not done:
+                    break
+                complete.append((int(members[0]), key, members))
+        if not complete:
+            continue
+        taken = np.zeros(len(buffer), dtype=bool)
+        for _, key, members in sorted(complete, key=lambda c: c[0]):
+            taken[members] = True
+            b = str(base[members[0]])
+            pieces_done[b] = pieces_done.get(b, 0) + 1
+            track = _build(key, members, buffer, sensors, sensor_idx, frame, min_plots,
+                           problems)
+            if track is not None:
+                yield AircraftTrack(track.key, track.table, numbers[track.rows])
+        _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
+        buffer = buffer.take(~taken)
+        numbers = numbers[~taken]
+
+
+def _undecided(rows: PlotRows, memory: TrackMemory, gap_s: float, horizon: float
+               ) -> np.ndarray:
+    """Rows whose key may still change: without Mode S or a user key, in a sensor track
+    (pieces split at ``gap_s``, with its plots split off before) that may still get plots
+    (last plot at or after ``horizon``)."""
+    out = np.zeros(len(rows), dtype=bool)
+    idx = np.flatnonzero((rows.track_number >= 0) & (rows.mode_s < 0)
+                         & (rows.aircraft.astype(str) == ""))
+    if not idx.size or not np.isfinite(horizon):
+        return out
+    tn = np.flatnonzero(rows.track_number >= 0)
+    tn_key = np.char.add(np.char.add(rows.sensor[tn].astype(str), ":track:"),
+                         rows.track_number[tn].astype(str))
+    ghosts = [(k, t) for k in set(tn_key.tolist()) for t, _ in memory.get(k, [])]
+    keys = np.concatenate([tn_key, np.array([g[0] for g in ghosts], dtype=str)])
+    times = np.concatenate([rows.t[tn], np.array([g[1] for g in ghosts], dtype=float)])
+    for _, members in _groups(_segments(keys, times, gap_s).astype(str)):
+        if float(np.max(times[members])) >= horizon:
+            out[tn[members[members < tn.size]]] = True
+    return out & np.isin(np.arange(len(rows)), idx)
+
+
+def _remember(memory: TrackMemory, gone: PlotRows, kept: PlotRows, horizon: float) -> None:
+    """Note the sensor-track plots split off; forget a sensor track when none of its plots is
+    left and the recording is ``gap_s + disorder_s`` past its last (no plot can go on from
+    it)."""
+    for i in np.flatnonzero(gone.track_number >= 0).tolist():
+        k = f"{gone.sensor[i]}:track:{gone.track_number[i]}"
+        memory.setdefault(k, []).append((float(gone.t[i]), int(gone.mode_s[i])))
+    live = {f"{s}:track:{n}" for s, n in zip(kept.sensor.tolist(),
+                                             kept.track_number.tolist(), strict=True) if n >= 0}
+    for k in [k for k, plots in memory.items()
+              if k not in live and max(t for t, _ in plots) < horizon]:
+        del memory[k]
+
+
+def _usable(rows: PlotRows, sensors: SensorSet, index: dict[str, int],
+            is_radar_sensor: np.ndarray, problems: Problems) -> np.ndarray:
+    """Rows that can belong to an aircraft; the others reported (unknown sensor, a
+    measurement that does not fit the sensor, no key at all)."""
     n = len(rows)
     sensor_idx = np.array([index.get(s, -1) for s in rows.sensor.tolist()], dtype=int)
     usable = np.ones(n, dtype=bool)
@@ -146,7 +294,6 @@ def split_aircraft(rows: PlotRows, sensors: SensorSet, *, reference: LocalFrame 
                      "the sensor file: its plots are left out", key=str(rows.sensor[i]),
                      dropped=1)
     usable &= sensor_idx >= 0
-    is_radar_sensor = np.array([isinstance(s, RadarSensor) for s in sensors.sensors] + [False])
     radar_row = is_radar_sensor[sensor_idx]
     has_radar = rows.is_radar()
     has_pos = np.isfinite(rows.lat_deg) & np.isfinite(rows.lon_deg)
@@ -157,21 +304,13 @@ def split_aircraft(rows: PlotRows, sensors: SensorSet, *, reference: LocalFrame 
         problems.add("wrong_measurement", rows.where(i), f"a plot of {s.kind} sensor {s.id!r} "
                      f"must carry {need} only: left out", key=s.id, dropped=1)
     usable &= ~wrong
-
-    keys = aircraft_keys(rows, gap_s)
-    no_key = usable & (keys.astype(str) == "")
+    no_key = usable & (rows.aircraft.astype(str) == "") & (rows.mode_s < 0) & (
+        rows.track_number < 0) & (rows.mode_3a < 0)
     for i in np.flatnonzero(no_key).tolist():
         problems.add("no_aircraft_key", rows.where(i), "plot without aircraft key, Mode S "
                      "address, track number or Mode 3/A code: left out", key=str(rows.sensor[i]),
                      dropped=1)
-    usable &= ~no_key
-
-    idx = np.flatnonzero(usable)
-    groups = sorted(_groups(keys[idx].astype(str)), key=lambda g: int(g[1][0]))
-    for key, members in groups:
-        track = _build(key, idx[members], rows, sensors, sensor_idx, frame, min_plots, problems)
-        if track is not None:
-            yield track
+    return usable & ~no_key
 
 
 def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
@@ -222,4 +361,4 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
     return None
 
 
-__all__ = ["AircraftTrack", "aircraft_keys", "recording_frame", "split_aircraft"]
+__all__ = ["AircraftTrack", "aircraft_keys", "recording_frame", "split_aircraft", "split_stream"]
