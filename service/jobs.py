@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import IO, Any, Literal
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -332,6 +332,7 @@ class JobRunner:
         self.root = Path(settings.data_dir or default_data_dir())
         self.store: JobStore | None = None
         self.unavailable: str | None = "the job runner is not started"
+        self._lock_file: IO[bytes] | None = None
         self._wake = threading.Condition()
         self._stopping = False
         self._threads: list[threading.Thread] = []
@@ -354,9 +355,15 @@ class JobRunner:
         inputs of posts that never became jobs, start the job threads."""
         try:
             (self.root / "jobs").mkdir(parents=True, exist_ok=True)
-            self.store = JobStore(self.root / "jobs.sqlite3")
-        except (OSError, sqlite3.Error) as e:  # the service still serves single tracks
+            self._lock_file = _lock(self.root / "lock")
+            if self._lock_file is None:
+                self.unavailable = (f"another service uses the data directory {self.root} "
+                                    "(one service per TRAJRECON_DATA_DIR)")
+            else:
+                self.store = JobStore(self.root / "jobs.sqlite3")
+        except (OSError, sqlite3.Error) as e:
             self.unavailable = f"the job store at {self.root} cannot be opened: {e}"
+        if self.store is None:  # the service still serves single tracks
             LOGGER.error("jobs unavailable", extra={"fields": {"error": self.unavailable}})
             return
         self.unavailable = None
@@ -396,6 +403,10 @@ class JobRunner:
         if self.store is not None:
             self.store.close()
             self.store = None
+        if self._lock_file is not None:
+            self._lock_file.close()  # releases the lock
+            self._lock_file = None
+        self.unavailable = "the service is stopping"
 
     async def aclose(self) -> None:
         """:meth:`close` off the event loop."""
@@ -735,13 +746,27 @@ def _combine(parts_dir: Path, parts: list[str], target: Path) -> None:
 def _zip(out: Path, target: Path) -> None:
     import zipfile
 
-    tmp = target.with_suffix(".tmp")
+    tmp = target.with_name(f".{uuid.uuid4().hex}.tmp")  # two requests may build it at once
     with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
         for name in RESULT_FILES:
             src = out / "export" / name if name.endswith(".parquet") else out / name
             if name != "results.zip" and src.is_file():
                 z.write(src, name)
     os.replace(tmp, target)
+
+
+def _lock(path: Path) -> IO[bytes] | None:
+    """An exclusive lock on ``path`` held while the returned file is open (released by the
+    kernel when the process dies, SIGKILL included); None: another process holds it."""
+    import fcntl
+
+    f = open(path, "ab")  # held open for the service's life
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.close()
+        return None
+    return f
 
 
 def _read_json(path: Path) -> Any:

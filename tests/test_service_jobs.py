@@ -276,3 +276,16 @@ def test_a_named_dask_scheduler_runs_the_jobs(client, tmp_path):
     assert client.get("/healthz").status_code == 200
     r = upload(client, enc.data)  # the first app's cluster still serves
     assert wait(client, r.headers["location"])["state"] == "done"
+
+
+def test_a_second_service_on_the_same_data_dir_is_refused(client):
+    """Two services would run the same jobs into the same directories: the second one's jobs
+    answer 503 naming the reason (single tracks still served)."""
+    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
+                        data_dir=client.app.state.jobs.root)
+    with TestClient(create_app(settings)) as other:
+        r = other.get("/v1/jobs/x")
+        assert r.status_code == 503 and "another service uses the data directory" in r.json()[
+            "message"]
+        assert other.get("/healthz").status_code == 200
+    assert client.get("/v1/jobs/x").status_code == 404  # the first one serves on
