@@ -430,3 +430,29 @@ def test_encode_rows_reads_back_exactly():
                                 range_m=[5e5], azimuth_deg=[1.0])
     with pytest.raises(ValueError, match=r"row 0: range_m 500000\.0 is beyond"):
         encode_rows(far, SENSORS)
+
+
+def test_recording_read_and_split_as_a_stream():
+    """iter_recording's parts, fed to split_stream, give read_recording + split_aircraft's
+    rows, times (across midnight) and tracks; each problem is in the part where it occurs."""
+    from solver.io.asterix import iter_recording
+    from solver.io.split import split_stream
+
+    enc = encode_recording(tod0=86_380.0, duration=60.0)
+    payloads = list(enc.blocks)
+    payloads[20] = payloads[20][:-4]
+    data = pcap(payloads)[:-7]  # and the capture cut inside its last packet
+    whole = read_recording(data, SENSORS)
+    parts = list(iter_recording(data, SENSORS, chunk_bytes=150))
+    assert len(parts) > 10
+    rows = PlotRows.concat([p.rows for p in parts])
+    np.testing.assert_array_equal(rows.t, whole.rows.t)
+    assert whole.rows.t.max() > 86_430
+    with_problems = {k: p.problems.counts for k, p in enumerate(parts) if p.problems}
+    assert list(with_problems.values()) == [{"truncated_block": 1}, {"truncated_packet": 1}]
+    assert list(with_problems)[-1] == len(parts) - 1
+    assert sum(p.packets for p in parts) == whole.packets == len(payloads) - 1
+    stream = {tr.key: tr.rows.tolist() for tr in split_stream(
+        (p.rows for p in iter_recording(data, SENSORS, chunk_bytes=150)), SENSORS)}
+    assert stream == {tr.key: tr.rows.tolist() for tr in split_aircraft(whole.rows, SENSORS)}
+    assert sorted(stream) == ["3C6DD4", "4CA2D1"]

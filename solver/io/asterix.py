@@ -46,6 +46,7 @@ of its block is skipped), unrecognised bytes between blocks, a category that is 
 from __future__ import annotations
 
 import struct
+from collections import deque
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -112,33 +113,70 @@ def read_recording(source: str | Path | bytes, sensors: SensorSet, *,
     executor) the units are decoded in parallel, else one after the other: the result is the
     same (rows in recording order, times unwrapped over the whole recording)."""
     data = source if isinstance(source, bytes) else Path(source).read_bytes()
+    parts = list(iter_recording(data, sensors, editions=editions, executor=executor,
+                                chunk_bytes=chunk_bytes))
+    return _merge(parts, Problems(), len(data), sum(p.packets for p in parts))
+
+
+def iter_recording(source: str | Path | bytes, sensors: SensorSet, *,
+                   editions: Mapping[int, Any] | None = None, executor: Any = None,
+                   chunk_bytes: int = CHUNK_BYTES, ahead: int = 8) -> Iterator[Recording]:
+    """:func:`read_recording` unit by unit, in recording order, for a reader that wants to
+    start before the end (e.g. :func:`solver.io.split.split_stream` over the parts' rows):
+    each part holds its rows (times unwrapped continuously across the parts), its problems
+    (the container's too) and counts. With ``executor`` at most ``ahead`` units are
+    decoded at once."""
+    data = source if isinstance(source, bytes) else Path(source).read_bytes()
     if data[:4] == _PCAPNG_MAGIC:
         raise InputError(("recording",), "is a pcapng capture; only classic pcap is read "
                          "(convert it: editcap -F pcap in.pcapng out.pcap)")
-    problems = Problems()
-    units: list[list[tuple[int, bytes]]] = []
-    packets = 0
-    if data[:4] in _PCAP_MAGIC:
-        unit: list[tuple[int, bytes]] = []
-        size = 0
-        for offset, payload in iter_pcap_payloads(data, problems):
-            packets += 1
-            unit.append((offset, payload))
-            size += len(payload)
-            if size >= chunk_bytes:
-                units.append(unit)
-                unit, size = [], 0
-        if unit:
-            units.append(unit)
-    else:
-        units = [[(a, data[a:b])] for a, b in block_chunks(data, chunk_bytes)]
     eds = dict(editions or DEFAULT_EDITIONS)
+    previous = np.nan
+
+    def finish(part: Recording, walk: Problems, packets: int) -> Recording:
+        nonlocal previous
+        walk.extend(part.problems)
+        t = unwrap_time_of_day(part.rows.time_of_day_s, previous)
+        if np.isfinite(t).any():
+            previous = float(t[np.isfinite(t)][-1])
+        return Recording(replace(part.rows, t=t), walk, part.service, part.blocks,
+                         part.records, part.bytes, packets)
+
+    units = _units(data, chunk_bytes)
     if executor is None:
-        parts = [decode_datagrams(u, sensors, editions=eds) for u in units]
-    else:
-        futures = [executor.submit(decode_datagrams, u, sensors, editions=eds) for u in units]
-        parts = [f.result() for f in futures]
-    return _merge(parts, problems, len(data), packets)
+        for unit, walk in units:
+            yield finish(decode_datagrams(unit, sensors, editions=eds), walk, len(unit)
+                         if data[:4] in _PCAP_MAGIC else 0)
+        return
+    pending: deque[tuple[Any, Problems, int]] = deque()
+    for unit, walk in units:
+        pending.append((executor.submit(decode_datagrams, unit, sensors, editions=eds), walk,
+                        len(unit) if data[:4] in _PCAP_MAGIC else 0))
+        if len(pending) >= ahead:
+            fut, w, k = pending.popleft()
+            yield finish(fut.result(), w, k)
+    while pending:
+        fut, w, k = pending.popleft()
+        yield finish(fut.result(), w, k)
+
+
+def _units(data: bytes, chunk_bytes: int) -> Iterator[tuple[list[tuple[int, bytes]], Problems]]:
+    """The decoding units of a recording with the container's problems met on the way."""
+    if data[:4] not in _PCAP_MAGIC:
+        for a, b in block_chunks(data, chunk_bytes):
+            yield [(a, data[a:b])], Problems()
+        return
+    walk = Problems()  # filled by the pcap walk, drained into each unit
+    unit: list[tuple[int, bytes]] = []
+    size = 0
+    for offset, payload in iter_pcap_payloads(data, walk):
+        unit.append((offset, payload))
+        size += len(payload)
+        if size >= chunk_bytes:
+            yield unit, walk.drain()
+            unit, size = [], 0
+    if unit or walk:
+        yield unit, walk.drain()
 
 
 def decode_blocks(data: bytes, sensors: SensorSet, *,

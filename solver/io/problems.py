@@ -81,6 +81,13 @@ class Problems:
         for k, n in other.dropped.items():
             self.dropped[k] = self.dropped.get(k, 0) + n
 
+    def drain(self) -> Problems:
+        """The problems recorded so far, moved to a new collection (this one starts empty)."""
+        out = Problems(self.entries, self.counts, self.dropped, self._keyed, self._per_kind)
+        self.entries, self.counts, self.dropped = [], {}, {}
+        self._keyed, self._per_kind = {}, {}
+        return out
+
     def of_kind(self, kind: str) -> list[Problem]:
         return [e for e in self.entries if e.kind == kind]
 

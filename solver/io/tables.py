@@ -174,16 +174,17 @@ class PlotRows:
 # ---------------------------------------------------------------------------- time of day
 
 
-def unwrap_time_of_day(tod: FloatArray) -> FloatArray:
+def unwrap_time_of_day(tod: FloatArray, previous: float = np.nan) -> FloatArray:
     """Seconds since the UTC midnight before the first value, from times of day in recording
     order: each value is put on the day that brings it closest to the value before it, so the
     times grow across midnight (86399.9 then 0.1 -> 86400.1) while a late report from just
     before midnight, arriving after one from just after, stays on its own day (jumps of less
-    than 12 h either way are taken as they are)."""
+    than 12 h either way are taken as they are). ``previous``: the unwrapped time before the
+    first value (a recording read in pieces)."""
     tod = np.asarray(tod, dtype=float)
     out = np.empty_like(tod)
     day = 0.0
-    prev = np.nan
+    prev = float(previous)
     for i, v in enumerate(tod.tolist()):
         if np.isfinite(prev):
             day = np.round((prev - v) / DAY_S)
