@@ -262,7 +262,9 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
     none). At most ``max_in_flight`` tracks (default twice the workers) are submitted at once;
     finished tracks are written every ``flush_tracks`` tracks or ``flush_s`` seconds. Tracks
     already in ``out_dir`` are skipped (failed ones too, unless ``retry_failed``); a key given
-    twice is refused (``ValueError``). ``on_outcome`` is called with each outcome (progress).
+    twice is refused (``ValueError``). ``on_outcome`` is called with each outcome once it is
+    committed to ``out_dir`` (progress; what it records is then never reported twice by a
+    resumed run; an exception it raises stops the run, committed tracks kept).
     ``task``: the function run per track, ``task(key, table, config, time_limit_s)``
     (default :func:`solve_track`).
     """
@@ -290,13 +292,18 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                 if outcome.error is not None:
                     summary.failures[key] = outcome.error
                 buffer.append(outcome)
-                if on_outcome is not None:
-                    on_outcome(outcome)
             if buffer and (len(buffer) >= flush_tracks
                            or time.monotonic() - last_flush >= flush_s):
-                store.commit(buffer)
-                buffer.clear()
+                flush()
                 last_flush = time.monotonic()
+
+        def flush() -> None:
+            committed = list(buffer)
+            store.commit(committed)
+            buffer.clear()
+            if on_outcome is not None:  # once on disk: a resumed run never reports it again
+                for outcome in committed:
+                    on_outcome(outcome)
 
         for problem in _problems(problems):
             key = problem.key
@@ -314,7 +321,7 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
         while pending:
             collect(wait(list(pending)))
         if buffer:
-            store.commit(buffer)
+            flush()
     summary.elapsed_s = time.perf_counter() - start
     return summary
 

@@ -181,3 +181,26 @@ def _task_reporting_pid(folder):
         return solve_track(key, table, config, limit)
 
     return task
+
+
+def test_outcomes_are_reported_once_committed_and_never_twice(tmp_path, tracks):
+    """on_outcome sees an outcome once it is on disk; a run stopped by it (an exception) and
+    resumed reports every track exactly once over both runs."""
+    reported: list[str] = []
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_first(o):
+        assert o.key in {e["aircraft"] for e in ledger(tmp_path)}  # committed already
+        reported.append(o.key)
+        raise Stop
+
+    with ThreadPoolExecutor(1) as ex, pytest.raises(Stop):
+        reconstruct_many(tracks, tmp_path, executor=ex, flush_tracks=1, max_in_flight=1,
+                         on_outcome=stop_after_first)
+    assert len(reported) == 1
+    with ThreadPoolExecutor(1) as ex:
+        reconstruct_many(tracks, tmp_path, executor=ex, on_outcome=lambda o: reported.append(
+            o.key))
+    assert sorted(reported) == sorted(p.key for p in tracks)
