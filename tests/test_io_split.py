@@ -271,3 +271,16 @@ def test_every_row_is_in_one_track_or_counted(plots):
     for tr in tracks:
         assert len(tr.table) == tr.rows.size >= 3
         np.testing.assert_array_equal(tr.table.t, rows.t[tr.rows])
+
+
+def test_streamed_tracks_share_one_plane_set_by_the_first_position():
+    """ADS-B only, the first chunk without a position: the plane is the first position plot
+    of the recording for every track."""
+    adsb_only = parse_sensors([SENSOR_FILE[2]])
+    noise = radar_rows([0, 1, 2], sensor="NOPE", mode_s=0xC)  # no position, unknown sensor
+    a = adsb_rows(np.arange(0, 40, 2), 0xA)
+    b = dataclasses.replace(adsb_rows(np.arange(10, 60, 2), 0xB),
+                            lat_deg=np.full(25, 47.0))
+    tracks = list(split_stream([noise, a, b], adsb_only, gap_s=30.0, disorder_s=5.0))
+    assert sorted(tr.key for tr in tracks) == ["00000A", "00000B"]
+    assert {tr.table.frame for tr in tracks} == {LocalFrame(46.3, 14.4)}

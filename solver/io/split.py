@@ -178,12 +178,15 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                  gap_s: float = GAP_S, disorder_s: float = 60.0,
                  problems: Problems | None = None) -> Iterator[AircraftTrack]:
     """:func:`split_aircraft` over a recording that arrives in pieces (in recording order):
-    an aircraft is yielded as soon as it cannot get another plot, i.e. when the recording has
-    moved ``gap_s + disorder_s`` past its last plot (a later plot of its key starts a new
-    piece anyway), so memory holds only the aircraft in the air. Same tracks as
-    :func:`split_aircraft` on the whole when no row arrives more than ``disorder_s`` after a
-    later-timed one. ``AircraftTrack.rows`` count rows across all chunks. ``reference``:
-    default :func:`recording_frame` of the first chunk."""
+    an aircraft is yielded as soon as no later plot can change it: the recording has moved
+    ``gap_s + disorder_s`` past its last plot (a later plot of its key starts a new piece), no
+    plot without Mode S of a sensor track that may still get plots lies within ``gap_s`` of it
+    (it could still be lent its address, or lose it), and its key's earlier pieces are out. So
+    memory holds the aircraft in the air (and those near a sensor track without Mode S in the
+    air). The same tracks, keys, rows and problems as :func:`split_aircraft` on the whole when
+    no row arrives more than ``disorder_s`` after a later-timed one. ``AircraftTrack.rows``
+    count rows across all chunks. ``reference``: default :func:`recording_frame` of the first
+    chunk that has one (the sensor file's reference or a radar site: the first)."""
     problems = problems if problems is not None else Problems()
     frame = reference
     index = sensors.index()
@@ -193,12 +196,10 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
     pieces_done: dict[str, int] = {}
     memory: TrackMemory = {}
     seen, latest = 0, -np.inf
-    first = True
     for rows in itertools.chain(chunks, [None]):
         if rows is not None:
-            if first and frame is None:
+            if frame is None:  # set by the first chunk that has one, then kept
                 frame = recording_frame(sensors, rows)
-            first = False
             keep = _usable(rows, sensors, index, is_radar_sensor, problems)
             part = rows.take(keep)
             buffer = part if buffer is None else PlotRows.concat([buffer, part])
