@@ -272,7 +272,7 @@ def _render_imm_smoother(r: dict) -> list[str]:
           "point with the lowest mean RMS relative to each profile's best. The choices over the "
           "stages (per profile: `baselines.TUNED`, estimators `imm-smoother`, "
           "`imm-smoother-kim`; common: the defaults of `solver.estimation.imm_smoother`) are in "
-          "the tuning notes.", "",
+          "the tuning notes." + (f" Note: {r['note']}." if r.get("note") else ""), "",
           "| point (q_cv/q_ct/omega_deg/tau_cv/tau_ct) | chosen for | " + " | ".join(profiles)
           + " | mean RMS / best |", "|---|---|" + "---|" * len(profiles) + "---:|"]
     chosen: dict[int, list[str]] = {}

@@ -22,10 +22,11 @@ Defaults (``q_cv = 3``, ``q_ct = 30 m^2/s^3``, ``omega = 1 deg/s``, ``tau_cv = 6
 ``tau_ct = 60 s``): the grid point with the lowest mean over the profiles seed000, seed001 and ssr
 of the RMS position error relative to each profile's best, on the six dev ADS-B tracks with the
 dev seeds 100 and 101 (``python -m benchmarks.tune imm_smoother``, 72 points, then ``--fine``
-around its best, 24 points; ``benchmarks/results/tuning_imm_smoother*.json``): RMS 384.7 /
-342.2 / 75.3 m, within 0.4 % of each profile's best point over both stages. The optimum is flat
-(the next points are within 0.5 %). Kim's mode weights (``future_modes=False``) are 0.5-2.7 %
-less accurate at their own best point and about 1.6 times faster.
+around its best, 24 points; ``benchmarks/results/tuning_imm_smoother*.json``): RMS 385.7 /
+342.8 / 75.3 m, the best of the fine grid in every profile (ssr's best of the first stage,
+``q_cv = 1``, ``q_ct = 10``, sojourn 200 s, is 1 % better there). The optimum is flat (the next
+points are within 0.5 %). Kim's mode weights (``future_modes=False``) are 0-4 % less accurate at
+their own best points and about 1.5 times faster.
 """
 
 from __future__ import annotations
