@@ -40,7 +40,15 @@ in the file and the rest is still read: a truncated block (its declared length r
 end of the file or past the start of the next valid block: the reader resynchronises on the
 next block whose header, records and successor all check out), an unparsable record (the rest
 of its block is skipped), unrecognised bytes between blocks, a category that is not decoded
-(CAT062 ...), an unknown SAC/SIC, a record without position or time.
+(CAT062 ...), an unknown SAC/SIC, a record without position or time. ASTERIX data carry no
+edition: data of another edition (e.g. CAT021 0.26, whose UAP differs from 2.x) show as
+``bad_record`` / ``missing_item`` problems; pass ``editions=`` to match them.
+
+Reading: :func:`read_recording` (the whole recording), :func:`iter_recording` (in order, unit
+by unit, for :func:`solver.io.split.split_stream`); both decode units of ``chunk_bytes`` cut at
+block or packet boundaries, in parallel on an ``executor`` when given (libasterix parses about
+3,500-7,000 records per second per core). :func:`encode_rows` writes plot rows back as a raw
+recording (tests, benchmark recordings).
 """
 
 from __future__ import annotations
