@@ -79,10 +79,8 @@ def test_turn_transitions_match_the_coordinated_turn_map():
     T = 19.0
     nodes, weights = np.polynomial.legendre.leggauss(40)
     s = 0.5 * T * (nodes + 1)
-    ref = np.zeros((4, 4))
-    for si, wi in zip(s, weights, strict=True):
-        P = ims.transitions(np.array([si]), 1.0, q, omega)[0][0, 1]
-        ref += 0.5 * T * wi * q * P[:, 2:] @ P[:, 2:].T
+    Ps = ims.transitions(s, 1.0, q, omega)[0][:, 1, :, 2:]  # Phi(s) G at every node
+    ref = 0.5 * T * q * np.einsum("k,kab,kcb->ac", weights, Ps, Ps)
     np.testing.assert_allclose(Q[2, 1], ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
 
 
