@@ -456,3 +456,49 @@ def test_recording_read_and_split_as_a_stream():
         (p.rows for p in iter_recording(data, SENSORS, chunk_bytes=150)), SENSORS)}
     assert stream == {tr.key: tr.rows.tolist() for tr in split_aircraft(whole.rows, SENSORS)}
     assert sorted(stream) == ["3C6DD4", "4CA2D1"]
+
+
+def _capture(frames: list[bytes], linktype: int) -> bytes:
+    out = [struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, linktype)]
+    for k, frame in enumerate(frames):
+        out.append(struct.pack("<IIII", k, 0, len(frame), len(frame)) + frame)
+    return b"".join(out)
+
+
+def _ipv4(payload: bytes, proto: int = 17, frag: int = 0) -> bytes:
+    udp = struct.pack(">HHHH", 1, 8600, 8 + len(payload), 0) + payload if proto == 17 else (
+        bytes(20) + payload)
+    return struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, frag, 64, proto, 0,
+                       bytes(4), bytes(4)) + udp
+
+
+def _ipv6(payload: bytes) -> bytes:
+    udp = struct.pack(">HHHH", 1, 8600, 8 + len(payload), 0) + payload
+    return struct.pack(">IHBB16s16s", 6 << 28, len(udp), 17, 64, bytes(16), bytes(16)) + udp
+
+
+def test_pcap_link_layers_and_packets_that_are_not_asterix():
+    """802.1Q-tagged Ethernet, IPv6, Linux cooked captures are read; TCP and IP fragments are
+    reported with their packet and byte offset, not dropped silently."""
+    enc = encode_recording(duration=8.0)
+    b = enc.blocks
+    eth = bytes(12)
+    frames = [eth + struct.pack(">HHH", 0x8100, 5, 0x0800) + _ipv4(b[0]),    # VLAN
+              eth + struct.pack(">H", 0x86DD) + _ipv6(b[1]),                  # IPv6
+              eth + struct.pack(">H", 0x0800) + _ipv4(b"x" * 30, proto=6),    # TCP
+              eth + struct.pack(">H", 0x0800) + _ipv4(b[2], frag=0x2000),     # fragment
+              *[eth + struct.pack(">H", 0x0800) + _ipv4(x) for x in b[3:]]]
+    rec = read_recording(_capture(frames, 1), SENSORS)
+    assert rec.problems.counts == {"not_asterix_packet": 2}
+    where = {p.message: p.where for p in rec.problems.entries}
+    assert where == {"pcap packet 3: IP protocol 6, not UDP":
+                     f"byte {24 + sum(16 + len(f) for f in frames[:2])}",
+                     "pcap packet 4: IPv4 fragment (not reassembled)":
+                     f"byte {24 + sum(16 + len(f) for f in frames[:3])}"}
+    # every other packet's plots are read: the blocks but the fragment's, decoded as a file
+    whole = decode_blocks(b"".join([b[0], b[1], *b[3:]]), SENSORS)
+    assert len(rec.rows) == len(whole.rows) > 0
+    np.testing.assert_array_equal(rec.rows.range_m, whole.rows.range_m)
+    sll = [struct.pack(">HHHQH", 0, 1, 6, 0, 0x0800) + _ipv4(x) for x in b]  # Linux cooked
+    rec = read_recording(_capture(sll, 113), SENSORS)
+    assert not rec.problems and len(rec.rows) == len(enc.plots)
