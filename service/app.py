@@ -16,6 +16,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Res
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException
 from starlette.middleware.gzip import GZipMiddleware
+from starlette.routing import BaseRoute, Match
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -179,16 +180,28 @@ class Observe:
     Metric labels are bounded: the route is the matched route's template (``<unmatched>``
     otherwise) and the method one of :data:`KNOWN_METHODS` or ``other``."""
 
-    def __init__(self, app: ASGIApp, metrics: Metrics, access_log: bool):
+    def __init__(self, app: ASGIApp, metrics: Metrics, access_log: bool,
+                 routes: list[BaseRoute] | None = None):
         self.app = app
         self.metrics = metrics
         self.access_log = access_log
+        self.routes = routes if routes is not None else []
+
+    def route_label(self, scope: Scope, original: Scope) -> str:
+        """The matched route's template. FastAPI's routes leave themselves in the scope; for the
+        others (``/openapi.json``, the docs' assets mount) the app's routes are matched again
+        against the ``original`` scope (routing rewrites ``root_path`` in place)."""
+        route = scope.get("route")
+        if route is None:
+            route = next((r for r in self.routes if r.matches(original)[0] is Match.FULL), None)
+        return getattr(route, "path", None) or "<unmatched>"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         start = time.perf_counter()
+        original = dict(scope)
         headers = dict(scope["headers"])
         rid = headers.get(b"x-request-id", b"").decode("latin-1")[:64] or uuid.uuid4().hex[:16]
         status = 500
@@ -206,8 +219,7 @@ class Observe:
             await self.app(scope, receive, send_observed)
         finally:
             elapsed = time.perf_counter() - start
-            route = scope.get("route")
-            path = getattr(route, "path", None) or "<unmatched>"
+            path = self.route_label(scope, original) if status != 404 else "<unmatched>"
             method = scope["method"] if scope["method"] in KNOWN_METHODS else "other"
             self.metrics.requests.labels(method, path, str(status)).inc()
             self.metrics.latency.labels(method, path).observe(elapsed)
@@ -276,7 +288,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(JobsBodyLimit, limit=BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=1)
     app.add_middleware(Framing)
-    app.add_middleware(Observe, metrics=metrics, access_log=settings.access_log)
+    app.add_middleware(Observe, metrics=metrics, access_log=settings.access_log,
+                       routes=app.router.routes)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:

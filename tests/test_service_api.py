@@ -463,3 +463,15 @@ def test_late_input_errors_are_renamed_to_request_fields():
     assert r.status_code == 422
     assert r.json()["message"] == "plots[3].azimuth_deg is not usable"
     assert r.json()["detail"][0]["loc"] == ["plots", 3, "azimuth_deg"]
+
+
+def test_metrics_label_every_route_by_its_template(client):
+    """Routes outside FastAPI's own (the OpenAPI document, the docs' assets) are labelled by
+    their template too, not lumped with unmatched requests; a 404 never makes a label."""
+    client.get("/openapi.json")
+    client.get("/docs/assets/swagger-ui.css")
+    client.get("/docs/assets/no-such-file.js")
+    text = client.get("/metrics").text
+    assert 'route="/openapi.json",status="200"' in text
+    assert 'route="/docs/assets",status="200"' in text
+    assert "no-such-file" not in text
