@@ -4,6 +4,7 @@ named, bad values reported by row while the rest is read, time of day unwrapped.
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import numpy as np
 import pyarrow as pa
@@ -13,6 +14,7 @@ from test_io_asterix import SENSORS, encode_recording
 
 from solver.inputs import InputError
 from solver.io.asterix import read_recording
+from solver.io.problems import Problems
 from solver.io.tables import PlotRows, read_csv, read_table, unwrap_time_of_day, write_table
 
 COLUMNS = ("t", "time_of_day_s", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
@@ -126,3 +128,37 @@ def test_unwrap_time_of_day():
         unwrap_time_of_day(tod),
         [86398.0, 86399.5, 86400.5, 86399.9, 86401.0, 86400 + 43000.0, 86400 + 86000.0,
          2 * 86400 + 100.0])
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_reading_in_batches_gives_the_table(tmp_path, suffix):
+    """iter_table's batches: the rows, row numbers, times (unwrapped across midnight and
+    across batches) and problems of read_table."""
+    from solver.io.tables import iter_table
+
+    rows = decoded()
+    rows = PlotRows.concat([rows] * 3)  # 300+ rows
+    rows = dataclasses.replace(rows, t=np.full(len(rows), np.nan))  # times of day only
+    table = rows.to_arrow().drop_columns(["t"])
+    bad = table.column("range_m").to_pylist()
+    bad[40] = -5.0  # a bad value in a later batch
+    table = table.set_column(table.column_names.index("range_m"), "range_m",
+                             pa.array(bad, pa.float64()))
+    path = tmp_path / f"plots{suffix}"
+    (pq.write_table if suffix == ".parquet" else pacsv_write)(table, path)
+    whole, whole_p = read_table(path)
+    batched_p = Problems()
+    parts = list(iter_table(path, batch_rows=20, problems=batched_p))
+    assert len(parts) > 3
+    back = PlotRows.concat(parts)
+    assert_rows_equal(back, whole)
+    assert back.origin.tolist() == whole.origin.tolist()
+    assert [str(p) for p in batched_p.entries] == [str(p) for p in whole_p.entries]
+    assert whole_p.entries[0].where.startswith("row 41")
+    assert whole.t.max() > 86_400
+
+
+def pacsv_write(table: pa.Table, path) -> None:
+    import pyarrow.csv as pacsv
+
+    pacsv.write_csv(table, path)

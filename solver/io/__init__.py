@@ -11,13 +11,13 @@ from typing import Any
 
 from .problems import Problem, Problems
 from .sensors_file import SensorSet, load_sensors, parse_sensors
-from .tables import PlotRows, read_table, unwrap_time_of_day, write_table
+from .tables import PlotRows, iter_table, read_table, unwrap_time_of_day, write_table
 
-_LAZY = {"Recording", "ServiceStats", "read_recording", "encode_rows"}
+_LAZY = {"Recording", "ServiceStats", "read_recording", "iter_recording", "encode_rows"}
 
 __all__ = ["PlotRows", "Problem", "Problems", "Recording", "SensorSet", "ServiceStats",
-           "encode_rows", "load_sensors", "parse_sensors", "read_recording", "read_table",
-           "unwrap_time_of_day", "write_table"]
+           "encode_rows", "iter_recording", "iter_table", "load_sensors", "parse_sensors",
+           "read_recording", "read_table", "unwrap_time_of_day", "write_table"]
 
 
 def __getattr__(name: str) -> Any:

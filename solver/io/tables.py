@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
@@ -235,9 +235,61 @@ def read_csv(data: bytes, *, strict: bool = False, problems: Problems | None = N
     return rows_from_arrow(table, strict=strict, problems=problems, csv_lines=True)
 
 
+def iter_table(path: str | Path, *, batch_rows: int = 1 << 17, strict: bool = False,
+               problems: Problems | None = None) -> Iterator[PlotRows]:
+    """:func:`read_table` in batches of about ``batch_rows`` rows, in order (rows numbered
+    and times of day unwrapped across the batches; problems into ``problems``), for
+    :func:`solver.io.split.split_stream`: a table of any length in bounded memory."""
+    path = Path(path)
+    problems = problems if problems is not None else Problems()
+    batches: Iterator[pa.RecordBatch]
+    if path.suffix.lower() in (".parquet", ".pq"):
+        try:
+            batches = pq.ParquetFile(path).iter_batches(batch_size=batch_rows)
+        except (pa.ArrowException, OSError) as e:
+            raise InputError(("file",), f"{path.name} is not a readable Parquet file: {e}"
+                             ) from None
+        csv_lines = False
+    else:
+        with open(path, "rb") as f:
+            first = f.readline().decode("utf-8-sig", errors="replace")
+        header = next(csv.reader(io.StringIO(first)), [])
+        if not header or not any(h.strip() for h in header):
+            raise InputError(("file",), "has no header line")
+        try:
+            batches = pacsv.open_csv(
+                path, read_options=pacsv.ReadOptions(block_size=max(batch_rows * 64, 4096)),
+                convert_options=pacsv.ConvertOptions(
+                    column_types={h: pa.string() for h in header}, strings_can_be_null=True,
+                    null_values=[""], quoted_strings_can_be_null=True))
+        except pa.ArrowInvalid as e:
+            raise InputError(("file",), f"is not a readable CSV table: {e}") from None
+        csv_lines = True
+    first_row, previous = 1, np.nan
+    while True:
+        try:
+            batch = next(batches)
+        except StopIteration:
+            return
+        except pa.ArrowInvalid as e:
+            raise InputError(("file",), f"is not a readable table after row {first_row - 1}: "
+                             f"{e}") from None
+        rows, _ = rows_from_arrow(pa.Table.from_batches([batch]), strict=strict,
+                                  problems=problems, csv_lines=csv_lines,
+                                  first_row=first_row, previous_t=previous)
+        first_row += batch.num_rows
+        finite = rows.t[np.isfinite(rows.t)]
+        if finite.size:
+            previous = float(finite[-1])
+        yield rows
+
+
 def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems | None = None,
-                    csv_lines: bool = False) -> tuple[PlotRows, Problems]:
-    """Convert and check an Arrow table of the documented columns (see the module docstring)."""
+                    csv_lines: bool = False, first_row: int = 1, previous_t: float = np.nan
+                    ) -> tuple[PlotRows, Problems]:
+    """Convert and check an Arrow table of the documented columns (see the module docstring).
+    ``first_row``: the number of its first row in the file; ``previous_t``: the unwrapped time
+    before it (a table read in batches)."""
     problems = problems if problems is not None else Problems()
     names = [n.strip() for n in table.column_names]
     table = table.rename_columns(names)
@@ -272,9 +324,10 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
     def report(rows: np.ndarray, column: str, message: str) -> None:
         new = rows[~bad[rows]]
         for i in new.tolist():
-            where = f"row {i + 1}" + (f" (line {i + 2})" if csv_lines else "")
+            row = i + first_row
+            where = f"row {row}" + (f" (line {row + 1})" if csv_lines else "")
             if strict:
-                raise InputError(("rows", i + 1, column), message)
+                raise InputError(("rows", row, column), message)
             problems.add("bad_value", where, f"{column}: {message}", dropped=1)
         bad[new] = True
 
@@ -398,13 +451,14 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
     fl = cols["flight_level"]
     altitude = np.where(np.isnan(altitude), fl * FL_M, altitude)
     keep = ~bad
-    t = time if time_name == "t" else unwrap_time_of_day(np.where(keep, time, np.nan))
+    t = time if time_name == "t" else unwrap_time_of_day(np.where(keep, time, np.nan),
+                                                         previous_t)
     rows = PlotRows.from_columns(
         n, "row", t=t, time_of_day_s=tod,
         sensor=np.array(["" if s is None else s for s in sensor], dtype=object),
         range_m=cols["range_m"], azimuth_deg=cols["azimuth_deg"], lat_deg=cols["lat_deg"],
         lon_deg=cols["lon_deg"], altitude_m=altitude, flight_level=fl, aircraft=aircraft,
-        origin=np.arange(1, n + 1), **ints)
+        origin=np.arange(first_row, first_row + n), **ints)
     return rows.take(keep), problems
 
 
