@@ -96,8 +96,11 @@ class Unavailable(Exception):
     """The job store could not be opened (the message says why)."""
 
 
-class Aborted(Exception):
-    """A running job was cancelled or the service is stopping."""
+class Aborted(BaseException):
+    """A running job was cancelled or the service is stopping. A ``BaseException``, like
+    ``KeyboardInterrupt``: ``reconstruct_many`` turns an ``Exception`` of a track's future into
+    a failed outcome and commits it, which would keep a resumed run from ever solving the
+    track; this one stops the run with nothing more committed."""
 
 
 @dataclass
@@ -256,11 +259,13 @@ class JobStore:
 class _DaskPool:
     """A ``concurrent.futures``-style view of a Dask client for one job, so that
     :func:`solver.batch.reconstruct_many` waits on futures this runner can settle: on
-    :meth:`abort` every pending future fails at once (its Dask task is cancelled) and the
-    job's ``on_outcome`` stops the run."""
+    :meth:`abort` every pending future fails at once with :class:`Aborted` (its Dask task is
+    cancelled), which stops the run. ``on_result`` sees every result first (on a Dask
+    callback thread)."""
 
-    def __init__(self, client: Any):
+    def __init__(self, client: Any, on_result: Callable[[Any], None] | None = None):
         self._client = client
+        self._on_result = on_result
         self._max_workers = max(len(client.scheduler_info()["workers"]), 1)
         self._pending: dict[cf.Future[Any], Any] = {}
         self._lock = threading.Lock()
@@ -285,8 +290,13 @@ class _DaskPool:
             result = task.result()
         except BaseException as e:  # the task's own error, a cancellation, a dead worker
             _set(f, exc=e)
-        else:
-            _set(f, result=result)
+            return
+        if self._on_result is not None:
+            try:  # before reconstruct_many sees (and commits) it
+                self._on_result(result)
+            except Exception as e:
+                LOGGER.error("job result hook failed", exc_info=e)
+        _set(f, result=result)
 
     def abort(self) -> None:
         self.aborted.set()
@@ -535,21 +545,27 @@ class JobRunner:
         config = ReconstructionConfig(**({"bounds": Bounds(**{k: tuple(v) for k, v in
                                                               bounds.items()})}
                                          if bounds else {}))
-        pool = _DaskPool(self._dask())
+        stats_path = out / "sensor_stats.jsonl"
+        stats_lock = threading.Lock()
+
+        def record_stats(o: Any) -> None:
+            """Before the track is committed: a track redone after a kill writes its line
+            again, and the last line of a key wins (:func:`_sensor_reports`)."""
+            if isinstance(o, AssessedTrack) and o.status == "done" and o.sensors:
+                line = json.dumps({"aircraft": o.key, "sensors": o.sensors}) + "\n"
+                with stats_lock, open(stats_path, "a", encoding="utf-8") as f:
+                    f.write(line)
+
+        pool = _DaskPool(self._dask(), on_result=record_stats)
         LOGGER.info("job submitting", extra={"fields": {
             "job": job.id, "seconds": round(time.monotonic() - began, 3)}})
         with self._wake:
             self._running[job.id] = pool
         if self._stop_requested(job.id):
             return
-        stats_path = out / "sensor_stats.jsonl"
-
         def on_outcome(o: TrackOutcome) -> None:
             if pool.aborted.is_set():
                 raise Aborted("stopped")
-            if isinstance(o, AssessedTrack) and o.sensors:
-                with open(stats_path, "a", encoding="utf-8") as f:
-                    f.write(json.dumps({"aircraft": o.key, "sensors": o.sensors}) + "\n")
 
         s = self.settings
         figures = str(out / "figures") if s.jobs_track_figures else None
