@@ -481,6 +481,8 @@ class JobRunner:
                 self._running[job.id] = None
             try:
                 self._run(job)
+            except Aborted:  # stopped outside reconstruct_many: resumed (or cancelled)
+                pass
             except Exception as e:  # a bug here must not stop the runner
                 if self._stopping:  # e.g. the store closed under it: resumed at next start
                     return
