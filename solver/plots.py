@@ -60,7 +60,7 @@ class PlotTable:
         and no reference.
         """
         sensors = tuple(sensors)
-        _validate_sensors(sensors)
+        validate_sensors(sensors)
         t_arr = np.asarray(t, dtype=float).copy()
         n = t_arr.shape[0] if t_arr.ndim == 1 else -1
         if n < 1:
@@ -235,7 +235,9 @@ def _merge(parts: list[tuple[np.ndarray, PlaneFixes]], n: int) -> PlaneFixes:
     return PlaneFixes(ell, *(gather(lambda f, a=a: getattr(f, a)) for a in names))
 
 
-def _validate_sensors(sensors: tuple[Sensor, ...]) -> None:
+def validate_sensors(sensors: tuple[Sensor, ...]) -> None:
+    """Raise :class:`InputError` at ``sensors[j]`` for no sensor, an empty or repeated id, or a
+    sensor's own bad value (site, accuracies)."""
     if not sensors:
         raise InputError(("sensors",), "must name at least one sensor")
     seen: dict[str, int] = {}

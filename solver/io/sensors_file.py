@@ -29,7 +29,7 @@ from pathlib import Path
 
 from ..frames import LocalFrame
 from ..inputs import InputError
-from ..plots import _validate_sensors
+from ..plots import validate_sensors
 from ..sensors import PositionSensor, RadarSensor, Sensor, Site
 
 Loc = tuple[str | int, ...]
@@ -109,7 +109,7 @@ def parse_sensors(text: str | object) -> SensorSet:
             codes[code] = j
         sensors.append(sensor)
     try:
-        _validate_sensors(tuple(sensors))
+        validate_sensors(tuple(sensors))
     except InputError as e:  # the file's fields are in degrees
         last = e.loc[-1]
         if isinstance(last, str) and last.endswith("_rad"):
