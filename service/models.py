@@ -19,9 +19,11 @@ FilterName = Literal[FILTER_NAMES]  # type: ignore[valid-type]
 
 
 class _In(BaseModel):
-    """Request parts: unknown fields are errors, NaN and Infinity are rejected."""
+    """Request parts: unknown fields are errors, NaN and Infinity are rejected, and types are
+    strict: a JSON boolean or string is not a number (``true`` was taken as 1 m), a number
+    with a fraction is not an integer; integers are still numbers."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 class _Out(BaseModel):
