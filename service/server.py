@@ -3,7 +3,8 @@
 uvicorn answers a request it cannot parse itself, in plain text, and times a connection out only
 while it is idle *between* requests: a client that connects and sends nothing, or half a
 header, holds the connection for ever. :class:`Protocol` answers those parse errors with the
-documented JSON error body and bounds how long a request may take to arrive: its headers must
+documented JSON error body, refuses connections beyond ``max_connections`` (503, JSON), and
+bounds how long a request may take to arrive: its headers must
 arrive whole within ``request_timeout_s`` of the connection (or the previous answer), and its
 body may pause no longer than that between two reads; past either, 408 (JSON) and the
 connection is closed.
@@ -38,10 +39,18 @@ class Protocol(H11Protocol):
     (``request_timeout_s``, set by :func:`config`)."""
 
     request_timeout_s: float = 30.0
+    max_connections: int = 1000
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         self._arrival: asyncio.TimerHandle | None = None
         super().connection_made(transport)
+        if len(self.connections) > self.max_connections:
+            # each open connection holds memory and a file descriptor: refuse at once
+            transport.write(error_bytes(
+                503, "Service Unavailable", f"the server has {self.max_connections} open "
+                "connections, its limit; retry later", "too_many_connections"))
+            transport.close()
+            return
         self._arm()
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -99,7 +108,8 @@ class Protocol(H11Protocol):
 def config(settings: Settings, app: Any = "service.app:app") -> uvicorn.Config:
     """uvicorn's configuration for ``settings``: this module's protocol, the service's
     timeouts, JSON logs (``log_config=None`` keeps :func:`service.logs.setup_logging`'s)."""
-    protocol = type("Protocol", (Protocol,), {"request_timeout_s": settings.request_timeout_s})
+    protocol = type("Protocol", (Protocol,), {"request_timeout_s": settings.request_timeout_s,
+                                              "max_connections": settings.max_connections})
     return uvicorn.Config(
         app, host=settings.host, port=settings.port, http=protocol,
         log_level=settings.log_level.lower(), log_config=None, access_log=False,

@@ -60,6 +60,8 @@ class Settings(BaseSettings):
         30.0, gt=0, description="Time a client has to send a request's headers once connected "
         "(or after the previous answer), and longest pause within its body; beyond: 408 and the "
         "connection is closed.")
+    max_connections: int = Field(1000, ge=1, description="Open client connections at most; "
+                                 "a connection beyond is answered 503 and closed.")
     keep_alive_s: int = Field(5, ge=1, description="Idle time after an answer before a "
                               "keep-alive connection is closed (s).")
     shutdown_timeout_s: int = Field(

@@ -49,7 +49,7 @@ def server():
     port = free_port()
     env = {**os.environ, "TRAJRECON_PORT": str(port), "TRAJRECON_WORKERS": "1",
            "TRAJRECON_WARMUP": "false", "TRAJRECON_REQUEST_TIMEOUT_S": "1.5",
-           "TRAJRECON_KEEP_ALIVE_S": "1"}
+           "TRAJRECON_KEEP_ALIVE_S": "1", "TRAJRECON_MAX_CONNECTIONS": "6"}
     proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     srv = Server(port, proc)
@@ -196,3 +196,18 @@ def test_logs_are_json_from_the_first_line_and_name_the_host(server):
     starting = next(ln for ln in lines if ln["msg"] == "starting")
     assert starting["host"] == "127.0.0.1" and starting["port"] == server.port
     assert any(f"127.0.0.1:{server.port}" in ln["msg"] for ln in lines), lines[:5]
+
+
+def test_connections_beyond_the_limit_are_refused_at_once(server):
+    idle = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(6)]
+    try:
+        time.sleep(0.2)
+        start = time.monotonic()
+        status, _, err = parse(raw(server.port, b""))
+        assert status == 503 and "6 open connections" in err["message"]
+        assert time.monotonic() - start < 1
+    finally:
+        for s in idle:
+            s.close()
+    time.sleep(0.2)
+    assert httpx.get(server.url + "/healthz").status_code == 200
