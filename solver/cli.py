@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import queue
 import re
 import sys
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -35,12 +37,13 @@ import pyarrow.parquet as pq
 
 from .batch import BatchSummary, TrackOutcome, reconstruct_many, solve_track
 from .config import ReconstructionConfig
+from .frames import LocalFrame
 from .inputs import InputError
-from .io.asterix import read_recording
+from .io.asterix import iter_recording, read_recording
 from .io.problems import Problems
 from .io.sensors_file import SensorSet, load_sensors
-from .io.split import AircraftTrack, recording_frame, split_aircraft
-from .io.tables import PlotRows, read_table
+from .io.split import AircraftTrack, recording_frame, split_aircraft, split_stream
+from .io.tables import PlotRows, iter_table, read_table
 from .plots import PlotTable
 from .results import Reconstruction
 from .sensors import RadarSensor
@@ -51,6 +54,9 @@ SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "scan_peri
                   "azimuth_residual_mean_deg", "azimuth_residual_sigma_deg",
                   "position_residual_rms_m", "range_bias_m", "azimuth_bias_deg", "time_bias_s")
 MAP_POINTS_PER_TRACK = 200  # a recording map draws each track with at most this many points
+STREAM_CHUNK_BYTES = 1 << 18  # ASTERIX decoded in units of this size when streaming
+STREAM_BATCH_ROWS = 1 << 15  # a plot table read in batches of this many rows when streaming
+READ_AHEAD_TRACKS = 64  # complete tracks the reading thread may hold ahead of the cluster
 
 
 # ----------------------------------------------------------------------------- the task
@@ -112,7 +118,8 @@ class Loaded:
 
 
 def load(recording: Path, sensors_path: Path) -> Loaded:
-    """Read the sensor file and the recording (by suffix: a table, else ASTERIX/pcap)."""
+    """Read the sensor file and the whole recording (by suffix: a table, else ASTERIX/pcap)
+    into memory; :func:`stream` reads it in parts instead."""
     sensors = load_sensors(sensors_path)
     periods: dict[str, float] = {}
     if recording.suffix.lower() in TABLE_SUFFIXES:
@@ -125,6 +132,111 @@ def load(recording: Path, sensors_path: Path) -> Loaded:
     frame = recording_frame(sensors, rows)
     tracks = split_aircraft(rows, sensors, reference=frame, problems=problems)
     return Loaded(sensors, rows, problems, tracks, periods)
+
+
+@dataclass
+class Streamed:
+    """A recording read in parts and split as it is read: ``tracks`` yields each aircraft
+    once no later plot can change it (:func:`solver.io.split.split_stream`); the other
+    fields fill as the reading goes and are complete once ``tracks`` is exhausted: the
+    problems, the rows read, the radars' rotation periods (CAT034 I041) and the recording's
+    plane."""
+
+    sensors: SensorSet
+    problems: Problems
+    tracks: Iterator[AircraftTrack]
+    scan_periods: dict[str, float] = field(default_factory=dict)
+    rows_read: int = 0
+    frame: LocalFrame | None = None
+
+    def _note(self, rows: PlotRows) -> PlotRows:
+        self.rows_read += len(rows)
+        if self.frame is None:  # as split_stream: the first part that gives one
+            self.frame = recording_frame(self.sensors, rows)
+        return rows
+
+
+def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_TRACKS
+           ) -> Streamed:
+    """The sensor file read and the recording opened for :func:`solver.io.split.split_stream`
+    (by suffix: a table read in batches, else ASTERIX/pcap decoded in units): memory holds
+    the aircraft in the air, not the recording's rows. A thread reads, decodes and splits up
+    to ``read_ahead`` complete tracks ahead of their consumer (so the decoding overlaps the
+    reconstruction). What makes the whole input unusable (a sensor file or table header it
+    cannot use, a pcapng file) raises here, before any track is taken."""
+    sensors = load_sensors(sensors_path)
+    out = Streamed(sensors, Problems(), iter(()))
+    parts = _row_parts(recording, out)
+    first = next(parts, None)  # the whole input's errors raise now
+
+    def rows() -> Iterator[PlotRows]:
+        if first is not None:
+            yield first
+        yield from parts
+
+    out.tracks = _read_ahead(split_stream(rows(), sensors, problems=out.problems), read_ahead)
+    return out
+
+
+def _row_parts(recording: Path, out: Streamed) -> Iterator[PlotRows]:
+    if recording.suffix.lower() in TABLE_SUFFIXES:
+        for rows in iter_table(recording, batch_rows=STREAM_BATCH_ROWS, problems=out.problems):
+            yield out._note(rows)
+        return
+    for part in iter_recording(recording, out.sensors, chunk_bytes=STREAM_CHUNK_BYTES):
+        out.problems.extend(part.problems)
+        for sid, st in part.service.items():
+            if st.rotation_period_s:
+                out.scan_periods[sid] = st.rotation_period_s
+        yield out._note(part.rows)
+
+
+class _Raised:
+    def __init__(self, error: BaseException):
+        self.error = error
+
+
+_END = object()
+
+
+def _read_ahead(items: Iterator[Any], size: int) -> Iterator[Any]:
+    """``items`` produced by a thread up to ``size`` ahead of the consumer (the queue
+    bounds the memory); its exception is raised to the consumer; a consumer that stops
+    early stops the thread."""
+    q: queue.Queue[Any] = queue.Queue(max(size, 1))
+    stop = threading.Event()
+
+    def put(x: Any) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(x, timeout=0.2)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def work() -> None:
+        try:
+            for x in items:
+                if not put(x):
+                    return
+        except BaseException as e:  # handed to the consumer
+            put(_Raised(e))
+            return
+        put(_END)
+
+    thread = threading.Thread(target=work, name="trajrecon-read", daemon=True)
+    thread.start()
+    try:
+        while True:
+            x = q.get()
+            if x is _END:
+                return
+            if isinstance(x, _Raised):
+                raise x.error
+            yield x
+    finally:
+        stop.set()
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -232,8 +344,11 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
     return rows, tracks
 
 
-def write_map(out: Path, sensors: SensorSet, rows: PlotRows) -> Path | None:
-    """``map.png``: every reconstructed track (thinned) and the radar sites."""
+def write_map(out: Path, sensors: SensorSet, rows: PlotRows | None = None, *,
+              frame: LocalFrame | None = None) -> Path | None:
+    """``map.png``: every reconstructed track (thinned) and the radar sites, in the
+    recording's plane ``frame`` (default: :func:`solver.io.split.recording_frame` of
+    ``rows``)."""
     from .figures import recording_map, save
 
     parts = sorted((out / "tracks.parquet").glob("part-*.parquet"))
@@ -248,7 +363,8 @@ def write_map(out: Path, sensors: SensorSet, rows: PlotRows) -> Path | None:
             lines.append((key, x[sel], z[sel]))
     if not lines:
         return None
-    frame = recording_frame(sensors, rows)
+    if frame is None and rows is not None:
+        frame = recording_frame(sensors, rows)
     sites = []
     for s in sensors.sensors:
         if isinstance(s, RadarSensor):
@@ -277,9 +393,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    loaded = load(Path(args.recording), Path(args.sensors))
+    loaded = stream(Path(args.recording), Path(args.sensors))
     config = ReconstructionConfig(method=args.method)
-    stats = SensorStats(loaded.sensors, loaded.scan_periods)
     stats_path = out / "sensor_stats.jsonl"
     previous = _read_stats(stats_path)
     first_result: list[float] = []
@@ -306,17 +421,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         on_outcome=on_outcome, task=task)
     if bar is not None:
         bar.close()
+    stats = SensorStats(loaded.sensors, loaded.scan_periods)  # the periods read by now
     for reports in previous.values():
         stats.add(reports)
     sensor_rows = stats.rows()
     _write_sensor_csv(out, sensor_rows)
     csv_rows, geo_tracks = write_csv_and_geojson(out)
-    write_map(out, loaded.sensors, loaded.rows)
+    write_map(out, loaded.sensors, frame=loaded.frame)
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
     result = {
         "recording": str(args.recording), "tracks": summary.tracks, "done": summary.done,
         "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
-        "rows_in_recording": len(loaded.rows), "elapsed_s": time.perf_counter() - started,
+        "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
         "time_to_first_result_s": first_result[0] if first_result else None,
         "problems": dict(loaded.problems.counts), "failures": summary.failures,
