@@ -1,0 +1,641 @@
+"""A whole synthetic recording through the command line's pipeline (issue 16's benchmark).
+
+``python -m benchmarks.recording [--aircraft N] [--quick]`` builds a recording from the six
+real ADS-B trajectories (:mod:`benchmarks.truth`) and measures the command line
+(:func:`solver.cli.run`, as a subprocess: the memory of the whole process tree is counted)
+from the file to Parquet.
+
+The recording (:func:`build`). Aircraft ``i`` flies a window of ``window_s`` seconds of the
+real truth ``i mod 6`` (the window's start drawn in the truth), rotated about the plane's
+reference by a drawn angle (the truth's ``(x, z)`` and velocity turn together, so speeds,
+turn rates and the range from the first radar are the truth's) and shifted in time to a
+start drawn uniformly over the recording, whose length is set so that ``in_air`` aircraft
+fly at once on average. Every aircraft has its own Mode S address, Mode 3/A code and a
+track number per radar. Sensors (one plane about :data:`REFERENCE`, near Vienna): radar
+``R1`` at the reference (4 s scan, 50 m / 0.08 deg, Pd 0.97), ``R2`` 45 km south-east on a
+hill (6 s, 70 m / 0.1 deg, Pd 0.95), both with Mode C, and ``ADSB`` (5 s reports, 30 m,
+outages), simulated through the curved earth by :func:`benchmarks.earth.simulate_sensor`.
+The plots are ordered by 4-s stretches, sensor, time (each sensor's times increase; across
+sensors they are out of order by less than 4 s) and encoded as raw ASTERIX CAT048 / CAT021
+with :func:`solver.io.asterix.encode_rows` (encoded in parallel by time slices), with a
+CAT034 north marker (I041 rotation period) per radar every 8 minutes. Written as
+``recording.ast`` beside ``sensors.json``. Deterministic per (aircraft, seed).
+
+Measured (:func:`measure`), all in one run: the command line with 1 and with 2 Dask workers
+(wall time of the process from start to exit, plots reconstructed, plots/s; the peak RSS of
+the process tree sampled with psutil every 0.2 s; the time to the first result from
+``summary.json``), the single-track in-process throughput of ``reconstruct`` on a sample of
+the same decoded tracks (one process, after a warm-up track), and the peak memory at two
+recording lengths (the same aircraft density, ``--aircraft`` and a quarter of it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from solver.frames import LocalFrame
+from solver.io.sensors_file import SensorSet, parse_sensors
+from solver.io.tables import FL_M, PlotRows
+from solver.sensors import Site
+
+from .earth import GEOD, EarthTruth, SensorSpec, simulate_sensor
+from .truth import Truth, load_truth, truth_names
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).parent / "results"
+REFERENCE = (48.11, 16.57)  # the plane's tangent point and R1's site (Vienna Schwechat)
+R2_BEARING_DEG, R2_DISTANCE_M = 135.0, 45e3
+PROFILE = "recording"
+ADDRESS0 = 0x440000  # first Mode S address (then one per aircraft)
+TRACK_NUMBERS = 4096  # I048/161 has 12 bits
+BUCKET_S = 4.0  # plots ordered by stretches of this length, then sensor, then time
+SERVICE_EVERY_S = 480.0  # a CAT034 north marker per radar this often
+SPEED_BOUNDS = (30.0, 350.0)  # m/s: what a rotated, shifted truth must stay within
+
+SPECS: tuple[SensorSpec, ...] = (
+    SensorSpec("R1", "radar", 4.0, 0.97, 0, 50.0, np.deg2rad(0.08), 150.0, np.deg2rad(0.24),
+               mode_c=True),
+    SensorSpec("R2", "radar", 6.0, 0.95, 1, 70.0, np.deg2rad(0.10), 200.0, np.deg2rad(0.3),
+               mode_c=True),
+    SensorSpec("ADSB", "position", 5.0, 0.98, sigma_pos=30.0, gaps_per_hour=2.0,
+               gap_s=(20.0, 60.0)),
+)
+CODES = {"R1": (25, 11), "R2": (25, 12), "ADSB": (25, 1)}
+
+
+@dataclass(frozen=True)
+class RecordingSpec:
+    """What to build: ``aircraft`` windows of ``window_s`` s, ``in_air`` at once on
+    average, from ``start_tod_s`` (time of day), drawn with ``seed``."""
+
+    aircraft: int = 2000
+    window_s: float = 900.0
+    in_air: float = 60.0
+    seed: int = 16
+    start_tod_s: float = 6 * 3600.0
+
+    @property
+    def duration_s(self) -> float:
+        """Span of the aircraft's start times."""
+        return self.aircraft * self.window_s / self.in_air
+
+
+@dataclass
+class Built:
+    """A recording on disk and what went into it."""
+
+    spec: RecordingSpec
+    recording: Path
+    sensors: Path
+    aircraft: int
+    plots: int
+    plots_per_sensor: dict[str, int]
+    addresses: list[int]
+    bytes: int
+    build_s: float
+
+
+def sites() -> tuple[Site, Site]:
+    lat0, lon0 = REFERENCE
+    lon2, lat2, _ = GEOD.fwd(lon0, lat0, R2_BEARING_DEG, R2_DISTANCE_M)
+    return Site(lat0, lon0, 320.0), Site(round(float(lat2), 6), round(float(lon2), 6), 870.0)
+
+
+def sensor_file() -> dict[str, Any]:
+    """The recording's sensor file (JSON object)."""
+    s1, s2 = sites()
+    radars = []
+    for spec, site in zip(SPECS[:2], (s1, s2), strict=True):
+        sac, sic = CODES[spec.id]
+        radars.append({"id": spec.id, "kind": "radar", "sac": sac, "sic": sic,
+                       "lat_deg": site.lat_deg, "lon_deg": site.lon_deg,
+                       "height_m": site.height_m, "range_error_m": spec.eps_r,
+                       "azimuth_error_deg": float(np.rad2deg(spec.eps_psi)),
+                       "range_sigma_m": spec.sigma_r,
+                       "azimuth_sigma_deg": float(np.rad2deg(spec.sigma_psi))})
+    sac, sic = CODES["ADSB"]
+    return {"sensors": [*radars, {"id": "ADSB", "kind": "position", "sac": sac, "sic": sic,
+                                  "position_sigma_m": SPECS[2].sigma_pos}],
+            "reference": {"lat_deg": REFERENCE[0], "lon_deg": REFERENCE[1]}}
+
+
+def real_truths() -> list[str]:
+    return [n for n in truth_names() if not n.startswith("synthetic")]
+
+
+def transformed(base: Truth, name: str, t_from: float, t_to: float, shift: float,
+                angle: float) -> Truth:
+    """``base`` between ``t_from`` and ``t_to`` (with a margin of samples), rotated by
+    ``angle`` (rad, clockwise seen from above: heading + angle) about the plane's origin and
+    shifted by ``shift`` seconds."""
+    i0 = max(int(np.searchsorted(base.t, t_from)) - 3, 0)
+    i1 = min(int(np.searchsorted(base.t, t_to)) + 3, base.t.size)
+    sl = slice(i0, i1)
+    c, s = np.cos(angle), np.sin(angle)
+    x, z, vx, vz = base.x[sl], base.z[sl], base.vx[sl], base.vz[sl]
+    return Truth(name, base.t[sl] + shift, c * x - s * z, s * x + c * z, base.h[sl].copy(),
+                 c * vx - s * vz, s * vx + c * vz)
+
+
+def aircraft_truths(spec: RecordingSpec) -> list[tuple[Truth, float, float]]:
+    """Every aircraft's truth (times in seconds of the recording from 0) and the start and
+    end of its window."""
+    rng = np.random.default_rng([spec.seed, spec.aircraft])
+    names = real_truths()
+    out = []
+    for i in range(spec.aircraft):
+        base = load_truth(names[i % len(names)])
+        length = min(spec.window_s, base.duration)
+        t_from = float(base.t[0] + rng.uniform(0.0, base.duration - length))
+        start = float(rng.uniform(0.0, spec.duration_s))
+        angle = float(rng.uniform(-np.pi, np.pi))
+        truth = transformed(base, f"{base.name}#{i}", t_from, t_from + length,
+                            start - t_from, angle)
+        out.append((truth, start, start + length))
+    return out
+
+
+def simulate(spec: RecordingSpec) -> tuple[PlotRows, list[int]]:
+    """Every aircraft's plots by every sensor as recording rows (ordered as the module
+    docstring says), and the aircraft's Mode S addresses."""
+    frame = LocalFrame(*REFERENCE)
+    s1, s2 = sites()
+    rng = np.random.default_rng([spec.seed, spec.aircraft, 1])
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in (
+        "t", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg", "flight_level",
+        "mode_s", "mode_3a", "track_number")}
+    addresses = []
+    for i, (win, w0, w1) in enumerate(aircraft_truths(spec)):
+        et = EarthTruth(win, frame, (s1, s2))
+        address = ADDRESS0 + i
+        addresses.append(address)
+        mode_3a = int(rng.integers(0, 0o10000))
+        for k, sspec in enumerate(SPECS):
+            p = simulate_sensor(et, sspec, PROFILE, spec.seed)
+            keep = (p.t >= w0) & (p.t <= w1)
+            n = int(keep.sum())
+            cols["t"].append(p.t[keep])
+            cols["sensor"].append(np.full(n, sspec.id, dtype=object))
+            nan = np.full(n, np.nan)
+            if p.range_m is not None and p.azimuth_rad is not None:
+                cols["range_m"].append(p.range_m[keep])
+                cols["azimuth_deg"].append(np.rad2deg(p.azimuth_rad[keep]))
+                cols["lat_deg"].append(nan)
+                cols["lon_deg"].append(nan)
+            else:
+                assert p.lat_deg is not None and p.lon_deg is not None
+                cols["range_m"].append(nan)
+                cols["azimuth_deg"].append(nan)
+                cols["lat_deg"].append(p.lat_deg[keep])
+                cols["lon_deg"].append(p.lon_deg[keep])
+            h = win.altitude_at(p.t[keep])  # Mode C / ADS-B level: the height, in FL
+            cols["flight_level"].append(np.round(h / FL_M * 4.0) / 4.0)
+            cols["mode_s"].append(np.full(n, address, np.int64))
+            cols["mode_3a"].append(np.full(n, mode_3a, np.int64))
+            cols["track_number"].append(np.full(n, (i * 3 + k) % TRACK_NUMBERS if k < 2
+                                                else -1, np.int64))
+    flat = {k: np.concatenate(v) if v else np.array([]) for k, v in cols.items()}
+    sensor_order = {s.id: j for j, s in enumerate(SPECS)}
+    sid = np.array([sensor_order[s] for s in flat["sensor"].tolist()], dtype=int)
+    order = np.lexsort((flat["t"], sid, np.floor(flat["t"] / BUCKET_S)))
+    n = order.size
+    t = flat["t"][order]
+    rows = PlotRows.from_columns(
+        n, "row", t=t, time_of_day_s=np.mod(spec.start_tod_s + t, 86_400.0),
+        **{k: v[order] for k, v in flat.items() if k != "t"})
+    return rows, addresses
+
+
+def _encode_slice(rows: PlotRows, sensors_json: dict[str, Any]) -> bytes:
+    from solver.io.asterix import encode_rows
+
+    return encode_rows(rows, parse_sensors(sensors_json))
+
+
+def _service_blocks(t0: float, t1: float, start_tod: float) -> list[tuple[float, bytes]]:
+    """CAT034 north markers with the rotation period (I041) per radar."""
+    import asterix.generated as ast
+
+    c034 = ast.Cat_034_1_29
+    out = []
+    for spec in SPECS[:2]:
+        sac, sic = CODES[spec.id]
+        for t in np.arange(t0, t1, SERVICE_EVERY_S):
+            tod = float(np.mod(start_tod + t, 86_400.0))
+            block = c034.create([c034.cv_record.create({
+                "000": 1, "010": (("SAC", sac), ("SIC", sic)), "030": (tod, "s"),
+                "041": (spec.scan_s, "s")})]).unparse().to_bytes()
+            out.append((float(t), block))
+    return out
+
+
+def build(spec: RecordingSpec, out_dir: Path, *, processes: int = 2) -> Built:
+    """Simulate and encode the recording into ``out_dir`` (see the module docstring)."""
+    started = time.perf_counter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sensors_json = sensor_file()
+    rows, addresses = simulate(spec)
+    # time slices at bucket boundaries (each sensor's times stay increasing), in parallel
+    n_slices = max(1, min(64, len(rows) // 20_000))
+    bucket = np.floor(rows.t / BUCKET_S)
+    cuts = [0]
+    for k in range(1, n_slices):
+        j = int(np.searchsorted(bucket, bucket[min(len(rows) * k // n_slices, len(rows) - 1)]))
+        if j > cuts[-1]:
+            cuts.append(j)
+    cuts.append(len(rows))
+    slices = [rows.take(np.arange(a, b)) for a, b in itertools.pairwise(cuts)
+              if b > a]
+    if processes > 1 and len(slices) > 1:
+        with ProcessPoolExecutor(processes) as pool:
+            encoded = list(pool.map(_encode_slice, slices, [sensors_json] * len(slices)))
+    else:
+        encoded = [_encode_slice(s, sensors_json) for s in slices]
+    service = _service_blocks(float(rows.t[0]) if len(rows) else 0.0,
+                              float(rows.t[-1]) if len(rows) else 0.0, spec.start_tod_s)
+    recording = out_dir / "recording.ast"
+    size = 0
+    with open(recording, "wb") as f:
+        k = 0
+        for s, data in zip(slices, encoded, strict=True):
+            while k < len(service) and service[k][0] <= float(s.t[0]):
+                f.write(service[k][1])
+                size += len(service[k][1])
+                k += 1
+            f.write(data)
+            size += len(data)
+    sensors_path = out_dir / "sensors.json"
+    sensors_path.write_text(json.dumps(sensors_json, indent=1) + "\n", encoding="utf-8")
+    per_sensor = {s.id: int(np.sum(rows.sensor == s.id)) for s in SPECS}
+    return Built(spec, recording, sensors_path, spec.aircraft, len(rows), per_sensor,
+                 addresses, size, time.perf_counter() - started)
+
+
+def sensor_set() -> SensorSet:
+    return parse_sensors(sensor_file())
+
+
+# ------------------------------------------------------------------------------ measuring
+
+
+class TreeSampler:
+    """Peak and time series of the RSS of a process and its children (psutil), sampled in a
+    thread every ``every_s``."""
+
+    def __init__(self, pid: int, every_s: float = 0.2):
+        import psutil
+
+        self.root = psutil.Process(pid)
+        self.every_s = every_s
+        self.peak = 0
+        self.series: list[tuple[float, int]] = []
+        self.cpu: dict[int, float] = {}  # last user + system CPU seconds seen per process
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._t0 = time.perf_counter()
+        self._thread.start()
+
+    def _run(self) -> None:
+        import psutil
+
+        while not self._stop.is_set():
+            total = 0
+            try:
+                procs = [self.root, *self.root.children(recursive=True)]
+            except psutil.Error:
+                procs = []
+            for p in procs:
+                try:
+                    total += p.memory_info().rss
+                    c = p.cpu_times()
+                    self.cpu[p.pid] = c.user + c.system
+                except psutil.Error:
+                    pass
+            if total:
+                self.peak = max(self.peak, total)
+                self.series.append((time.perf_counter() - self._t0, total))
+            self._stop.wait(self.every_s)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | None = None
+            ) -> dict[str, Any]:
+    """The console script's pipeline (``python -m solver.cli``) as a subprocess; wall time,
+    peak RSS and CPU time of the tree, and its ``summary.json``. At ``deadline`` (epoch s)
+    the run is stopped and measured on the tracks committed by then (``partial``)."""
+    import psutil
+
+    cmd = [sys.executable, "-m", "solver.cli", str(built.recording), "--sensors",
+           str(built.sensors), "--out", str(out), "--workers", str(workers), "--no-progress"]
+    load_before = os.getloadavg()
+    started = time.perf_counter()
+    partial = False
+    with open(log, "w", encoding="utf-8") as f:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
+        sampler = TreeSampler(proc.pid)
+        while True:
+            try:
+                code: int | None = proc.wait(timeout=1.0)
+                break
+            except subprocess.TimeoutExpired:
+                if deadline is not None and time.time() > deadline:
+                    partial = True
+                    committed = _committed_plots(out)
+                    wall_at_stop = time.perf_counter() - started
+                    for p in [*psutil.Process(proc.pid).children(recursive=True)]:
+                        p.terminate()
+                    proc.terminate()
+                    code = proc.wait()
+                    break
+        sampler.stop()
+    wall = time.perf_counter() - started
+    summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json"
+                                                                 ).exists() else {}
+    if partial:
+        wall = wall_at_stop
+        summary = {"plots": committed[0], "tracks": committed[1], "done": committed[1],
+                   "failed": committed[2]}
+    series = sampler.series
+    # memory over the run's halves: flat means the second half's peak is not above the first's
+    half = wall / 2
+    first = max((m for t, m in series if t <= half), default=0)
+    second = max((m for t, m in series if t > half), default=0)
+    return {"workers": workers, "exit_code": code, "wall_s": wall, "partial": partial,
+            "cpu_s": sum(sampler.cpu.values()),
+            "load_avg_before": load_before, "load_avg_after": os.getloadavg(),
+            "plots": summary.get("plots"), "tracks": summary.get("tracks"),
+            "done": summary.get("done"), "failed": summary.get("failed"),
+            "plots_per_s_end_to_end": (summary.get("plots", 0) / wall) if wall else None,
+            "plots_per_s_reconstruct": summary.get("plots_per_s"),
+            "reconstruct_s": summary.get("reconstruct_s"),
+            "time_to_first_result_s": summary.get("time_to_first_result_s"),
+            "rows_in_recording": summary.get("rows_in_recording"),
+            "problems": summary.get("problems"),
+            "peak_rss_mb": sampler.peak / 2**20,
+            "peak_rss_first_half_mb": first / 2**20, "peak_rss_second_half_mb": second / 2**20,
+            "rss_series_mb": [(round(t, 1), round(m / 2**20, 1)) for t, m in series[::25]],
+            "command": " ".join(cmd[1:])}
+
+
+def _committed_plots(out: Path) -> tuple[int, int, int]:
+    """(plots of the done tracks, done tracks, failed tracks) in ``progress.jsonl``."""
+    plots = done = failed = 0
+    path = out / "progress.jsonl"
+    if path.exists():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                e = json.loads(line)
+            except ValueError:
+                continue
+            if e["status"] == "done":
+                plots += e["plots"]
+                done += 1
+            else:
+                failed += 1
+    return plots, done, failed
+
+
+def in_process_rate(built: Built, sample: int, every: int = 3) -> dict[str, Any]:
+    """Plots/s of ``reconstruct`` in this process on ``sample`` tracks of the recording
+    (every ``every``-th decoded track from the start: the recording is decoded only as far
+    as needed; one untimed warm-up track first)."""
+    from solver.config import ReconstructionConfig
+    from solver.io.asterix import iter_recording
+    from solver.io.split import split_stream
+    from solver.reconstruct import reconstruct
+
+    sensors = sensor_set()
+    parts = iter_recording(built.recording, sensors)
+    chosen = []
+    for k, tr in enumerate(split_stream((p.rows for p in parts), sensors)):
+        if k % every == 0:
+            chosen.append(tr)
+        if len(chosen) > sample:
+            break
+    config = ReconstructionConfig()
+    reconstruct(chosen[0].table, config=config)  # warm-up: solvers built and cached
+    plots = 0
+    elapsed = 0.0
+    cpu = 0.0
+    per_track = []
+    for tr in chosen[1:]:
+        t0, c0 = time.perf_counter(), time.process_time()
+        reconstruct(tr.table, config=config)
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+        plots += len(tr.table)
+        elapsed += dt
+        cpu += dc
+        per_track.append({"aircraft": tr.key, "plots": len(tr.table), "s": round(dt, 3)})
+    return {"tracks": len(per_track), "plots": plots, "elapsed_s": elapsed, "cpu_s": cpu,
+            "plots_per_s": plots / elapsed if elapsed else None,
+            "plots_per_cpu_s": plots / cpu if cpu else None, "per_track": per_track}
+
+
+def machine() -> dict[str, Any]:
+    import psutil
+
+    def git(*a: str) -> str:
+        return subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True
+                              ).stdout.strip()
+    return {"python": platform.python_version(), "platform": platform.platform(),
+            "cpu": platform.processor() or platform.machine(),
+            "cores": len(os.sched_getaffinity(0)),
+            "memory_gb": round(psutil.virtual_memory().total / 2**30, 1),
+            "load_avg_at_start": os.getloadavg(),
+            "commit": git("rev-parse", "--short", "HEAD"),
+            "dirty_files": git("status", "--porcelain", "--untracked-files=no").count("\n")
+            + bool(git("status", "--porcelain", "--untracked-files=no"))}
+
+
+def measure(spec: RecordingSpec, work: Path, *, sample: int, small_fraction: float,
+            save: Path, workers: tuple[int, ...] = (2, 1), deadline: float | None = None
+            ) -> dict[str, Any]:
+    """Build the recording (and a shorter one of the same density), run the command line on
+    them, and the in-process throughput (see the module docstring); the results so far are
+    saved to ``save`` after each step."""
+    result: dict[str, Any] = {"spec": asdict(spec), "machine": machine(), "cli": {},
+                              "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+    def keep() -> None:
+        save.write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+
+    built = build(spec, work / "rec")
+    result["recording"] = {k: v for k, v in asdict(built).items()
+                           if k not in ("addresses", "spec")} | {
+        "recording": str(built.recording), "sensors": str(built.sensors),
+        "duration_s": spec.duration_s + spec.window_s}
+    keep()
+    _log(f"built {built.aircraft} aircraft, {built.plots} plots, {built.bytes / 2**20:.1f} MiB "
+         f"in {built.build_s:.0f} s")
+    result["in_process"] = in_process_rate(built, sample)
+    keep()
+    _log(f"in process: {result['in_process']['plots_per_s']:.0f} plots/s")
+    small_spec = replace(spec, aircraft=max(10, int(spec.aircraft * small_fraction)))
+    small = build(small_spec, work / "rec-small")
+    n = max(workers)
+    result["short_recording"] = {"aircraft": small.aircraft, "plots": small.plots,
+                                 "duration_s": small_spec.duration_s + spec.window_s,
+                                 "cli": run_cli(small, work / "out-small", n,
+                                                work / "cli-small.log")}
+    keep()
+    _log(f"short recording: peak {result['short_recording']['cli']['peak_rss_mb']:.0f} MB")
+    for n in workers:
+        c = result["cli"][str(n)] = run_cli(built, work / f"out-{n}", n, work / f"cli-{n}.log",
+                                            deadline)
+        keep()
+        _log(f"{n} worker(s): {c['plots_per_s_end_to_end']:.0f} plots/s, peak "
+             f"{c['peak_rss_mb']:.0f} MB, {c['wall_s']:.0f} s, exit {c['exit_code']}, "
+             f"partial {c['partial']}")
+    result["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    keep()
+    return result
+
+
+def _log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+# ------------------------------------------------------------------------------ report
+
+
+def verdicts(r: dict[str, Any]) -> dict[str, Any]:
+    one, two = r["cli"].get("1"), r["cli"].get("2")
+    out: dict[str, Any] = {}
+    if one and two:
+        ratio = two["plots_per_s_end_to_end"] / one["plots_per_s_end_to_end"]
+        out["speedup_2_vs_1"] = {"value": ratio, "target": 1.8, "met": ratio >= 1.8}
+    if one:
+        ratio = one["plots_per_s_end_to_end"] / r["in_process"]["plots_per_s"]
+        out["one_worker_vs_in_process"] = {"value": ratio, "target": 0.9, "met": ratio >= 0.9}
+    peaks = [c["peak_rss_mb"] for c in r["cli"].values()]
+    out["peak_memory_mb"] = {"value": max(peaks), "target": 2048, "met": max(peaks) < 2048}
+    short = r["short_recording"]["cli"]["peak_rss_mb"]
+    long = r["cli"][str(max(int(k) for k in r["cli"]))]["peak_rss_mb"]
+    out["memory_flat"] = {"short_mb": short, "long_mb": long, "ratio": long / short,
+                          "length_ratio": r["recording"]["plots"] / r["short_recording"]["plots"],
+                          "met": long / short < 1.25}
+    return out
+
+
+def write_report(r: dict[str, Any], out: Path, command: str) -> None:
+    v = verdicts(r)
+    r["verdicts"] = v
+    out.with_suffix(".json").write_text(json.dumps(r, indent=1) + "\n", encoding="utf-8")
+    rec, m = r["recording"], r["machine"]
+    lines = [
+        "# Whole recordings: the command line end to end (issue 16)", "",
+        f"Command: `{command}` (commit {m['commit']}, {m['dirty_files']} files of other "
+        f"work in progress in the tree); {r['started_utc']} to {r['finished_utc']}.",
+        f"Machine: {m['cores']} cores ({m['cpu']}, shared with other engineers' work: load "
+        f"average {m['load_avg_at_start'][0]:.1f} at the start), {m['memory_gb']} GB, "
+        f"Python {m['python']}, {m['platform']}.", "",
+        f"Recording: {rec['aircraft']} aircraft, {rec['plots']} plots "
+        f"({', '.join(f'{k} {n}' for k, n in rec['plots_per_sensor'].items())}), "
+        f"{rec['bytes'] / 2**20:.1f} MiB of raw ASTERIX CAT048/CAT021/CAT034, "
+        f"{rec['duration_s'] / 3600:.1f} h, built in {rec['build_s']:.0f} s "
+        "(see `benchmarks/recording.py` for how).", "",
+        "| run | workers | plots | wall s | plots/s end to end | plots/s reconstructing | "
+        "first result s | peak RSS MB (1st half / 2nd half) |", "|---|---|---|---|---|---|---|---|"]
+    for k, c in r["cli"].items():
+        lines.append(f"| CLI | {k} | {c['plots']} | {c['wall_s']:.0f} | "
+                     f"{c['plots_per_s_end_to_end']:.0f} | {c['plots_per_s_reconstruct']:.0f} | "
+                     f"{c['time_to_first_result_s']:.1f} | {c['peak_rss_mb']:.0f} "
+                     f"({c['peak_rss_first_half_mb']:.0f} / {c['peak_rss_second_half_mb']:.0f}) |")
+    s = r["short_recording"]
+    c = s["cli"]
+    lines.append(f"| CLI, short recording ({s['aircraft']} aircraft, {s['plots']} plots) | "
+                 f"{c['workers']} | {c['plots']} | {c['wall_s']:.0f} | "
+                 f"{c['plots_per_s_end_to_end']:.0f} | {c['plots_per_s_reconstruct']:.0f} | "
+                 f"{c['time_to_first_result_s']:.1f} | {c['peak_rss_mb']:.0f} "
+                 f"({c['peak_rss_first_half_mb']:.0f} / {c['peak_rss_second_half_mb']:.0f}) |")
+    ip = r["in_process"]
+    lines += ["", f"In process (`reconstruct`, one process, {ip['tracks']} decoded tracks of "
+              "the recording, every third from its start, after a warm-up track): "
+              f"{ip['plots']} plots in {ip['elapsed_s']:.1f} s = {ip['plots_per_s']:.0f} "
+              f"plots/s ({ip['plots_per_cpu_s']:.0f} plots per CPU-second).", "",
+              "## Targets", ""]
+    if "speedup_2_vs_1" in v:
+        x = v["speedup_2_vs_1"]
+        lines.append(f"- 2 workers >= 1.8x one worker: **{'met' if x['met'] else 'missed'}** "
+                     f"({x['value']:.2f}x).")
+    if "one_worker_vs_in_process" in v:
+        x = v["one_worker_vs_in_process"]
+        lines.append(f"- one worker >= 0.9x the in-process throughput: "
+                     f"**{'met' if x['met'] else 'missed'}** ({x['value']:.2f}x).")
+    x = v["peak_memory_mb"]
+    lines.append(f"- peak memory < 2 GB: **{'met' if x['met'] else 'missed'}** "
+                 f"({x['value']:.0f} MB, RSS of the whole process tree).")
+    x = v["memory_flat"]
+    lines.append(f"- memory flat in the recording's length: **{'met' if x['met'] else 'missed'}"
+                 f"** ({x['short_mb']:.0f} MB for the short recording, {x['long_mb']:.0f} MB "
+                 f"for one {x['length_ratio']:.1f}x as long, same workers).")
+    lines += ["", "## Notes", "", *r.get("notes", [])]
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--aircraft", type=int, default=None, help="default 2000 (quick: 60)")
+    ap.add_argument("--quick", action="store_true", help="a short run: 60 aircraft of 300 s")
+    ap.add_argument("--sample", type=int, default=None, help="tracks for the in-process rate")
+    ap.add_argument("--small-fraction", type=float, default=0.25,
+                    help="the shorter recording's aircraft (same density), as a fraction")
+    ap.add_argument("--work", default=None, help="working directory, kept (default: a "
+                    "temporary one)")
+    ap.add_argument("--out", default=None, help="report path without suffix")
+    ap.add_argument("--deadline-utc", default=None, help="HH:MM: a command-line run still "
+                    "going then is stopped and measured on the tracks committed (labelled)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        spec = RecordingSpec(aircraft=args.aircraft or 60, window_s=300.0, in_air=20.0)
+        out = Path(args.out or RESULTS / "quick" / "recording")
+    else:
+        spec = RecordingSpec(aircraft=args.aircraft or 2000)
+        out = Path(args.out or RESULTS / "recording")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sample = args.sample or (8 if args.quick else 40)
+    command = "python -m benchmarks.recording " + " ".join(argv if argv is not None
+                                                            else sys.argv[1:])
+    save = out.with_name(out.name + ".partial.json")
+    deadline = None
+    if args.deadline_utc:
+        hh, mm = (int(x) for x in args.deadline_utc.split(":"))
+        now = time.gmtime()
+        deadline = time.time() + ((hh * 60 + mm) - (now.tm_hour * 60 + now.tm_min)) * 60.0 \
+            - now.tm_sec
+    if args.work:
+        work = Path(args.work)
+        work.mkdir(parents=True, exist_ok=True)
+        r = measure(spec, work, sample=sample, small_fraction=args.small_fraction, save=save,
+                    deadline=deadline)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            r = measure(spec, Path(tmp), sample=sample, small_fraction=args.small_fraction,
+                        save=save, deadline=deadline)
+    save.unlink(missing_ok=True)
+    r["command"] = command
+    write_report(r, out, command)
+    print(out.with_suffix(".md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

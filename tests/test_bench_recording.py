@@ -1,0 +1,107 @@
+"""The synthetic whole recording of benchmarks/recording.py: deterministic, the aircraft asked
+for with distinct Mode S addresses, decoded back to every plot encoded, and its rotated,
+time-shifted real trajectories still physically valid."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import numpy as np
+import pytest
+
+from benchmarks.recording import (
+    ADDRESS0,
+    REFERENCE,
+    SPEED_BOUNDS,
+    RecordingSpec,
+    aircraft_truths,
+    build,
+    real_truths,
+    sensor_set,
+    simulate,
+)
+from benchmarks.truth import load_truth
+from solver.frames import LocalFrame
+from solver.io.asterix import read_recording
+from solver.io.split import split_aircraft
+
+SPEC = RecordingSpec(aircraft=8, window_s=120.0, in_air=4.0, seed=3)
+
+
+def test_deterministic_with_distinct_mode_s():
+    a, addr_a = simulate(SPEC)
+    b, addr_b = simulate(SPEC)
+    for f in fields(a):
+        if f.name != "origin_unit":
+            np.testing.assert_array_equal(getattr(a, f.name), getattr(b, f.name))
+    assert addr_a == addr_b == [ADDRESS0 + i for i in range(SPEC.aircraft)]
+    assert set(np.unique(a.mode_s).tolist()) == set(addr_a)
+    assert len(set(addr_a)) == SPEC.aircraft
+    other, _ = simulate(RecordingSpec(**{**SPEC.__dict__, "seed": 4}))
+    assert len(other) != len(a) or not np.array_equal(other.t, a.t)
+    # each sensor's times increase in recording order; across sensors less than 4 s apart
+    for s in ("R1", "R2", "ADSB"):
+        assert np.all(np.diff(a.t[a.sensor == s]) >= 0)
+    assert (np.maximum.accumulate(a.t) - a.t).max() < 4.0
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    return build(SPEC, tmp_path_factory.mktemp("rec"), processes=1)
+
+
+def test_decodes_to_the_same_plots_and_aircraft(built):
+    sensors = sensor_set()
+    rec = read_recording(built.recording, sensors)
+    assert len(rec.rows) == built.plots > 10 * SPEC.aircraft
+    assert not rec.problems.counts
+    assert {s: int(np.sum(rec.rows.sensor == s)) for s in ("R1", "R2", "ADSB")} == \
+        built.plots_per_sensor
+    assert {k for k, st in rec.service.items() if st.rotation_period_s} == {"R1", "R2"}
+    rows, _ = simulate(SPEC)
+    # times of day from 06:00 (t counts from the midnight before), to I140's resolution
+    np.testing.assert_allclose(rec.rows.t - SPEC.start_tod_s, rows.t, atol=1 / 128)
+    tracks = list(split_aircraft(rec.rows, sensors, problems=rec.problems))
+    assert sorted(t.key for t in tracks) == sorted(f"{a:06X}" for a in built.addresses)
+    assert sum(len(t.table) for t in tracks) == built.plots
+
+
+def test_shifted_rotated_truths_stay_physical():
+    names = real_truths()
+    starts = []
+    for i, (truth, w0, w1) in enumerate(aircraft_truths(SPEC)):
+        base = load_truth(names[i % len(names)])
+        speed = np.hypot(truth.vx, truth.vz)
+        assert SPEED_BOUNDS[0] <= speed.min() and speed.max() <= SPEED_BOUNDS[1]
+        assert truth.t[0] <= w0 < w1 <= truth.t[-1]
+        assert 0.0 <= w0 <= SPEC.duration_s
+        starts.append(w0)
+        # a rotation about the reference (R1's site): ranges and speeds are the truth's
+        n = truth.t.size
+        r, rb = np.hypot(truth.x, truth.z), np.hypot(base.x, base.z)
+        j = int(np.argmin([np.abs(rb[k:k + n] - r).max() for k in range(base.t.size - n + 1)]))
+        np.testing.assert_allclose(r, rb[j:j + n], rtol=1e-12)
+        np.testing.assert_allclose(speed, np.hypot(base.vx, base.vz)[j:j + n], rtol=1e-12)
+        np.testing.assert_allclose(np.diff(truth.t), np.diff(base.t[j:j + n]), atol=1e-9)
+        np.testing.assert_allclose(truth.h, base.h[j:j + n])
+        # velocity rotated with the position: the motion between samples matches it
+        t = np.linspace(w0, w1, 200)
+        s = truth.at(t)
+        mid = 0.5 * (t[1:] + t[:-1])
+        sm = truth.at(mid)
+        dx, dz = np.diff(s.x) / np.diff(t), np.diff(s.z) / np.diff(t)
+        assert np.hypot(dx - sm.vx, dz - sm.vz).max() < 0.05 * speed.max()
+    assert np.ptp(starts) > 0.5 * SPEC.duration_s  # spread over the recording
+
+
+def test_decoded_plots_fly_at_aircraft_speeds(built):
+    rec = read_recording(built.recording, sensor_set())
+    frame = LocalFrame(*REFERENCE)
+    r = rec.rows
+    for address in built.addresses:
+        sel = (r.mode_s == address) & (r.sensor == "ADSB")
+        x, z = frame.to_plane(r.lat_deg[sel], r.lon_deg[sel])
+        t = r.t[sel]
+        v = np.hypot(np.diff(x), np.diff(z)) / np.diff(t)
+        assert np.median(v) < SPEED_BOUNDS[1]  # noise of 30 m on 5-s steps adds little
+        assert np.median(v) > SPEED_BOUNDS[0] - 20.0
