@@ -8,8 +8,10 @@ import multiprocessing
 import os
 import signal
 import time
+from collections.abc import Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from multiprocessing.process import BaseProcess
+from typing import Any
 
 from .convert import Job
 from .logs import LOGGER
@@ -45,6 +47,7 @@ class Worker:
         self.readers = readers
         ctx = multiprocessing.get_context("spawn")
         self.number = number
+        self._reading: asyncio.Future[object] | None = None
         self.conn, child = ctx.Pipe(duplex=True)
         args = (child, os.getpid(), list(s.warmup_window_plots), s.nlp_solver, s.warmup,
                 s.worker_niceness, s.worker_memory_mb * 2**20, s.log_level)
@@ -56,12 +59,19 @@ class Worker:
     async def receive(self, timeout: float | None = None) -> object:
         """The worker's next message; :class:`WorkerDied` if it ends first (or overruns
         ``timeout``, when it is killed)."""
-        loop = asyncio.get_running_loop()
+        if self._reading is None:  # one read at a time: a cancelled wait leaves it running
+            self._reading = asyncio.get_running_loop().run_in_executor(self.readers, self._recv)
+            self._reading.add_done_callback(self._read_done)
         try:
-            return await asyncio.wait_for(loop.run_in_executor(self.readers, self._recv), timeout)
+            return await asyncio.wait_for(asyncio.shield(self._reading), timeout)
         except TimeoutError:
             self.kill()
             raise WorkerDied(None) from None
+
+    def _read_done(self, future: asyncio.Future[object]) -> None:
+        self._reading = None
+        if not future.cancelled():
+            future.exception()  # retrieved: a read nobody waits for any more is no error
 
     def _recv(self) -> object:
         try:
@@ -178,9 +188,25 @@ class SolverPool:
             return
         LOGGER.error("solver worker died; starting a new one", extra={"fields": {
             "worker": worker.number, "exitcode": worker.process.exitcode}})
-        task = asyncio.create_task(self._respawn())
+        self._background(self._respawn())
+
+    def _background(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.create_task(coro)
         self._starting.add(task)
         task.add_done_callback(self._starting.discard)
+
+    async def _reclaim(self, worker: Worker) -> None:
+        """A solve was cancelled (its client's request task, a shutdown) while its worker
+        works on: take the answer when it comes and make the worker idle again (or replace
+        it), so no cancellation leaks a worker."""
+        limit = self.settings.solve_time_limit_s
+        try:
+            await worker.receive(limit + KILL_GRACE_S if limit > 0 else None)
+        except WorkerDied:
+            self._replace(worker)
+            return
+        if not self._closing and self._idle is not None:
+            self._idle.put_nowait(worker)
 
     async def _respawn(self) -> None:
         """Start a successor; while that fails (its warm-up), the pool is not ready and tries
@@ -225,6 +251,9 @@ class SolverPool:
                     worker = await self._idle.get()
                     try:
                         result = await self._solve_on(worker, job, enqueued)
+                    except asyncio.CancelledError:
+                        self._background(self._reclaim(worker))
+                        raise
                     except WorkerDied as e:
                         self._replace(worker)
                         if e.exitcode is None:  # overran its time limit: killed by us

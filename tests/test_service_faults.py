@@ -267,3 +267,27 @@ def test_a_worker_that_overruns_its_limit_is_killed():
         readers.shutdown()
 
     asyncio.run(scenario())
+
+
+def test_a_cancelled_solve_gives_its_worker_back():
+    """A solve cancelled while its worker works (its request task cancelled) must not leak
+    the worker: it is idle again once its answer arrives, and serves the next solve."""
+    job = job_of(dict(SEED_BATCH, plots=SEED_BATCH["plots"][:60]))
+
+    async def scenario() -> None:
+        pool = SolverPool(Settings(workers=1, warmup=False), Metrics())
+        pool.start()
+        await ready(pool)
+        task = asyncio.create_task(pool.run(job))
+        while pool._idle.qsize() != 0:
+            await asyncio.sleep(0.005)
+        await asyncio.sleep(0.05)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        out = await asyncio.wait_for(pool.run(job), 60)  # the only worker serves again
+        assert out.body is not None
+        assert len(pool._workers) == 1
+        await pool.close()
+
+    asyncio.run(scenario())
