@@ -283,6 +283,12 @@ def test_registration_is_judged_against_3_sigma() -> None:
     res.registration = reg[:2]
     target = next(t for t in ms.targets(res) if "3 sigma" in t.target)
     assert target.met is True
+    # a time offset estimated far off with a tight sigma fails its own row, not the other
+    res.registration = [*reg[:2], ms.Registration("registration", "t", 0, "SSR1", "time_s",
+                                                  0.0, 7.0, 0.5)]
+    rows = [t for t in ms.targets(res) if "3 sigma" in t.target]
+    assert [t.met for t in rows] == [True, False]
+    assert "time" in rows[1].target and "0 of 1" in rows[1].measured
 
 
 def test_bias_draw_ranges() -> None:
