@@ -334,3 +334,23 @@ def test_run_and_render_end_to_end() -> None:
     md = "\n".join(ms.render(res, settings, env))
     assert "### 2x-ssr" in md and "| ss-ekf-rts |" in md
     assert ms.to_json(res, settings, env)["overall"]["2x-ssr"]["ss-ekf-rts"]["n_runs"] == 1
+
+
+def test_seed004_ordering_is_judged_at_each_source_plots() -> None:
+    res = ms.MultiResult()
+    res.errors = {("seed004", "recon"): _runs(50.0), ("seed004", "ss-ekf-rts"): _runs(55.0),
+                  ("seed004", "filter-alpha_beta-alone[ACC]"): _runs(100.0),
+                  ("seed004", "filter-alpha_beta-alone[FAST]"): _runs(300.0),
+                  ("seed004", "filter-fusion_c@ACC"): _runs(90.0),
+                  ("seed004", "filter-fusion_c@FAST"): _runs(250.0),
+                  ("seed004", "filter-fusion_a@ACC"): _runs(120.0),
+                  # pooled over every plot, between steps: not what is compared
+                  ("seed004", "filter-fusion_c"): _runs(400.0)}
+    got = {t.target.split(" (")[0]: t for t in ms.targets(res) if t.profile == "seed004"}
+    assert got["seed 004: C better than either source alone"].met is True
+    assert got["seed 004: A worse than the accurate source alone"].met is True
+    res.errors[("seed004", "filter-fusion_c@FAST")] = _runs(310.0)
+    res.errors[("seed004", "filter-fusion_a@ACC")] = _runs(95.0)
+    got = {t.target.split(" (")[0]: t for t in ms.targets(res) if t.profile == "seed004"}
+    assert got["seed 004: C better than either source alone"].met is False
+    assert got["seed 004: A worse than the accurate source alone"].met is False
