@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import fnmatch
 import json
+import shlex
 import sys
 import time
 import traceback
@@ -713,8 +714,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     profiles = args.profiles or list(MULTI_PROFILES)
     truths = args.truths or (list(QUICK_TRUTHS) if args.quick else dev_truths())
-    command = "python -m benchmarks.multisensor " + " ".join(argv if argv is not None
-                                                             else sys.argv[1:])
+    command = "python -m benchmarks.multisensor " + shlex.join(argv if argv is not None
+                                                               else sys.argv[1:])
+    dirty = _dirty()  # before the run: the code measured
     if args.render:
         data = json.loads(Path(args.render).read_text())
         res = MultiResult.from_json(data)
@@ -741,7 +743,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = {"command": command.strip(), "profiles": profiles, "truths": truths,
                 "seeds": seeds, "t_max": t_max, "quick": args.quick}
     env = environment()
-    env["commit"] += _dirty()
+    env["commit"] += dirty
     name = args.out or ("multisensor_quick" if args.quick else "multisensor")
     publish(f"{name}.md", render(res, settings, env))
     (RESULTS_DIR / f"{name}.json").write_text(json.dumps(to_json(res, settings, env), indent=1,
