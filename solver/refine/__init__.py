@@ -44,6 +44,8 @@ from .nodes import (
 )
 from .output import segments, sensor_reports, series
 
+TIME_GAUGE_INFO = 1e6  # 1/s^2: the time offsets' sum held at zero to a millisecond
+
 __all__ = ["LADDER", "DeadlineExceeded", "build_solvers", "node_grid", "refine", "refine_table"]
 
 
@@ -78,6 +80,12 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     plot_node[order] = node_of_sorted
     bias_sensors = [k for k, s in enumerate(table.sensors)
                     if isinstance(s, RadarSensor) and s.estimate_bias]
+    lone = bool(bias_sensors) and len(table.sensors) < 2
+    if lone:  # nothing to register against: the penalties, not the plots, would set them
+        bias_sensors = []
+    # no sensor keeps absolute time: hold the time offsets' sum at zero (a common shift is a
+    # shift of the whole track in time; left free it drifted 7-10 s, 800 m, in the benchmark)
+    time_gauge = TIME_GAUGE_INFO if len(bias_sensors) == len(table.sensors) else 0.0
     variant = Variant(altitude=table.estimate_altitude(), biases=len(bias_sensors))
     fixes = table.fixes()
     data = NodeData.assemble(table, fixes, n, plot_node, variant, bias_sensors)
@@ -90,6 +98,9 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         diag = initial.diagnostics
     else:
         diag = Diagnostics(criterion="R2")
+        if lone:
+            diag.warnings.append("estimate_bias: a lone radar's offsets are not observable "
+                                 "(nothing to register it against); not estimated")
         if variant.altitude:
             guess, h0 = altitude_guess(table, data, plot_node, t_nodes, bounds)
         else:
@@ -102,7 +113,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     delta = st.huber_delta if st.huber_delta is not None else 1e6
     diag.method = "refined"
     pb = Problem(t_nodes, hd_information(t_nodes), variant, bounds, st, delta,
-                 1.0 / bias_sigma**2 if bias_sigma.size else bias_sigma)
+                 1.0 / bias_sigma**2 if bias_sigma.size else bias_sigma, time_gauge)
     blocks = cut(n, st.block_nodes, st.overlap_nodes)
     duals: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(blocks)
     clock = {"ipopt": 0.0, "model": 0.0}  # s inside IPOPT calls / in its model evaluations
@@ -176,7 +187,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     # offsets estimated in the first block only are consider states after it
     consider = blocks[0][2] + 1 if variant.biases and len(blocks) > 1 else None
     cov_nodes = node_covariance(t_nodes, sol, biases, data, variant, st, delta, bounds,
-                                pb.hd_info, bias_sigma, consider)
+                                pb.hd_info, bias_sigma, consider, time_gauge)
     # each plot's own node (plots of several sensors may share an instant)
     at_plots_own = series(t_nodes, sol, cov_nodes, table.t, variant, nodes=plot_node)
     samples = series(t_nodes, sol, cov_nodes,

@@ -59,7 +59,7 @@ def state_size(variant: Variant) -> int:
 def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, data: NodeData,
                     variant: Variant, st: RefineSettings, delta: float, bounds: Bounds,
                     hd_info: FloatArray, bias_sigma: FloatArray,
-                    consider_from: int | None = None) -> np.ndarray:
+                    consider_from: int | None = None, time_gauge: float = 0.0) -> np.ndarray:
     """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets).
 
     ``consider_from``: from this node on the offsets were held, not estimated (later blocks of
@@ -95,6 +95,10 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
     alt_H = np.zeros((1, nx))
     if variant.altitude:
         alt_H[0, NH] = 1.0
+    if time_gauge > 0:  # the pseudo-measurement sum(time offsets) = 0 (see the NLP's gauge)
+        g = np.zeros((1, nx))
+        g[0, NH + 2 * variant.altitude + 2::BIAS_TERMS] = 1.0
+        _, P, _, _ = update(xs, P, np.zeros(1), g, np.array([[1.0 / time_gauge]]))
     for k in range(n):
         if k:
             _, P = predict(xs, P, Phi[k - 1], Q[k - 1])

@@ -5,7 +5,7 @@
     min  sum_i w_i rho(d_i^T M_i d_i) + sum_k lambda_u |u_k - u_{k-1}| + lambda_w |w_k - w_{k-1}|
          + sum_k dt_k (mu_u |u_k| + mu_w |w_k|)
          [+ sum_i (h_i - a_i)^2 / s_a^2 + sum_k (hd_k - hd_{k-1})^2 / (q_h dt_k)]   (altitude)
-         [+ sum_j b_j^2 / s_b^2]                                                     (biases)
+         [+ sum_j b_j^2 / s_b^2 (+ g (sum_j b_t,j)^2 without a time reference)]        (biases)
     s.t. s_{k+1} = F(s_k, u_k, w_k, t_{k+1} - t_k)   (closed-form motion, solver.motion)
          [h_{k+1} = h_k + dt_k hd_k]
          u in [u_min, u_max],  w in [w_min, w_max],  v_k in [v_min, v_max]
@@ -153,7 +153,9 @@ def block_solver(n: int, variant: Variant = Variant(), warm: bool = False,  # no
                          + Em[E["level_w"]] * ca.sqrt(w * w + eps**2)))
     pen += alt_pen
     if variant.biases:
-        pen += ca.sum1(Em[E["bias_info"]] * (Bs * ca.DM(global_scale(variant))) ** 2)
+        B = Bs * ca.DM(global_scale(variant))
+        pen += ca.sum1(Em[E["bias_info"]] * B**2)
+        pen += Em[E["time_gauge"]] * ca.sum1(B[2::BIAS_TERMS]) ** 2
     nlp = {
         "x": ca.vertcat(ca.vec(Xs), Bs),
         "p": ca.vertcat(ca.vec(Pm), Em),
