@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import queue
 import re
 import sys
 import threading
 import time
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -156,17 +158,19 @@ class Streamed:
         return rows
 
 
-def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_TRACKS
-           ) -> Streamed:
+def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_TRACKS,
+           executor: Any = None) -> Streamed:
     """The sensor file read and the recording opened for :func:`solver.io.split.split_stream`
     (by suffix: a table read in batches, else ASTERIX/pcap decoded in units): memory holds
     the aircraft in the air, not the recording's rows. A thread reads, decodes and splits up
     to ``read_ahead`` complete tracks ahead of their consumer (so the decoding overlaps the
-    reconstruction). What makes the whole input unusable (a sensor file or table header it
-    cannot use, a pcapng file) raises here, before any track is taken."""
+    reconstruction); with ``executor`` (a Dask client) ASTERIX units are decoded on it
+    (:func:`solver.io.asterix.iter_recording`). What makes the whole input unusable (a
+    sensor file or table header it cannot use, a pcapng file) raises here, before any track
+    is taken."""
     sensors = load_sensors(sensors_path)
     out = Streamed(sensors, Problems(), iter(()))
-    parts = _row_parts(recording, out)
+    parts = _row_parts(recording, out, executor)
     first = next(parts, None)  # the whole input's errors raise now
 
     def rows() -> Iterator[PlotRows]:
@@ -178,12 +182,13 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     return out
 
 
-def _row_parts(recording: Path, out: Streamed) -> Iterator[PlotRows]:
+def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator[PlotRows]:
     if recording.suffix.lower() in TABLE_SUFFIXES:
         for rows in iter_table(recording, batch_rows=STREAM_BATCH_ROWS, problems=out.problems):
             yield out._note(rows)
         return
-    for part in iter_recording(recording, out.sensors, chunk_bytes=STREAM_CHUNK_BYTES):
+    for part in iter_recording(recording, out.sensors, chunk_bytes=STREAM_CHUNK_BYTES,
+                               executor=executor):
         out.problems.extend(part.problems)
         for sid, st in part.service.items():
             if st.rotation_period_s:
@@ -393,7 +398,37 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    loaded = stream(Path(args.recording), Path(args.sensors))
+    load_sensors(Path(args.sensors))  # a bad sensor file is refused before a cluster starts
+    with _cluster(args.scheduler, args.workers) as client:
+        workers = max(len(client.scheduler_info()["workers"]), 1)
+        on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)
+        loaded = stream(Path(args.recording), Path(args.sensors),
+                        executor=client if on_cluster else None)
+        summary, first_result_s = _reconstruct(args, out, loaded, client, started)
+    return _finish(args, out, loaded, summary, first_result_s, started)
+
+
+@contextmanager
+def _cluster(scheduler: str | None, workers: int | None) -> Iterator[Any]:
+    """A Dask client of the scheduler at ``scheduler``, else of an embedded ``LocalCluster``
+    of ``workers`` processes (default: the usable cores; as :func:`solver.batch.
+    reconstruct_many` would start), closed at the end."""
+    from distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        with Client(scheduler) as client:
+            yield client
+        return
+    n = workers or len(os.sched_getaffinity(0))
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster, Client(cluster) as client:
+        yield client
+
+
+def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: Any,
+                 started: float) -> tuple[BatchSummary, float | None]:
+    """Every track of ``loaded`` on ``client``, with the sensors' statistics recorded as
+    they come; the summary and the time to the first result."""
     config = ReconstructionConfig(method=args.method)
     stats_path = out / "sensor_stats.jsonl"
     previous = _read_stats(stats_path)
@@ -416,11 +451,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     task = partial(assess_track, figures_dir=figures)
     summary: BatchSummary = reconstruct_many(
-        loaded.tracks, out, config=config, scheduler=args.scheduler, workers=args.workers,
+        loaded.tracks, out, config=config, executor=client,
         time_limit_s=args.time_limit or None, retry_failed=args.retry_failed,
         on_outcome=on_outcome, task=task)
     if bar is not None:
         bar.close()
+    return summary, first_result[0] if first_result else None
+
+
+def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: BatchSummary,
+            first_result_s: float | None, started: float) -> dict[str, Any]:
+    """The whole-recording outputs once every track is in."""
+    stats_path = out / "sensor_stats.jsonl"
+    previous = _read_stats(stats_path)
     stats = SensorStats(loaded.sensors, loaded.scan_periods)  # the periods read by now
     for reports in previous.values():
         stats.add(reports)
@@ -434,7 +477,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
         "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
-        "time_to_first_result_s": first_result[0] if first_result else None,
+        "time_to_first_result_s": first_result_s,
         "problems": dict(loaded.problems.counts), "failures": summary.failures,
         "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "sensors": sensor_rows}
     (out / "summary.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
@@ -499,6 +542,10 @@ def parser() -> argparse.ArgumentParser:
                     "processes (default: the usable cores)")
     ap.add_argument("--time-limit", type=float, default=300.0, help="per-track limit (s; 0: "
                     "none)")
+    ap.add_argument("--decode", choices=("auto", "local", "cluster"), default="auto",
+                    help="where ASTERIX is decoded: in this process (a reading thread), on "
+                    "the cluster's workers, or auto: on the cluster when it has more than "
+                    "one worker (default)")
     ap.add_argument("--method", choices=("refined",), default="refined")
     ap.add_argument("--figures", action="store_true", help="also draw every track's figure")
     ap.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
