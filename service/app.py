@@ -333,7 +333,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         The solve runs in a worker process; while all workers are busy the request waits in a
         bounded queue (503 with `Retry-After` when that is full too).
         """
-        job = to_job(body, settings.nlp_solver, settings.max_plots, settings.max_samples)
+        job = to_job(body, settings.nlp_solver, settings.max_plots, settings.max_samples,
+                     settings.max_nodes)
         try:
             outcome = await pool.run(job)
         except Busy as e:

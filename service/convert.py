@@ -45,6 +45,7 @@ class Job:
     table: PlotTable
     config: ReconstructionConfig
     filters: tuple[str, ...]
+    omit: frozenset[str] = frozenset()
 
     @property
     def plots(self) -> Plots | PlotTable:
@@ -58,19 +59,31 @@ class Job:
 
 
 def to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
-           max_samples: int) -> Job:
+           max_samples: int, max_nodes: int | None = None) -> Job:
     """Validate a request into solver inputs; raise :class:`InputError` (client field names).
 
-    Beyond the solver's checks: the service's size limits (plots, samples) and a window no
-    longer than the track."""
+    Beyond the solver's checks: the service's size limits (plots, samples, the refinement's
+    nodes) and a window no longer than the track."""
+    if max_nodes is None:  # the service's default (one source: Settings)
+        from .settings import Settings
+
+        max_nodes = int(Settings.model_fields["max_nodes"].default)
     try:
-        return _to_job(req, nlp_solver, max_plots, max_samples)
+        return _to_job(req, nlp_solver, max_plots, max_samples, max_nodes)
     except InputError as e:
         raise InputError(client_loc(e.loc), e.message) from None
 
 
+def refinement_nodes(t: np.ndarray, max_step_s: float) -> int:
+    """Node intervals of the refinement of plots at times ``t``: one per gap between
+    consecutive plot times (zero-length ones included), long gaps cut to ``max_step_s``
+    (:func:`solver.refine.nodes.node_grid`)."""
+    gaps = np.diff(np.sort(t))
+    return int(np.maximum(np.ceil(gaps / max_step_s - 1e-9), 1).sum())
+
+
 def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
-            max_samples: int) -> Job:
+            max_samples: int, max_nodes: int) -> Job:
     n = len(req.plots)
     if n > max_plots:
         raise InputError(("plots",), f"has {n} plots; this service accepts at most {max_plots}")
@@ -109,7 +122,14 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
         if name in FUSION_NAMES and len(table.sensors) != 2:
             raise InputError(("filters", i), f"{name} is seed 004's fusion of exactly two "
                              f"sensors; this request has {len(table.sensors)}")
-    return Job(table, config, tuple(dict.fromkeys(req.filters)))
+    if config.method == "refined":
+        nodes = refinement_nodes(table.t, config.refine.max_node_step_s)
+        if nodes > max_nodes:
+            raise InputError(("plots",), f"span {span:g} s with their gaps: the refinement would "
+                             f"solve {nodes} node intervals (gaps cut to "
+                             f"{config.refine.max_node_step_s:g} s); this service's limit is "
+                             f"max_nodes = {max_nodes}: split the track at its long gaps")
+    return Job(table, config, tuple(dict.fromkeys(req.filters)), frozenset(req.omit))
 
 
 def _radar(r: RadarIn) -> dict:
@@ -219,9 +239,14 @@ def _diagnostics(d: Diagnostics) -> dict:
     }
 
 
-def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate]) -> dict:
+def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
+                  omit: frozenset[str] = frozenset()) -> dict:
     """The JSON-ready body of a 200 (validated against ``ReconstructionResponse`` by the
-    caller)."""
+    caller); ``omit``: ``samples`` (an empty list) and/or ``covariances`` (``cov`` null).
+    Every filter's warning (e.g. a numerical fallback) joins ``diagnostics.warnings``."""
+    if "covariances" in omit:
+        for s in (rec.at_plots, rec.samples, *(e.states for e in estimates.values())):
+            s.cov = None
     segments = [
         {"t_start": s.t_start, "t_end": s.t_end, "u": s.u, "w": s.w, "x": s.x, "z": s.z,
          "heading_deg": float(np.rad2deg(s.heading) % 360.0), "speed": s.speed}
@@ -230,17 +255,20 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate]) -> 
     trajectory: dict = {
         "segments": segments,
         "at_plots": _states(rec.at_plots, True),
-        "samples": _states(rec.samples, True),
+        "samples": [] if "samples" in omit else _states(rec.samples, True),
     }
     if rec.altitude_m is not None:
         trajectory["altitude_m"] = rec.altitude_m
         trajectory["altitude_sigma_m"] = rec.altitude_sigma_m
+    diagnostics = _diagnostics(rec.diagnostics)
+    diagnostics["warnings"] += [f"filters.{name}: {e.info['warning']}"
+                                for name, e in estimates.items() if e.info.get("warning")]
     return {
         "trajectory": trajectory,
         "filters": {name: {"states": _states(e.states, False, rec.frame)}
                     for name, e in estimates.items()},
         "sensors": [_sensor(r) for r in rec.sensors],
-        "diagnostics": _diagnostics(rec.diagnostics),
+        "diagnostics": diagnostics,
     }
 
 

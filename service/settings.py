@@ -45,6 +45,9 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(2_000_000, ge=1024, description="Largest accepted request "
                                 "body (bytes); larger bodies get 413.")
     max_plots: int = Field(20_000, ge=1, description="Most plots accepted in one request.")
+    max_nodes: int = Field(50_000, ge=16, description="Most node intervals of a refinement "
+                           "(every plot, gaps cut to refine.max_node_step_s): long gaps cost "
+                           "nodes, so a small body can ask for hours of work; beyond: 422.")
     max_samples: int = Field(100_000, ge=1, description="Most regular samples in one answer "
                              "(track duration / sample_step_s).")
     solve_time_limit_s: float = Field(

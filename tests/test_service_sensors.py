@@ -166,3 +166,33 @@ def test_bad_sensor_input_gets_a_422_naming_the_field(client, change, loc):
     assert res.status_code == 422, res.text
     err = res.json()
     assert err["detail"][0]["loc"] == loc, err
+
+
+def test_omit_samples_and_covariances(client):
+    body = _body()
+    body["filters"] = ["cv_rts"]
+    full = client.post("/v1/reconstructions", json=body)
+    body["omit"] = ["samples", "covariances"]
+    slim = client.post("/v1/reconstructions", json=body)
+    assert full.status_code == slim.status_code == 200, slim.text
+    out = slim.json()
+    assert out["trajectory"]["samples"] == []
+    assert out["trajectory"]["at_plots"][0]["cov"] is None
+    assert out["filters"]["cv_rts"]["states"][0]["cov"] is None
+    assert out["trajectory"]["at_plots"][0]["x"] == full.json()["trajectory"]["at_plots"][0]["x"]
+    assert len(slim.content) < len(full.content) / 3
+    body["omit"] = ["everything"]
+    assert client.post("/v1/reconstructions", json=body).status_code == 422
+
+
+def test_a_long_gap_is_refused_before_solving(client):
+    """Three plots over 10^7 s would be half a million refinement nodes from a tiny body."""
+    body = {"radar": {"range_error_m": 150.0, "azimuth_error_deg": 0.24},
+            "plots": [{"t": 0.0, "range_m": 50e3, "azimuth_deg": 1.0},
+                      {"t": 10.0, "range_m": 51e3, "azimuth_deg": 1.0},
+                      {"t": 1e7, "range_m": 52e3, "azimuth_deg": 1.0}],
+            "sample_step_s": 1e4}
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 422, res.text
+    assert res.json()["detail"][0]["loc"] == ["plots"]
+    assert "max_nodes" in res.json()["message"]
