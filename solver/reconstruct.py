@@ -14,6 +14,11 @@ from .results import Reconstruction
 
 log = logging.getLogger(__name__)
 
+NUMERICAL_FAILURES = (FloatingPointError, ZeroDivisionError, OverflowError,
+                      np.linalg.LinAlgError, RuntimeError)
+"""What a refinement may raise on numbers it cannot handle (RuntimeError: CasADi's own
+evaluation errors); answered by the sliding-window fallback, reported."""
+
 
 def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
                 config: ReconstructionConfig | None = None,
@@ -77,7 +82,9 @@ def _reconstruct_single(plots: Plots, radar: Radar, config: ReconstructionConfig
                    if config.refine.init == "sliding" else None)
         try:
             result = refine_module.refine(plots, radar, config, initial, deadline)
-        except (ArithmeticError, ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+        except NUMERICAL_FAILURES as exc:
+            # numerical failures only: a programming error (TypeError, IndexError, a shape
+            # ValueError...) must surface, not hide behind a fallback
             if isinstance(exc, refine_module.DeadlineExceeded):
                 raise
             if "KeyboardInterrupt" in str(exc):
