@@ -7,13 +7,12 @@ import math
 
 import numpy as np
 
-from .. import compiled
 from ..inputs import Bounds, FloatArray
 from ..motion import propagate
 from ..plots import PlotTable
 from ..results import Segment, SensorReport, StateSeries
 from ..sensors import RadarSensor
-from .covariance import NH, motion_jacobian, state_size
+from .covariance import NH, state_size, transitions
 from .layout import BIAS_TERMS, Variant
 
 
@@ -57,11 +56,7 @@ def series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray, t: Float
     x, z, phi, v = propagate(s[:, 0], s[:, 1], s[:, 2], s[:, 3], s[:, 4], s[:, 5], tau)
     m = t.size
     nx = state_size(variant)
-    A = np.zeros((m, nx, nx))
-    A[:, :NH, :NH] = compiled.columns(motion_jacobian(), s[:, :NH].T, tau[None, :])[0]
-    A[:, range(NH, nx), range(NH, nx)] = 1.0
-    if variant.altitude:
-        A[:, NH, NH + 1] = tau
+    A = transitions(s, tau, variant)
     P = A @ cov_nodes[k] @ A.transpose(0, 2, 1)
     T = np.zeros((m, 4, nx))
     T[:, 0, 0] = T[:, 1, 1] = 1.0
