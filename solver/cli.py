@@ -542,10 +542,11 @@ def parser() -> argparse.ArgumentParser:
                     "processes (default: the usable cores)")
     ap.add_argument("--time-limit", type=float, default=300.0, help="per-track limit (s; 0: "
                     "none)")
-    ap.add_argument("--decode", choices=("auto", "local", "cluster"), default="auto",
-                    help="where ASTERIX is decoded: in this process (a reading thread), on "
-                    "the cluster's workers, or auto: on the cluster when it has more than "
-                    "one worker (default)")
+    ap.add_argument("--decode", choices=("local", "cluster", "auto"), default="local",
+                    help="where ASTERIX is decoded: in this process, a reading thread "
+                    "overlapping the reconstruction (default; the faster on one machine, "
+                    "benchmarks/results/recording.md), on the cluster's workers, or auto: on "
+                    "the cluster when it has more than one worker")
     ap.add_argument("--method", choices=("refined",), default="refined")
     ap.add_argument("--figures", action="store_true", help="also draw every track's figure")
     ap.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
