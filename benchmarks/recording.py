@@ -347,7 +347,7 @@ class TreeSampler:
 
 
 def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | None = None,
-            budget_s: float | None = None) -> dict[str, Any]:
+            budget_s: float | None = None, decode: str | None = None) -> dict[str, Any]:
     """The console script's pipeline (``python -m solver.cli``) as a subprocess; wall time,
     peak RSS and CPU time of the tree, and its ``summary.json``. At ``deadline`` (epoch s)
     or after ``budget_s`` the run is stopped and measured on the tracks committed by then
@@ -358,6 +358,8 @@ def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | 
 
     cmd = [sys.executable, "-m", "solver.cli", str(built.recording), "--sensors",
            str(built.sensors), "--out", str(out), "--workers", str(workers), "--no-progress"]
+    if decode is not None:
+        cmd += ["--decode", decode]
     load_before = os.getloadavg()
     started = time.perf_counter()
     partial = False
@@ -592,7 +594,7 @@ def _row(label: str, c: dict[str, Any]) -> str:
     steady = None
     if c.get("time_to_first_result_s") and c.get("plots"):
         steady = c["plots"] / (c["wall_s"] - c["time_to_first_result_s"])
-    return (f"| {label}{' (stopped at the deadline)' if c.get('partial') else ''} | "
+    return (f"| {label}{' (stopped at its time budget)' if c.get('partial') else ''} | "
             f"{c['workers']} | {c['plots']} | {c['wall_s']:.0f} | "
             f"{_f(c['plots_per_s_end_to_end'], '.0f')} | {_f(steady, '.0f')} | "
             f"{_f(c.get('plots_per_s_reconstruct'), '.0f')} | "
@@ -635,6 +637,8 @@ def write_report(r: dict[str, Any], out: Path, command: str) -> None:
         "|---|---|---|---|---|---|---|---|---|---|---|"]
     for k, c in r["cli"].items():
         lines.append(_row("full recording", c | {"workers": k}))
+    for label, c in r.get("cli_variants", {}).items():
+        lines.append(_row(f"full recording, {label}", c))
     if r.get("short_recording"):
         s = r["short_recording"]
         lines.append(_row(f"short recording ({s['aircraft']} aircraft, {s['plots']} plots)",
