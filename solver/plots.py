@@ -104,8 +104,7 @@ class PlotTable:
         bad = np.flatnonzero(~np.isfinite(self.t))
         if bad.size:
             raise InputError(("plots", int(bad[0]), "t"), "must be a finite number")
-        is_radar = np.array([isinstance(self.sensors[k], RadarSensor) for k in self.sensor],
-                            dtype=bool)
+        is_radar = self.radar_rows()
         for name in ("range_m", "azimuth_rad"):
             col = getattr(self, name)
             bad = np.flatnonzero(is_radar & ~np.isfinite(col))
@@ -185,8 +184,8 @@ class PlotTable:
         return np.argsort(self.t, kind="stable")
 
     def radar_rows(self) -> np.ndarray:
-        return np.array([isinstance(self.sensors[k], RadarSensor) for k in self.sensor],
-                        dtype=bool)
+        """``(n,)`` True where the plot is a radar's."""
+        return np.array([isinstance(s, RadarSensor) for s in self.sensors])[self.sensor]
 
     def legacy(self) -> tuple[Plots, RadarSensor]:
         """The seed's ``(Plots, Radar)`` of a single-radar table (any frame)."""

@@ -52,20 +52,12 @@ def polar_channels(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, prior_var: 
     ``xf (n, B, m)``, ``Pf``, the normalised innovations ``(n, B)`` and the measurement
     variances ``(n, B)``.
     """
-    B, m = prior_var.shape
-    half = B // 2
+    half = prior_var.shape[0] // 2
     z = np.concatenate([np.repeat(meas.d[:, None], half, 1),
                         np.repeat(meas.psi[:, None], half, 1)], axis=1)
     R = np.concatenate([np.repeat(meas.sigma_d[:, None] ** 2, half, 1),
                         np.full((len(meas), half), meas.sigma_psi**2)], axis=1)
-    x0 = np.zeros((B, m))
-    x0[:, 0] = z[0]
-    P0 = np.zeros((B, m, m))
-    idx = np.arange(m)
-    P0[:, idx, idx] = prior_var
-    P0[:, 0, 0] = R[0]
-    xf, Pf, nus = channel_filter(x0, P0, Phi, Q, z, R, gain)
-    return xf, Pf, nus, R
+    return _run_channels(z, R, Phi, Q, prior_var, gain)
 
 
 def axis_channels(meas: SensorPlots, Phi: FloatArray, Q: FloatArray, prior_var: FloatArray,
@@ -75,20 +67,12 @@ def axis_channels(meas: SensorPlots, Phi: FloatArray, Q: FloatArray, prior_var: 
     of the plot positions as ``B`` separate scalar channels (``B/2`` x-channels, then ``B/2``
     z-channels), each plot with its marginal variance ``R_xx`` or ``R_zz`` (the x-z correlation
     of a fix is not used: each channel is exact for its own axis). Same arguments and returns."""
-    B, m = prior_var.shape
-    half = B // 2
+    half = prior_var.shape[0] // 2
     pts, cov = meas.points(), meas.converted_cov()
     z = np.concatenate([np.repeat(pts[:, :1], half, 1), np.repeat(pts[:, 1:], half, 1)], axis=1)
     R = np.concatenate([np.repeat(cov[:, 0, 0, None], half, 1),
                         np.repeat(cov[:, 1, 1, None], half, 1)], axis=1)
-    x0 = np.zeros((B, m))
-    x0[:, 0] = z[0]
-    P0 = np.zeros((B, m, m))
-    idx = np.arange(m)
-    P0[:, idx, idx] = prior_var
-    P0[:, 0, 0] = R[0]
-    xf, Pf, nus = channel_filter(x0, P0, Phi, Q, z, R, gain)
-    return xf, Pf, nus, R
+    return _run_channels(z, R, Phi, Q, prior_var, gain)
 
 
 def axes_to_cartesian(xf: FloatArray, Pf: FloatArray, b_x: int, b_z: int
@@ -122,3 +106,20 @@ def estimate(name: str, t: FloatArray, states: FloatArray, cov: FloatArray,
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
     series = StateSeries.from_states(t, states, cov)
     return FilterEstimate(name=name, states=series, info=dict(info))
+
+
+def _run_channels(z: FloatArray, R: FloatArray, Phi: FloatArray, Q: FloatArray,
+                  prior_var: FloatArray,
+                  gain: Callable[[int, FloatArray, FloatArray], FloatArray] | None
+                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The channels' filter from the first measurement (its variance as the first state's,
+    ``prior_var`` for the others)."""
+    B, m = prior_var.shape
+    x0 = np.zeros((B, m))
+    x0[:, 0] = z[0]
+    P0 = np.zeros((B, m, m))
+    idx = np.arange(m)
+    P0[:, idx, idx] = prior_var
+    P0[:, 0, 0] = R[0]
+    xf, Pf, nus = channel_filter(x0, P0, Phi, Q, z, R, gain)
+    return xf, Pf, nus, R
