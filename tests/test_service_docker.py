@@ -19,7 +19,6 @@ import os
 import re
 import shlex
 import shutil
-import socket
 import subprocess
 import sys
 import sysconfig
@@ -32,7 +31,7 @@ import httpx
 import yaml
 from packaging.markers import default_environment
 from packaging.requirements import Requirement
-from procs import stop
+from procs import free_port, stop
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "docker" / "Dockerfile"
@@ -137,12 +136,6 @@ def test_lock_files_cover_pyproject():
     assert "-c requirements-dev.lock" in command and command in readme
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_dockerfile_steps_install_and_serve(tmp_path):
     # the replay's stand-in for the lock download: this environment, which must match the lock
     installed = {d.metadata["Name"].lower().replace("_", "-"): d.version
@@ -160,7 +153,7 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
 
     env = {"PATH": f"{base / 'bin'}{os.pathsep}/usr/bin:/bin", "HOME": str(tmp_path),
            "PIP_FIND_LINKS": os.environ.get("PIP_FIND_LINKS", "")}
-    port = str(_free_port())
+    port = str(free_port())
     healthcheck: list[str] = []
     cmd: list[str] = []
     workdir = root

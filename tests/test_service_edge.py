@@ -16,16 +16,10 @@ from pathlib import Path
 
 import httpx
 import pytest
-from procs import stop
+from procs import free_port, stop
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED_BATCH = json.loads((ROOT / "examples" / "seed_track.json").read_text())
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Server:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from procs import stop
+from procs import start_service, stop
 
 from service.convert import to_job
 from service.metrics import Metrics
@@ -115,25 +115,8 @@ def test_trial_step_that_asks_for_billions_of_windows_is_a_422_naming_it():
 
 
 def _start(tmp_env: dict[str, str]) -> tuple[subprocess.Popen, str]:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {**os.environ, "TRAJRECON_PORT": str(port), "TRAJRECON_WORKERS": "2",
-           "TRAJRECON_WARMUP": "false", "TRAJRECON_LOG_LEVEL": "WARNING", **tmp_env}
-    proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    url = f"http://127.0.0.1:{port}"
-    end = time.monotonic() + 60
-    while True:
-        assert proc.poll() is None and time.monotonic() < end, "server did not start"
-        try:
-            if httpx.get(url + "/readyz", timeout=1).status_code == 200:
-                return proc, url
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
+    return start_service({"TRAJRECON_WORKERS": "2", "TRAJRECON_WARMUP": "false",
+                          "TRAJRECON_LOG_LEVEL": "WARNING", **tmp_env})
 
 
 def children(pid: int) -> list[int]:

@@ -10,11 +10,6 @@ other operation; one worker, no warm-up, at most 60 plots per request and a 10-s
 from __future__ import annotations
 
 import json
-import os
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -22,7 +17,7 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from procs import stop
+from procs import start_service, stop
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (
     content_type_conformance,
@@ -42,26 +37,11 @@ schema = schemathesis.openapi.from_dict(create_app(Settings()).openapi())
 
 @pytest.fixture(scope="module")
 def server():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {**os.environ, "TRAJRECON_PORT": str(port), "TRAJRECON_WORKERS": "1",
-           "TRAJRECON_WARMUP": "false", "TRAJRECON_LOG_LEVEL": "WARNING",
-           "TRAJRECON_ACCESS_LOG": "false", "TRAJRECON_MAX_PLOTS": "60",
-           "TRAJRECON_SOLVE_TIME_LIMIT_S": "10", "TRAJRECON_MAX_QUEUED_SOLVES": "64"}
-    proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    url = f"http://127.0.0.1:{port}"
+    proc, url = start_service({
+        "TRAJRECON_WORKERS": "1", "TRAJRECON_WARMUP": "false", "TRAJRECON_LOG_LEVEL": "WARNING",
+        "TRAJRECON_ACCESS_LOG": "false", "TRAJRECON_MAX_PLOTS": "60",
+        "TRAJRECON_SOLVE_TIME_LIMIT_S": "10", "TRAJRECON_MAX_QUEUED_SOLVES": "64"})
     try:
-        end = time.monotonic() + 60
-        while True:
-            assert proc.poll() is None and time.monotonic() < end, "server did not start"
-            try:
-                if httpx.get(url + "/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
         yield url
     finally:
         stop(proc)

@@ -9,16 +9,14 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
-import sys
 import time
 from collections import Counter
 from pathlib import Path
 
 import httpx
 import pyarrow.parquet as pq
-from procs import stop
+from procs import start_service, stop
 from test_io_asterix import SENSOR_FILE, Flight, encode_recording
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,27 +25,11 @@ FLIGHTS = tuple(Flight(0x500000 + k, 4_000.0 * k, -15_000.0 + 5_000.0 * k, 190.0
 
 
 def start(data_dir: Path) -> tuple[subprocess.Popen, str]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {**os.environ, "TRAJRECON_PORT": str(port), "TRAJRECON_WORKERS": "1",
-           "TRAJRECON_WARMUP": "false", "TRAJRECON_LOG_LEVEL": "WARNING",
-           "TRAJRECON_ACCESS_LOG": "false", "TRAJRECON_DATA_DIR": str(data_dir),
-           "TRAJRECON_JOBS_WORKERS": "1", "TRAJRECON_JOBS_TRACK_FIGURES": "false"}
     # a session of its own: whatever the killed server leaves behind is ended with it
-    proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
-    url = f"http://127.0.0.1:{port}"
-    end = time.monotonic() + 60
-    while True:
-        assert proc.poll() is None and time.monotonic() < end, "server did not start"
-        try:
-            if httpx.get(url + "/readyz", timeout=1).status_code == 200:
-                return proc, url
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
+    return start_service({"TRAJRECON_WORKERS": "1", "TRAJRECON_WARMUP": "false",
+                          "TRAJRECON_LOG_LEVEL": "WARNING", "TRAJRECON_ACCESS_LOG": "false",
+                          "TRAJRECON_DATA_DIR": str(data_dir), "TRAJRECON_JOBS_WORKERS": "1",
+                          "TRAJRECON_JOBS_TRACK_FIGURES": "false"}, start_new_session=True)
 
 
 def poll(url: str, until, timeout: float = 120.0) -> dict:

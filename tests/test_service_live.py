@@ -8,7 +8,6 @@ import copy
 import importlib
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -17,7 +16,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from procs import stop
+from procs import start_service, stop
 from test_service_sensors import _body as two_sensor_body
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,32 +25,13 @@ SEED_BATCH = json.loads((ROOT / "examples" / "seed_track.json").read_text())
 BIN = Path(sys.executable).parent
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def server():
     """``python -m service`` exactly as the README runs it, configured by environment."""
-    port = free_port()
-    env = {**os.environ, "TRAJRECON_PORT": str(port), "TRAJRECON_WORKERS": "2",
-           "TRAJRECON_LOG_LEVEL": "WARNING", "TRAJRECON_MAX_PLOTS": "400"}
-    proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    url = f"http://127.0.0.1:{port}"
+    proc, url = start_service({"TRAJRECON_WORKERS": "2", "TRAJRECON_LOG_LEVEL": "WARNING",
+                               "TRAJRECON_MAX_PLOTS": "400"}, timeout=90,
+                              stderr=subprocess.PIPE)
     try:
-        end = time.monotonic() + 90
-        while True:
-            assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""
-            assert time.monotonic() < end, "server not ready within 90 s"
-            try:
-                if httpx.get(url + "/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
         yield url
     finally:
         stop(proc)
