@@ -25,7 +25,15 @@ class RefineSettings:
     (chi-square) units (``w``: 5 -> 1.25 measured 1-2 % better on seed000 and ssr and 5 % with
     altitude, seed001 unchanged, on both dev seeds 100 and 101). ``level_penalty_u`` /
     ``level_penalty_w``: weight per (m/s^2 s) of ``|u|``, ``|w|`` (aircraft fly mostly straight at
-    constant speed), smoothed over ``level_smoothing`` m/s^2. ``huber_delta``: pseudo-Huber
+    constant speed), smoothed over ``level_smoothing`` m/s^2. ``level_relief_u`` (m/s^2): at each
+    node the ``|u|`` weight is divided by ``1 + (u0 / level_relief_u)^2``, ``u0`` the start's
+    lateral acceleration there (adaptive weights from a pilot estimate, after Zou 2006: a constant
+    weight flattens the turns it should only keep out of the straight legs); 0: a constant weight.
+    Chosen on dev seeds 100 and 101 (7 tracks; 1, 1.5, 2 and 3 m/s^2, exponents 1 and 2 tried):
+    RMS position seed000 370.9 -> 363.0 m, seed001 326.1 -> 317.0 m, ssr 74.8 -> 75.0 m, ssr with
+    altitude 47.6 -> 47.9 m, the same iterations (2 m/s^2: 363.7 / 318.0 / 74.9 / 47.8 m; 3:
+    365.4 / 320.0 / 74.9 / 47.8 m); halving ``level_penalty_u`` instead gave 367.4 / 321.6 /
+    75.3 m. ``huber_delta``: pseudo-Huber
     threshold in sigmas (None: plain least squares); ``outlier_gate``: plots further than this many
     sigmas from the first solution get no weight in the second (None: keep all), as long as they
     are at most ``outlier_max_share`` of the plots and the speed does not sit at a bound (else
@@ -55,6 +63,7 @@ class RefineSettings:
     level_penalty_u: float = 0.1
     level_penalty_w: float = 0.1
     level_smoothing: float = 0.05
+    level_relief_u: float = 1.5
     huber_delta: float | None = 3.0
     outlier_gate: float | None = 5.0
     outlier_max_share: float = 0.2
@@ -76,7 +85,7 @@ class RefineSettings:
         for name in positive:
             if not getattr(self, name) > 0:  # also rejects NaN
                 raise InputError(("refine", name), "must be positive")
-        for name in ("level_penalty_u", "level_penalty_w", "switch_threshold",
+        for name in ("level_penalty_u", "level_penalty_w", "level_relief_u", "switch_threshold",
                      "polish_penalty_scale"):
             if not getattr(self, name) >= 0:
                 raise InputError(("refine", name), "must be zero or positive")

@@ -110,6 +110,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         if st.init == "sliding":
             _, h0 = altitude_guess(table, data, plot_node, t_nodes, bounds)
         guess = with_altitude(guess, h0, t_nodes)
+    # the level penalty relieved where the start turns (RefineSettings.level_relief_u)
+    data = data.relieved(guess[:, solution_columns(variant).index("u")], st.level_relief_u)
     delta = st.huber_delta if st.huber_delta is not None else 1e6
     diag.method = "refined"
     pb = Problem(t_nodes, hd_information(t_nodes), variant, bounds, st, delta,

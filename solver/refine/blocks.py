@@ -119,6 +119,7 @@ def solve_block(pb: Problem, start: int, stop: int, data: NodeData, guess: np.nd
     par[P["info"], :m] = data.info[sl].T
     par[P["weight"], :m] = data.weight[sl]
     par[P["switch"]] = np.array([[st.switch_penalty_u], [st.switch_penalty_w]])
+    par[P["level"], :m] = data.level[sl].T
     cols = solution_columns(v)
     rows = [V.row(name) for name in cols]  # solution column j lives in variable row rows[j]
     x0 = np.zeros((V.size, size))

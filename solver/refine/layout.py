@@ -75,13 +75,15 @@ def global_variables(v: Variant) -> Layout:
 def node_parameters(v: Variant) -> Layout:
     """Per node: ``dt`` to the next node; the plot's centre ``(cx, cz)`` and R2 entries
     ``(a, b, c)`` of its one-sigma ellipse; its weight (1 at a plot, 0 elsewhere or when gated);
-    the L1 weights of control changes into this node. With altitude: the centre's dependence on
+    the L1 weights of control changes into this node; the scale of the level penalties on
+    ``|u|``, ``|w|`` over the interval from this node. With altitude: the centre's dependence on
     the height (coefficients of ``s, s^2, s^3`` per axis, the ray, slant range and site height of
     :class:`solver.sensors.PlaneFixes`, ``s = (h - h_mid) / h_half``), the plot's measured
     altitude with its information (0: none), and the information of the vertical-rate change
     into this node. With biases: the centre's derivatives with respect to slant range and
     azimuth, and which radar (one-hot) the plot is from."""
-    fields = [("dt", 1), ("centre", 2), ("info", 3), ("weight", 1), ("switch", 2)]
+    fields = [("dt", 1), ("centre", 2), ("info", 3), ("weight", 1), ("switch", 2),
+              ("level", 2)]
     if v.altitude:
         fields += [("centre_h", 2 * ALTITUDE_FIT_DEGREE), ("ray", 2), ("slant", 1),
                    ("site_h", 1), ("h_mid", 1), ("h_half", 1), ("alt", 1), ("alt_info", 1),

@@ -3,13 +3,14 @@
 ::
 
     min  sum_i w_i rho(d_i^T M_i d_i) + sum_k lambda_u |u_k - u_{k-1}| + lambda_w |w_k - w_{k-1}|
-         + sum_k dt_k (mu_u |u_k| + mu_w |w_k|)
+         + sum_k dt_k (mu_u a_k |u_k| + mu_w |w_k|)
          [+ sum_i (h_i - a_i)^2 / s_a^2 + sum_k (hd_k - hd_{k-1})^2 / (q_h dt_k)]   (altitude)
          [+ sum_j b_j^2 / s_b^2 (+ g (sum_j b_t,j)^2 without a time reference)]        (biases)
     s.t. s_{k+1} = F(s_k, u_k, w_k, t_{k+1} - t_k)   (closed-form motion, solver.motion)
          [h_{k+1} = h_k + dt_k hd_k]
          u in [u_min, u_max],  w in [w_min, w_max],  v_k in [v_min, v_max]
 
+``a_k`` scales the level penalty at node k (:meth:`solver.refine.nodes.NodeData.relieved`);
 ``d_i = p_i - c_i(h_i)`` is plot i's residual in the plane: ``p_i`` the node position (with
 biases: ``p_i - b_t v_i + (dc/dr) b_r + (dc/dpsi) b_psi``, the plot's centre as the radar's
 offsets would move it), ``c_i(h)`` the plot's centre at the node's height (fixed where the
@@ -149,8 +150,8 @@ def block_solver(n: int, variant: Variant = Variant(), warm: bool = False,  # no
     data = ca.sum2(row(Pm, P, "weight") * 2 * delta**2 * (ca.sqrt(1 + q / delta**2) - 1))
     pen = ca.sum2(row(Pm, P, "switch") * (dup + dum) + row(Pm, P, "switch", 1) * (dwp + dwm))
     eps = Em[E["level_eps"]]
-    pen += ca.sum2(dt * (Em[E["level_u"]] * ca.sqrt(u * u + eps**2)
-                         + Em[E["level_w"]] * ca.sqrt(w * w + eps**2)))
+    pen += ca.sum2(dt * (Em[E["level_u"]] * row(Pm, P, "level") * ca.sqrt(u * u + eps**2)
+                         + Em[E["level_w"]] * row(Pm, P, "level", 1) * ca.sqrt(w * w + eps**2)))
     pen += alt_pen
     if variant.biases:
         B = Bs * ca.DM(global_scale(variant))

@@ -61,6 +61,7 @@ class NodeData:
     d_azimuth: FloatArray  # (n, 2)
     sensor: FloatArray  # (n, biases) one-hot
     free: np.ndarray  # (n,) bool: the centre depends on the height
+    level: FloatArray  # (n, 2) scale of the level penalties on |u|, |w| (1: the full weight)
 
     @classmethod
     def assemble(cls, table: PlotTable, fixes: PlaneFixes, n: int, plot_node: np.ndarray,
@@ -104,6 +105,7 @@ class NodeData:
             d_azimuth=scatter(fixes.d_azimuth),
             sensor=scatter(onehot),
             free=free,
+            level=np.ones((n, 2)),
         )
 
     def without(self, nodes: np.ndarray) -> NodeData:
@@ -111,6 +113,15 @@ class NodeData:
         weight = self.weight.copy()
         weight[nodes] = 0.0
         return replace(self, weight=weight)
+
+    def relieved(self, u0: FloatArray, relief: float) -> NodeData:
+        """A copy whose ``|u|`` level weight is ``1 / (1 + (u0 / relief)^2)`` per node (``u0``:
+        a pilot estimate of the lateral acceleration, m/s^2; ``relief`` 0: unchanged)."""
+        if relief <= 0:
+            return self
+        level = self.level.copy()
+        level[:, 0] = 1.0 / (1.0 + (np.asarray(u0, dtype=float) / relief) ** 2)
+        return replace(self, level=level)
 
     def reweighted(self, plot_node: np.ndarray, factor: FloatArray) -> NodeData:
         """A copy whose plots' ellipse weights are multiplied by ``factor`` (per plot)."""
