@@ -10,8 +10,8 @@
 - Test suites that packages ship inside themselves (``numpy/*/tests``, ``scipy/**/tests``,
   ``pyarrow/tests``: 68 MB) are removed; nothing imports them at run time.
 - What the product never loads (``DROP``, found by recording every shared object the
-  processes of ``--check`` load, ``LD_DEBUG=files``): CasADi's plugins for solvers it does not
-  use (it uses ``ipopt`` and ``sqpmethod`` with ``qrqp``, and ``importer_shell`` for the jit)
+  processes of ``--check`` load, ``LD_DEBUG=files``): CasADi's plugins but those it uses
+  (``CASADI_PLUGINS``: ``ipopt``, ``sqpmethod`` with ``qrqp``, the jit's ``importer_shell``)
   and then every third-party library in ``casadi/`` that no kept plugin needs (HiGHS, the COIN
   MILP stack, alpaqa, fatrop/blasfeo, uno, ONNX, Modelica...); their headers, CMake files and
   static archives; pyarrow's Flight and S3 extensions and their libraries (``pyarrow.fs``
@@ -19,10 +19,11 @@
   subpackage but ``scipy.linalg``, the only one the product imports (``expm``,
   ``solveh_banded``), and ``import scipy.linalg`` imports no other (``SCIPY_GONE`` lists the
   few functions of ``scipy.linalg`` that import one lazily, and so no longer work); Pillow's
-  image-format plugins other than PNG/JPEG/TIFF (AVIF, WebP, Tk, colour management) and the
-  libraries only they need; the Swagger UI source maps and ES-module builds (the docs page
-  loads ``swagger-ui-bundle.js`` and ``swagger-ui.css``); C sources, headers, Cython sources
-  and type stubs shipped beside compiled code; numpy's and pyarrow's compiled test modules.
+  extensions but the core ``_imaging`` (AVIF, WebP, Tk, colour management, fonts: matplotlib
+  draws text with its own FreeType) and the libraries only they need; the Swagger UI source
+  maps and ES-module builds (the docs page loads ``swagger-ui-bundle.js`` and
+  ``swagger-ui.css``); C sources, headers, Cython sources and type stubs shipped beside
+  compiled code; numpy's and pyarrow's compiled test modules.
 - Symbol tables of the shared objects (``strip --strip-unneeded``, when binutils is there;
   the wheels ship most of them unstripped).
 
@@ -43,15 +44,13 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-# Paths under site-packages (globs) that the product never loads; see the module docstring.
-CASADI_UNUSED_PLUGINS = (
-    "conic_cbc conic_clp conic_cplex conic_daqp conic_fatrop conic_gurobi conic_highs "
-    "conic_hpipm conic_mosek conic_osqp conic_piqp conic_xpress nlpsol_alpaqa nlpsol_bonmin "
-    "nlpsol_ccopt nlpsol_conopt nlpsol_fatrop nlpsol_knitro nlpsol_madnlp nlpsol_sleqp "
-    "nlpsol_snopt nlpsol_uno nlpsol_worhp blas_blasfeo linsol_ma27 onnx_ort graphmodel_onnx "
-    "modelicaparser_lacemodelica").split()
+# The CasADi plugins the product loads (solver/window.py, solver/refine/nlp.py: nlpsol ipopt,
+# and sqpmethod with the qrqp QP solver; solver/compiled.py: the jit through importer_shell and
+# filesystem_ghc), and the small linear-solver plugins those may ask for; every other
+# libcasadi_<plugin>.so goes, and then the third-party libraries only those needed.
+CASADI_PLUGINS = re.compile(r"libcasadi_(nlpsol_ipopt|nlpsol_sqpmethod|conic_qrqp|"
+                            r"importer_shell|filesystem_ghc|linsol_\w+)\.so.*")
 DROP = (
-    *(f"casadi/libcasadi_{p}.so*" for p in CASADI_UNUSED_PLUGINS),
     "casadi/include", "casadi/cmake", "casadi/pkgconfig", "casadi/cbc", "casadi/clp",
     "casadi/highs", "casadi/casadi-cli",
     "pyarrow/_flight*.so", "pyarrow/flight.py", "pyarrow/_s3fs*.so", "pyarrow/include",
@@ -60,8 +59,11 @@ DROP = (
     *(f"scipy/{p}" for p in ("cluster", "datasets", "differentiate", "fft", "fftpack",
                             "integrate", "interpolate", "io", "misc", "ndimage", "odr",
                             "optimize", "signal", "sparse", "spatial", "special", "stats")),
-    # Pillow's AVIF, WebP, Tk and colour-management plugins (matplotlib writes PNG)
+    # Pillow's AVIF, WebP, Tk, colour-management, font, math and morphology extensions
+    # (matplotlib writes PNG with PIL.Image and draws text with its own FreeType)
     "PIL/_avif*.so", "PIL/_webp*.so", "PIL/_imagingtk*.so", "PIL/_imagingcms*.so",
+    "PIL/_imagingft*.so", "PIL/_imagingmath*.so", "PIL/_imagingmorph*.so",
+    # (not numpy/f2py: scipy.linalg imports it, through array_api_compat's "from numpy import *")
     # the docs page loads swagger-ui-bundle.js and swagger-ui.css: not the source maps, nor
     # the ES-module builds
     "swagger_ui_bundle/**/*.map", "swagger_ui_bundle/**/swagger-ui-es-bundle*.js",
@@ -138,7 +140,8 @@ def remove_tests(site: Path) -> int:
 
 def remove_unused(site: Path) -> int:
     """Remove ``DROP``, then the libraries of ``LIBRARY_DIRS`` that nothing left needs."""
-    saved = 0
+    saved = sum(remove(p) for p in sorted(site.glob("casadi/libcasadi_*.so*"))
+                if not CASADI_PLUGINS.fullmatch(p.name))
     for pattern in DROP:
         for path in sorted(site.glob(pattern), key=lambda p: len(p.parts)):
             if path.exists() or path.is_symlink():
@@ -239,12 +242,13 @@ def check(work: Path) -> None:
     """What the image runs, on what is left after slimming; raises if any part no longer works.
 
     Every module of the package, and the SciPy functions it calls; the service's warm-up with
-    both NLP plugins (``sqpmethod`` with ``qrqp``, and ``ipopt``: the sliding windows and the
-    refinement); the command line end to end on a small CSV plot table (two aircraft, one
-    radar) on a one-worker Dask ``LocalCluster`` with ``--figures``: Parquet, CSV and GeoJSON
-    written, the Parquet read back, the map and the figures as PNG (matplotlib, Agg); then the
-    service itself (``python -m service``, one worker, no compiler): ``/readyz``, ``/docs`` and
-    its script from the image, and one reconstruction answered 200.
+    the ``ipopt`` NLP plugin (the service's own warm-up below runs ``sqpmethod`` with ``qrqp``;
+    both run the sliding windows and the refinement); the command line end to end on a small
+    CSV plot table (two aircraft, one radar) on a one-worker Dask ``LocalCluster`` with
+    ``--figures``: Parquet, CSV and GeoJSON written, the Parquet read back, the map and the
+    figures as PNG (matplotlib, Agg); then the service itself (``python -m service``, one
+    worker, no compiler): ``/readyz``, ``/docs`` and its script from the image, and one
+    reconstruction answered 200.
     """
     import importlib
     import json
@@ -270,8 +274,7 @@ def check(work: Path) -> None:
     from service.workers import synthetic_track, warm_up
     from solver.cli import main as cli
 
-    for plugin in ("sqpmethod", "ipopt"):
-        warm_up([3], plugin)
+    warm_up([3], "ipopt")  # sqpmethod: the Dockerfile's warm-up before, the service's below
 
     # two straight tracks seen by R1 every 4 s (range, and azimuth from north)
     t = 4.0 * np.arange(30.0)
