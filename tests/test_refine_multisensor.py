@@ -208,10 +208,75 @@ def test_deadline_stops_the_refinement():
     from solver.refine import DeadlineExceeded
 
     table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0)
+    reconstruct(table)  # builds this variant's solvers (the service warms them up at start)
     start = time.monotonic()
     with pytest.raises(DeadlineExceeded):
         reconstruct(table, deadline=start + 0.05)
     assert time.monotonic() - start < 1.5
+
+
+def test_deadline_passed_while_the_last_solve_ends_stops_before_the_covariance(monkeypatch):
+    """Solves that end just past the deadline (IPOPT's last iteration ran over it) are not
+    followed by the covariance and sampling (on 15,000 nodes 1.7 s past the deadline before
+    this check): DeadlineExceeded right after them."""
+    import time
+
+    import solver.refine as refine_pkg
+    from solver.refine import DeadlineExceeded
+
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0)
+    real = refine_pkg.solve_block
+    ended: list[float] = []
+
+    def late(*args, **kwargs):  # the solve runs free, then "ends" just past the deadline
+        refine_pkg.nlp.set_deadline(None)
+        out = real(*args, **kwargs)
+        while time.monotonic() <= deadline:
+            time.sleep(0.001)
+        ended.append(time.monotonic())
+        return out
+
+    monkeypatch.setattr(refine_pkg, "solve_block", late)
+    calls: list[int] = []
+    monkeypatch.setattr(refine_pkg, "node_covariance", lambda *a, **k: calls.append(1))
+    deadline = time.monotonic() + 0.2
+    with pytest.raises(DeadlineExceeded):
+        reconstruct(table, deadline=deadline)
+    assert len(ended) == 1 and not calls  # stopped after the first solve, before the covariance
+
+
+def test_covariance_pass_checks_the_deadline_as_it_goes(monkeypatch):
+    """The covariance's forward pass calls its check every CHECK_EVERY nodes, so a deadline
+    stops it within about 0.1 s (here every 128 of the track's 550 nodes)."""
+    from solver.refine import covariance
+
+    monkeypatch.setattr(covariance, "CHECK_EVERY", 128)
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0)
+    checks: list[int] = []
+
+    class Stop(Exception):
+        pass
+
+    def check() -> None:
+        checks.append(1)
+        if len(checks) == 2:
+            raise Stop
+
+    real = covariance.node_covariance
+
+    def spy(*args, **kwargs):
+        assert kwargs.get("check") is not None
+        kwargs["check"] = check
+        return real(*args, **kwargs)
+
+    import time
+
+    import solver.refine as refine_pkg
+
+    monkeypatch.setattr(refine_pkg, "node_covariance", spy)
+    with pytest.raises(Stop):
+        reconstruct(table, deadline=time.monotonic() + 3600.0)
+    assert len(checks) == 2
 
 
 def test_blocks_with_altitude_and_offsets_agree_with_one_block():

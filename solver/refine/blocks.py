@@ -37,7 +37,14 @@ LADDER = tuple(sorted({round(16 * 2 ** (k / 4)) for k in range(29)}))
 
 
 class DeadlineExceeded(RuntimeError):
-    """The refinement passed its deadline (IPOPT stopped by the iteration callback)."""
+    """The refinement passed its deadline (IPOPT stopped by the iteration callback, or a check
+    between the stages after it)."""
+
+
+def check_deadline(deadline: float | None) -> None:
+    """Raise :class:`DeadlineExceeded` once ``time.monotonic()`` is past ``deadline``."""
+    if deadline is not None and time.monotonic() > deadline:
+        raise DeadlineExceeded("the refinement passed its deadline")
 
 
 def ladder(n: int) -> int:

@@ -13,6 +13,7 @@ its IRLS weight ``rho'(q) = 1 / sqrt(1 + q / delta^2)``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 
 import casadi as ca
@@ -28,6 +29,8 @@ from .layout import BIAS_TERMS, HD_MAX, Variant
 from .nodes import NodeData, info_matrices
 
 NH = 6  # horizontal node state: x, z, phi, v, u, w
+
+CHECK_EVERY = 1024  # nodes between deadline checks (about 0.1 s of the forward pass)
 
 
 @cache
@@ -59,8 +62,12 @@ def state_size(variant: Variant) -> int:
 def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, data: NodeData,
                     variant: Variant, st: RefineSettings, delta: float, bounds: Bounds,
                     hd_info: FloatArray, bias_sigma: FloatArray,
-                    consider_from: int | None = None, time_gauge: float = 0.0) -> np.ndarray:
+                    consider_from: int | None = None, time_gauge: float = 0.0,
+                    check: Callable[[], None] | None = None) -> np.ndarray:
     """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets).
+
+    ``check`` is called every :data:`CHECK_EVERY` nodes of the forward pass (a deadline: on a
+    15,000-node track the pass takes about a second, past a deadline the solves had met).
 
     ``consider_from``: from this node on the offsets were held, not estimated (later blocks of
     a long track), so they are *consider* states there (Schmidt-Kalman: their gain is zero, the
@@ -100,6 +107,8 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
         g[0, NH + 2 * variant.altitude + 2::BIAS_TERMS] = 1.0
         _, P, _, _ = update(xs, P, np.zeros(1), g, np.array([[1.0 / time_gauge]]))
     for k in range(n):
+        if check is not None and k % CHECK_EVERY == 0:
+            check()
         if k:
             _, P = predict(xs, P, Phi[k - 1], Q[k - 1])
         Pp[k] = P
