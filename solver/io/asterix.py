@@ -379,10 +379,13 @@ class _Decoder:
         spec = self.editions.get(cat)
         if spec is None:
             return [], None
-        bits = Bits(data, start * 8, stop * 8)
+        # The records' bits over a copy of this block's bytes only: libasterix's Bits copies
+        # its buffer from the read position to the buffer's end for every integer it reads,
+        # so over the whole unit (1 MiB) the cost per record grew with the unit's size.
+        bits = Bits.from_bytes(data[start:stop])
         out: list[tuple[Any, int]] = []
         while len(bits):
-            at = bits.bit_offset1 // 8
+            at = start + bits.bit_offset1 // 8
             r = spec.cv_uap.cv_record.parse(ParsingMode.StrictParsing, bits)
             if isinstance(r, ValueError):
                 return out, (at, str(r))
