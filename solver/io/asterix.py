@@ -53,6 +53,8 @@ recording (tests, benchmark recordings).
 
 from __future__ import annotations
 
+import mmap
+import os
 import struct
 from collections import deque
 from collections.abc import Iterator, Mapping
@@ -133,8 +135,23 @@ def iter_recording(source: str | Path | bytes, sensors: SensorSet, *,
     start before the end (e.g. :func:`solver.io.split.split_stream` over the parts' rows):
     each part holds its rows (times unwrapped continuously across the parts), its problems
     (the container's too) and counts. With ``executor`` at most ``ahead`` units are
-    decoded at once."""
-    data = source if isinstance(source, bytes) else Path(source).read_bytes()
+    decoded at once. A file is memory-mapped and read unit by unit (what is held does not
+    grow with its length)."""
+    if isinstance(source, bytes):
+        yield from _iter_data(source, sensors, editions, executor, chunk_bytes, ahead)
+        return
+    with open(source, "rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            yield from _iter_data(b"", sensors, editions, executor, chunk_bytes, ahead)
+            return
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+            yield from _iter_data(mapped, sensors, editions, executor, chunk_bytes, ahead)
+
+
+def _iter_data(data: bytes | mmap.mmap, sensors: SensorSet, editions: Mapping[int, Any] | None,
+               executor: Any, chunk_bytes: int, ahead: int) -> Iterator[Recording]:
+    """:func:`iter_recording` of the recording's bytes, or of the file memory-mapped (its
+    pages released behind the reading: the memory does not grow with the file)."""
     if data[:4] == _PCAPNG_MAGIC:
         raise InputError(("recording",), "is a pcapng capture; only classic pcap is read "
                          "(convert it: editcap -F pcap in.pcapng out.pcap)")
@@ -168,23 +185,46 @@ def iter_recording(source: str | Path | bytes, sensors: SensorSet, *,
         yield finish(fut.result(), w, k)
 
 
-def _units(data: bytes, chunk_bytes: int) -> Iterator[tuple[list[tuple[int, bytes]], Problems]]:
-    """The decoding units of a recording with the container's problems met on the way."""
+def _units(data: bytes | mmap.mmap, chunk_bytes: int
+           ) -> Iterator[tuple[list[tuple[int, bytes]], Problems]]:
+    """The decoding units of a recording (copies of its bytes) with the container's problems
+    met on the way; a memory-mapped file's pages are released behind the units."""
+    release = _Release(data)
     if data[:4] not in _PCAP_MAGIC:
-        for a, b in block_chunks(data, chunk_bytes):
-            yield [(a, data[a:b])], Problems()
+        for a, b in _block_cuts(data, chunk_bytes):
+            unit = data[a:b]
+            release.upto(b)
+            yield [(a, unit)], Problems()
         return
     walk = Problems()  # filled by the pcap walk, drained into each unit
-    unit: list[tuple[int, bytes]] = []
+    units: list[tuple[int, bytes]] = []
     size = 0
     for offset, payload in iter_pcap_payloads(data, walk):
-        unit.append((offset, payload))
+        units.append((offset, payload))
         size += len(payload)
         if size >= chunk_bytes:
-            yield unit, walk.drain()
-            unit, size = [], 0
-    if unit or walk:
-        yield unit, walk.drain()
+            release.upto(offset)
+            yield units, walk.drain()
+            units, size = [], 0
+    if units or walk:
+        yield units, walk.drain()
+
+
+class _Release:
+    """Gives a memory-mapped file's pages before a position back (``madvise DONTNEED``: they
+    stay in the page cache, out of the process's resident memory); nothing for bytes."""
+
+    def __init__(self, data: bytes | mmap.mmap):
+        self.mapped = data if isinstance(data, mmap.mmap) and hasattr(data, "madvise") else None
+        self.done = 0
+
+    def upto(self, pos: int) -> None:
+        if self.mapped is None:
+            return
+        end = pos - pos % mmap.PAGESIZE
+        if end - self.done >= 1 << 20:  # in steps of at least 1 MiB
+            self.mapped.madvise(mmap.MADV_DONTNEED, self.done, end - self.done)
+            self.done = end
 
 
 def decode_blocks(data: bytes, sensors: SensorSet, *,
@@ -208,15 +248,21 @@ def block_chunks(data: bytes, chunk_bytes: int = CHUNK_BYTES) -> list[tuple[int,
     block boundaries found by walking the headers. A cut is placed only where the walk is
     sure of the boundary (every header so far plausible and within the data); from the first
     damage on, the rest is one stretch (the decoder resynchronises inside it)."""
-    cuts = [0]
-    pos, end = 0, len(data)
+    return list(_block_cuts(data, chunk_bytes))
+
+
+def _block_cuts(data: bytes | mmap.mmap, chunk_bytes: int) -> Iterator[tuple[int, int]]:
+    """:func:`block_chunks` one stretch after the other (the walk goes no further than the
+    stretch it gives)."""
+    start, pos, end = 0, 0, len(data)
     while pos < end and _plausible(data, pos):
         pos += (data[pos + 1] << 8) | data[pos + 2]
         if pos >= end:
             break
-        if pos - cuts[-1] >= chunk_bytes and _plausible(data, pos):
-            cuts.append(pos)
-    return list(zip(cuts, [*cuts[1:], end], strict=True))
+        if pos - start >= chunk_bytes and _plausible(data, pos):
+            yield start, pos
+            start = pos
+    yield start, end
 
 
 def _plausible(data: bytes, p: int) -> bool:
