@@ -412,7 +412,6 @@ class _Decoder:
         self.rows: list[tuple] = []  # one tuple per row, in the order of _COLUMNS
         self._memo: dict[tuple, Any] = {}
         self._lsbs: dict[type, float | None] = {}
-        self._handlers = {48: self._cat048, 21: self._cat021, 34: self._cat034}
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
         self.records = 0
@@ -526,11 +525,13 @@ class _Decoder:
                               + ", ".join(f"CAT{c:03d}" for c in sorted(self.editions)) + ")",
                               key=str(cat))
             return
-        handler = self._handlers[cat]
+        # the function, not a bound method kept on self: no reference cycle, so a unit's
+        # decoder and its rows are freed as soon as the unit is done, not by the cyclic GC
+        handler = _HANDLERS[cat]
         for rec, at in records:
             self.records += 1
             try:
-                row = handler(rec, base + at)
+                row = handler(self, rec, base + at)
             except Exception as e:  # a record libasterix parses but we cannot read
                 self.problems.add("bad_record", f"byte {base + at}",
                                   f"CAT{cat:03d} record not readable: {e!r}", dropped=1)
@@ -761,6 +762,9 @@ class _Decoder:
                 "mode_s", "mode_3a", "track_number", "origin")})
         return Recording(rows, self.problems, self.service, self.blocks, self.records, size)
 
+
+_HANDLERS = {48: _Decoder._cat048, 21: _Decoder._cat021, 34: _Decoder._cat034}
+"""The record reader of each decoded category."""
 
 _COLUMNS = ("time_of_day_s", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
             "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number", "origin")
