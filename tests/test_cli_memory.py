@@ -7,7 +7,7 @@ import json
 import tracemalloc
 
 import numpy as np
-from test_io_asterix import SENSOR_FILE
+from test_io_asterix import SENSOR_FILE, SENSORS
 
 import solver.cli as cli
 from solver.frames import LocalFrame
@@ -68,3 +68,106 @@ def test_streamed_reading_memory_is_flat_in_the_recording_length(tmp_path, monke
     finally:
         tracemalloc.stop()
     assert whole > 2 * peak_l, (whole, peak_l)
+
+
+def _asterix(path, aircraft: int) -> int:
+    """:func:`_table`'s flights as a raw ASTERIX recording (CAT021, libasterix encodes)."""
+    from solver.io.asterix import encode_rows
+    from solver.io.tables import read_table
+
+    n = _table(path.with_suffix(".csv"), aircraft)
+    rows, _ = read_table(path.with_suffix(".csv"))
+    path.write_bytes(encode_rows(rows, SENSORS))
+    return n
+
+
+def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monkeypatch):
+    """An ASTERIX file is memory-mapped and decoded unit by unit: the reading of a recording
+    6x as long peaks as high (it was read whole: the peak grew with the file)."""
+    monkeypatch.setattr(cli, "STREAM_CHUNK_BYTES", 1 << 12)
+    sensors = tmp_path / "sensors.json"
+    sensors.write_text(json.dumps(SENSOR_FILE))
+    short, long = tmp_path / "short.ast", tmp_path / "long.ast"
+    n_short, n_long = _asterix(short, 8), _asterix(long, 48)
+    _asterix(tmp_path / "warm.ast", 2)
+    _peak_while_streaming(tmp_path / "warm.ast", sensors)
+    tracks_s, plots_s, peak_s = _peak_while_streaming(short, sensors)
+    tracks_l, plots_l, peak_l = _peak_while_streaming(long, sensors)
+    assert (tracks_s, plots_s, tracks_l, plots_l) == (8, n_short, 48, n_long)
+    assert long.stat().st_size > 5 * short.stat().st_size
+    assert peak_l < 1.5 * peak_s, (peak_s, peak_l, long.stat().st_size)
+
+
+def _stub_task(key, table, config, time_limit_s, figures_dir=None):
+    """What :func:`solver.cli.assess_track` returns, without the reconstruction: the
+    track's rows and its sensor's statistics."""
+    import pyarrow as pa
+
+    from solver.batch import SEGMENT_COLUMNS, TRACK_COLUMNS
+
+    n = len(table)
+    cols = {c: pa.array(np.zeros(n)) for c in TRACK_COLUMNS}
+    cols["aircraft"] = pa.array([key] * n)
+    cols["sensor"] = pa.array(["ADSB"] * n)
+    cols["plot"] = pa.array(np.arange(n, dtype=np.int32))
+    segments = {c: pa.array(np.zeros(3)) for c in SEGMENT_COLUMNS}
+    segments["aircraft"] = pa.array([key] * 3)
+    report = {"id": "ADSB", "kind": "position", "plots": n, "plots_gated": 0,
+              "range_residual_mean_m": None, "position_residual_rms_m": 10.0 + n % 7,
+              "range_bias_m": None, "span_s": float(np.ptp(table.t)), "median_step_s": 1.0}
+    return cli.AssessedTrack(key, "done", n, 0.0, None, [], pa.table(cols),
+                             pa.table(segments), sensors=[report])
+
+
+def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
+    """Bytes this process (the command line's, with the embedded cluster's scheduler) still
+    holds after reconstructing ``tracks`` tracks of 200 plots through ``cli._reconstruct``
+    on ``client`` (``_stub_task`` on the worker)."""
+    import argparse
+    import gc
+    import time
+
+    from solver.batch import TrackProblem
+    from solver.plots import PlotTable
+
+    adsb = SENSORS.sensors[-1]
+    frame = LocalFrame(46.2, 14.5)
+    t = np.arange(200.0)
+    lat, lon = frame.to_geodetic(-20_000.0 + 200.0 * t, np.zeros_like(t))
+    table = PlotTable.build([adsb], t, np.zeros(t.size, int), lat_deg=lat, lon_deg=lon)
+    loaded = cli.Streamed(SENSORS, cli.Problems(), (TrackProblem(f"A{k:05d}", table)
+                                                    for k in range(tracks)))
+    args = argparse.Namespace(method="refined", no_progress=True, figures=False,
+                              time_limit=None, retry_failed=False)
+    out = tmp_path / f"out{tracks}"
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before, _ = tracemalloc.get_traced_memory()
+        summary, _ = cli._reconstruct(args, out, loaded, client, time.perf_counter())
+        del loaded
+        gc.collect()
+        after, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert summary.done == tracks
+    stats = cli.SensorStats(SENSORS, {})
+    for reports in cli._iter_stats(out / "sensor_stats.jsonl"):
+        stats.add(reports)
+    row = {r["sensor"]: r for r in stats.rows()}["ADSB"]
+    assert row["tracks"] == tracks and row["plots"] == 200 * tracks
+    return after - before
+
+
+def test_the_command_lines_memory_is_flat_in_the_tracks(tmp_path, monkeypatch):
+    """What the command line's process keeps of the tracks it has sent and received (the
+    ledger, the sensors' statistics, Dask's message logs of the client and of the embedded
+    cluster's scheduler) does not grow with their number: 360 tracks leave about as much
+    as 60 (Dask's default logs kept the last 1,000 task messages, the tracks' plots in them,
+    about 30 KB a track; the statistics of every track were kept to the end)."""
+    monkeypatch.setattr(cli, "assess_track", _stub_task)
+    with cli._cluster(None, 1) as client:
+        _retained_by_the_run(tmp_path, 20, client)  # the cluster's first tasks
+        short = _retained_by_the_run(tmp_path, 60, client)
+        long = _retained_by_the_run(tmp_path, 360, client)
+    assert long - short < 1_000_000, (short, long)
