@@ -1,5 +1,6 @@
 """The command line reads a recording in parts: the memory its reading and splitting hold is
-the aircraft in the air, not the recording (a recording 6x as long peaks as high)."""
+the aircraft in the air, not the recording (a recording 6x as long peaks as high), and what
+it keeps of the tracks it has reconstructed does not grow with their number."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import json
 import tracemalloc
 
 import numpy as np
+import pytest
 from test_io_asterix import SENSOR_FILE, SENSORS
 
 import solver.cli as cli
@@ -171,3 +173,52 @@ def test_the_command_lines_memory_is_flat_in_the_tracks(tmp_path, monkeypatch):
         short = _retained_by_the_run(tmp_path, 60, client)
         long = _retained_by_the_run(tmp_path, 360, client)
     assert long - short < 1_000_000, (short, long)
+
+
+def _radar_report(k: int) -> dict:
+    return {"id": "R1", "kind": "radar", "plots": 10 + k, "plots_gated": k % 2,
+            "span_s": 100.0 + k, "median_step_s": 4.0 + 0.01 * (k % 5),
+            "range_residual_mean_m": 1.0 + k % 3, "range_residual_rms_m": 50.0 + k % 4,
+            "azimuth_residual_mean_rad": 1e-4 * (k % 3), "azimuth_residual_rms_rad": 1e-3,
+            "position_residual_rms_m": None, "range_bias_m": float(k % 7),
+            "azimuth_bias_rad": 1e-4 * (k % 5), "time_bias_s": 0.1 * (k % 3)}
+
+
+def test_sensor_statistics_are_exact_below_their_sample_and_bounded_above(monkeypatch):
+    """SensorStats pools the tracks' reports in fixed-size accumulators: with no more tracks
+    than its median sample the medians and rates are the exact ones; beyond, what it holds
+    stays at the sample's size."""
+    monkeypatch.setattr(cli, "MEDIAN_SAMPLE", 8)
+    reports = [_radar_report(k) for k in range(8)]
+    stats = cli.SensorStats(SENSORS, {})
+    for r in reports:
+        stats.add([r])
+    row = {r["sensor"]: r for r in stats.rows()}["R1"]
+    period = float(np.median([r["median_step_s"] for r in reports]))
+    expected = sum(r["span_s"] / period + 1 for r in reports)
+    assert row["scan_period_s"] == period and row["tracks"] == 8
+    assert row["detection_rate"] == pytest.approx(
+        min(sum(r["plots"] for r in reports) / expected, 1.0), rel=1e-12)
+    biases = np.median([[r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]]
+                        for r in reports], axis=0)
+    assert row["range_bias_m"] == biases[0] and row["time_bias_s"] == biases[2]
+    n = sum(r["plots"] - r["plots_gated"] for r in reports)
+    mean = sum((r["plots"] - r["plots_gated"]) * r["range_residual_mean_m"]
+               for r in reports) / n
+    assert row["range_residual_mean_m"] == pytest.approx(mean, rel=1e-12)
+    for k in range(8, 5000):
+        stats.add([_radar_report(k)])
+    acc = stats.acc["R1"]
+    assert len(acc["steps"].values) == len(acc["biases"].values) == 8
+    assert acc["steps"].seen == 5000 and stats.rows()[0]["tracks"] == 5000
+
+
+def test_statistics_file_is_read_one_track_at_a_time_last_line_wins(tmp_path):
+    path = tmp_path / "sensor_stats.jsonl"
+    lines = [{"aircraft": "A", "sensors": [_radar_report(1)]},
+             {"aircraft": "B", "sensors": [_radar_report(2)]},
+             {"aircraft": "A", "sensors": [_radar_report(3)]}]
+    path.write_text("".join(json.dumps(x) + "\n" for x in lines) + '{"aircraft": "C", "se')
+    got = list(cli._iter_stats(path))
+    assert got == [[_radar_report(2)], [_radar_report(3)]]
+    assert list(cli._iter_stats(tmp_path / "none.jsonl")) == []
