@@ -343,9 +343,8 @@ class _engine:
     def __enter__(self) -> tuple[Callable[..., Any], Callable[[list[Any]], Any], int]:
         ex = self.executor
         if ex is None:
-            from distributed import Client, LocalCluster
-
             import dask
+            from distributed import Client, LocalCluster
 
             # short debugging logs: Dask keeps the last 1,000 messages of each batched stream,
             # task messages with the tracks' plots among them (memory growing with the tracks)
