@@ -399,6 +399,7 @@ def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | 
     second = max((m for t, m in series if t > half), default=0)
     return {"workers": workers, "exit_code": code, "wall_s": wall, "partial": partial,
             "cpu_s": sum(sampler.cpu.values()),
+            "cpu_cli_s": sampler.cpu.get(proc.pid, 0.0),  # reading, decoding, split, client
             "load_avg_before": load_before, "load_avg_after": os.getloadavg(),
             "plots": summary.get("plots"), "tracks": summary.get("tracks"),
             "done": summary.get("done"), "failed": summary.get("failed"),
