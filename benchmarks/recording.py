@@ -315,6 +315,7 @@ class TreeSampler:
         self.peak = 0
         self.series: list[tuple[float, int]] = []
         self.cpu: dict[int, float] = {}  # last user + system CPU seconds seen per process
+        self.root_series: list[tuple[float, int]] = []  # RSS of the root process alone
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._t0 = time.perf_counter()
@@ -331,7 +332,10 @@ class TreeSampler:
                 procs = []
             for p in procs:
                 try:
-                    total += p.memory_info().rss
+                    rss = p.memory_info().rss
+                    total += rss
+                    if p.pid == self.root.pid:
+                        self.root_series.append((time.perf_counter() - self._t0, rss))
                     c = p.cpu_times()
                     self.cpu[p.pid] = c.user + c.system
                 except psutil.Error:
@@ -412,6 +416,14 @@ def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | 
             "peak_rss_mb": sampler.peak / 2**20,
             "peak_rss_first_half_mb": first / 2**20, "peak_rss_second_half_mb": second / 2**20,
             "rss_series_mb": [(round(t, 1), round(m / 2**20, 1)) for t, m in series[::25]],
+            # the command line's own process (reading, decoding, splitting, Dask client and
+            # the embedded cluster's scheduler): peak, and peak over each half of the run
+            "peak_rss_cli_mb": max((m for _, m in sampler.root_series), default=0) / 2**20,
+            "rss_cli_series_mb": [(round(t, 1), round(m / 2**20, 1))
+                                  for t, m in sampler.root_series[::5]],
+            "peak_rss_cli_halves_mb": [
+                max((m for t, m in sampler.root_series if t <= half), default=0) / 2**20,
+                max((m for t, m in sampler.root_series if t > half), default=0) / 2**20],
             "command": " ".join(cmd[1:])}
 
 
