@@ -211,6 +211,10 @@ def _units(data: bytes | mmap.mmap, chunk_bytes: int
         yield units, walk.drain()
 
 
+RELEASE_STEP = 1 << 20
+"""A memory-mapped recording's pages are given back in steps of at least this many bytes."""
+
+
 class _Release:
     """Gives a memory-mapped file's pages before a position back (``madvise DONTNEED``: they
     stay in the page cache, out of the process's resident memory); nothing for bytes."""
@@ -223,7 +227,7 @@ class _Release:
         if self.mapped is None:
             return
         end = pos - pos % mmap.PAGESIZE
-        if end - self.done >= 1 << 20:  # in steps of at least 1 MiB
+        if end - self.done >= RELEASE_STEP:
             self.mapped.madvise(mmap.MADV_DONTNEED, self.done, end - self.done)
             self.done = end
 
