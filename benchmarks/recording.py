@@ -315,6 +315,7 @@ class TreeSampler:
         self.peak = 0
         self.series: list[tuple[float, int]] = []
         self.cpu: dict[int, float] = {}  # last user + system CPU seconds seen per process
+        self.root_series: list[tuple[float, int]] = []  # RSS of the root process alone
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._t0 = time.perf_counter()
@@ -331,7 +332,10 @@ class TreeSampler:
                 procs = []
             for p in procs:
                 try:
-                    total += p.memory_info().rss
+                    rss = p.memory_info().rss
+                    total += rss
+                    if p.pid == self.root.pid:
+                        self.root_series.append((time.perf_counter() - self._t0, rss))
                     c = p.cpu_times()
                     self.cpu[p.pid] = c.user + c.system
                 except psutil.Error:
@@ -399,6 +403,7 @@ def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | 
     second = max((m for t, m in series if t > half), default=0)
     return {"workers": workers, "exit_code": code, "wall_s": wall, "partial": partial,
             "cpu_s": sum(sampler.cpu.values()),
+            "cpu_cli_s": sampler.cpu.get(proc.pid, 0.0),  # reading, decoding, split, client
             "load_avg_before": load_before, "load_avg_after": os.getloadavg(),
             "plots": summary.get("plots"), "tracks": summary.get("tracks"),
             "done": summary.get("done"), "failed": summary.get("failed"),
@@ -411,6 +416,14 @@ def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | 
             "peak_rss_mb": sampler.peak / 2**20,
             "peak_rss_first_half_mb": first / 2**20, "peak_rss_second_half_mb": second / 2**20,
             "rss_series_mb": [(round(t, 1), round(m / 2**20, 1)) for t, m in series[::25]],
+            # the command line's own process (reading, decoding, splitting, Dask client and
+            # the embedded cluster's scheduler): peak, and peak over each half of the run
+            "peak_rss_cli_mb": max((m for _, m in sampler.root_series), default=0) / 2**20,
+            "rss_cli_series_mb": [(round(t, 1), round(m / 2**20, 1))
+                                  for t, m in sampler.root_series[::5]],
+            "peak_rss_cli_halves_mb": [
+                max((m for t, m in sampler.root_series if t <= half), default=0) / 2**20,
+                max((m for t, m in sampler.root_series if t > half), default=0) / 2**20],
             "command": " ".join(cmd[1:])}
 
 
@@ -537,20 +550,29 @@ def _log(msg: str) -> None:
 # ------------------------------------------------------------------------------ report
 
 
-def decode_rate(recording: Path, max_bytes: int = 2 << 20) -> dict[str, Any]:
-    """Records per second (wall and CPU) of decoding the recording's first ``max_bytes`` in
-    this process (libasterix, one core)."""
-    from solver.io.asterix import block_chunks, decode_blocks
+def decode_rate(recording: Path, max_bytes: int = 2 << 20,
+                chunk_bytes: int | None = None) -> dict[str, Any]:
+    """Plots per second (wall and CPU) of decoding the recording's first ``max_bytes`` in
+    this process (libasterix, one core) as the command line decodes it: ``iter_recording``
+    in units of ``chunk_bytes`` (default the command line's ``STREAM_CHUNK_BYTES``), times
+    unwrapped across the units."""
+    from solver.cli import STREAM_CHUNK_BYTES
+    from solver.io.asterix import block_chunks, iter_recording
 
+    chunk = chunk_bytes or STREAM_CHUNK_BYTES
     with open(recording, "rb") as f:
         data = f.read(max_bytes + (1 << 16))
     a, b = block_chunks(data, max_bytes)[0]
+    sensors = sensor_set()
     t0, c0 = time.perf_counter(), time.process_time()
-    rec = decode_blocks(data[a:b], sensor_set())
+    records = plots = 0
+    for part in iter_recording(data[a:b], sensors, chunk_bytes=chunk):
+        records += part.records
+        plots += len(part.rows)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"bytes": b - a, "records": rec.records, "plots": len(rec.rows), "wall_s": wall,
-            "cpu_s": cpu, "plots_per_s": len(rec.rows) / wall,
-            "plots_per_cpu_s": len(rec.rows) / cpu}
+    return {"bytes": b - a, "chunk_bytes": chunk, "records": records, "plots": plots,
+            "wall_s": wall, "cpu_s": cpu, "plots_per_s": plots / wall,
+            "plots_per_cpu_s": plots / cpu, "ms_cpu_per_plot": cpu / plots * 1e3}
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:
@@ -652,8 +674,11 @@ def write_report(r: dict[str, Any], out: Path, command: str) -> None:
                   "CPU-second)."]
     d = r.get("decode")
     if d:
+        unit = (f", in units of {d['chunk_bytes'] // 1024} KiB as the command line"
+                if d.get("chunk_bytes") else "")
         lines += ["", f"Decoding alone (libasterix, one process, the first "
-                  f"{d['bytes'] / 2**20:.1f} MiB): {d['plots']} plots in {d['wall_s']:.1f} s = "
+                  f"{d['bytes'] / 2**20:.1f} MiB{unit}): {d['plots']} plots in "
+                  f"{d['wall_s']:.1f} s = "
                   f"{d['plots_per_s']:.0f} plots/s ({d['plots_per_cpu_s']:.0f} per CPU-second)."]
     lines += ["", "## Targets", ""]
     if "speedup_2_vs_1" in v:

@@ -189,7 +189,7 @@ class _Store:
         for d in (self.tracks_dir, self.segments_dir):
             d.mkdir(parents=True, exist_ok=True)
         self.ledger_path = out / PROGRESS
-        self.finished: dict[str, dict[str, Any]] = {}
+        self.finished: dict[str, str] = {}  # aircraft -> status, of the earlier runs
         parts: set[str] = set()
         if self.ledger_path.exists():
             lines = self.ledger_path.read_bytes().split(b"\n")
@@ -200,7 +200,7 @@ class _Store:
                 except ValueError:  # a torn last line of a killed run
                     continue
                 good.append(line)
-                self.finished[entry["aircraft"]] = entry
+                self.finished[entry["aircraft"]] = entry["status"]
                 if entry.get("part"):
                     parts.add(entry["part"])
             if len(good) != len([x for x in lines if x]):
@@ -237,8 +237,7 @@ class _Store:
         with open(self.ledger_path, "a", encoding="utf-8") as f:
             for o in outcomes:
                 entry = o.ledger(part if o.status == "done" else None)
-                f.write(json.dumps(entry) + "\n")
-                self.finished[o.key] = entry
+                f.write(json.dumps(entry) + "\n")  # not kept: a run gives a key once
             f.flush()
             os.fsync(f.fileno())
 
@@ -312,7 +311,7 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
             seen.add(key)
             summary.tracks += 1
             prior = store.finished.get(key)
-            if prior is not None and (prior["status"] == "done" or not retry_failed):
+            if prior is not None and (prior == "done" or not retry_failed):
                 summary.skipped += 1
                 continue
             while len(pending) >= limit:
@@ -344,17 +343,21 @@ class _engine:
     def __enter__(self) -> tuple[Callable[..., Any], Callable[[list[Any]], Any], int]:
         ex = self.executor
         if ex is None:
+            import dask
             from distributed import Client, LocalCluster
 
-            if self.scheduler is not None:
-                ex = Client(self.scheduler)
-            else:
-                n = self.workers or len(os.sched_getaffinity(0))
-                # a free port for the scheduler's HTTP server (8787 may be another cluster's)
-                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                       dashboard_address=":0")
-                self.owned.append(cluster)
-                ex = Client(cluster)
+            # short debugging logs: Dask keeps the last 1,000 messages of each batched stream,
+            # task messages with the tracks' plots among them (memory growing with the tracks)
+            with dask.config.set({"distributed.admin.low-level-log-length": 16}):
+                if self.scheduler is not None:
+                    ex = Client(self.scheduler)
+                else:
+                    n = self.workers or len(os.sched_getaffinity(0))
+                    # a free port for the scheduler's HTTP server (8787 may be another's)
+                    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0")
+                    self.owned.append(cluster)
+                    ex = Client(cluster)
             self.owned.insert(0, ex)
         from distributed import Client
         from distributed import wait as dask_wait

@@ -59,6 +59,11 @@ MAP_POINTS_PER_TRACK = 200  # a recording map draws each track with at most this
 STREAM_CHUNK_BYTES = 1 << 18  # ASTERIX decoded in units of this size when streaming
 STREAM_BATCH_ROWS = 1 << 15  # a plot table read in batches of this many rows when streaming
 READ_AHEAD_TRACKS = 64  # complete tracks the reading thread may hold ahead of the cluster
+DASK_LOGS = {"distributed.admin.low-level-log-length": 16}
+"""Dask keeps the last ``low-level-log-length`` (default 1,000) messages of every batched
+stream for debugging: the client's to the scheduler and, in the embedded cluster, the
+scheduler's to each worker, whose task messages carry the tracks' plots (tens of KB each):
+the command line's memory grew with the tracks submitted, up to 1,000 per stream."""
 
 
 # ----------------------------------------------------------------------------- the task
@@ -248,15 +253,20 @@ def _read_ahead(items: Iterator[Any], size: int) -> Iterator[Any]:
 
 
 class SensorStats:
-    """Per-sensor statistics pooled over tracks (plot-weighted means and variances)."""
+    """Per-sensor statistics pooled over tracks (plot-weighted means and variances), in
+    accumulators of a fixed size whatever the number of tracks: sums, and for the medians
+    (of the tracks' median plot intervals, of their estimated offsets) the values themselves
+    up to :data:`MEDIAN_SAMPLE` per sensor, beyond that a uniform sample of that many
+    (reservoir sampling, seeded: the same tracks in the same order give the same result)."""
 
     def __init__(self, sensors: SensorSet, periods: dict[str, float]):
         self.sensors = sensors
         self.periods = dict(periods)
         self.acc: dict[str, dict[str, Any]] = {
-            s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "used": 0, "steps": [],
-                   "spans": [], "r1": 0.0, "r2": 0.0, "a1": 0.0, "a2": 0.0, "p2": 0.0,
-                   "biases": []} for s in sensors.sensors}
+            s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "used": 0,
+                   "steps": _Sample(MEDIAN_SAMPLE), "span_s": 0.0, "spans": 0,
+                   "r1": 0.0, "r2": 0.0, "a1": 0.0, "a2": 0.0, "p2": 0.0,
+                   "biases": _Sample(MEDIAN_SAMPLE)} for s in sensors.sensors}
 
     def add(self, reports: Sequence[dict[str, Any]]) -> None:
         for r in reports:
@@ -267,9 +277,10 @@ class SensorStats:
             a["tracks"] += 1
             a["plots"] += r["plots"]
             a["plots_gated"] += r["plots_gated"]
-            a["spans"].append((r.get("span_s", 0.0), r["plots"]))
+            a["span_s"] += r.get("span_s", 0.0)
+            a["spans"] += 1
             if r.get("median_step_s"):
-                a["steps"].append(r["median_step_s"])
+                a["steps"].add(r["median_step_s"])
             if n <= 0:
                 continue
             a["used"] += n
@@ -281,7 +292,7 @@ class SensorStats:
             if r["position_residual_rms_m"] is not None:
                 a["p2"] += n * r["position_residual_rms_m"] ** 2
             if r["range_bias_m"] is not None:
-                a["biases"].append((r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]))
+                a["biases"].add((r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]))
 
     def rows(self) -> list[dict[str, Any]]:
         out = []
@@ -290,10 +301,11 @@ class SensorStats:
             n = a["used"]
             row: dict[str, Any] = {"sensor": s.id, "kind": s.kind, "tracks": a["tracks"],
                                    "plots": a["plots"], "plots_gated": a["plots_gated"]}
-            period = self.periods.get(s.id) or (float(np.median(a["steps"])) if a["steps"]
-                                                else None)
+            steps = a["steps"].values
+            period = self.periods.get(s.id) or (float(np.median(steps)) if steps else None)
             row["scan_period_s"] = period
-            expected = sum(span / period + 1 for span, _ in a["spans"]) if period else 0.0
+            # sum over the tracks of (span / period + 1)
+            expected = a["span_s"] / period + a["spans"] if period else 0.0
             row["detection_rate"] = min(a["plots"] / expected, 1.0) if expected else None
             radar = isinstance(s, RadarSensor)
             if radar and n:
@@ -305,12 +317,35 @@ class SensorStats:
                     np.sqrt(max(a["a2"] / n - a_mean**2, 0.0))))
             if not radar and n:
                 row["position_residual_rms_m"] = float(np.sqrt(a["p2"] / n))
-            if a["biases"]:
-                b = np.median(np.array(a["biases"]), axis=0)
+            if a["biases"].values:
+                b = np.median(np.array(a["biases"].values), axis=0)
                 row["range_bias_m"], row["time_bias_s"] = float(b[0]), float(b[2])
                 row["azimuth_bias_deg"] = float(np.rad2deg(b[1]))
             out.append({k: row.get(k) for k in SENSOR_COLUMNS})
         return out
+
+
+MEDIAN_SAMPLE = 4096
+"""Values kept per sensor for a median of :class:`SensorStats` (all of them up to this)."""
+
+
+class _Sample:
+    """Up to ``size`` values: all of them, then a uniform sample (reservoir sampling)."""
+
+    def __init__(self, size: int, seed: int = 16):
+        self.size = size
+        self.seen = 0
+        self.values: list[Any] = []
+        self._rng = np.random.default_rng(seed)
+
+    def add(self, value: Any) -> None:
+        self.seen += 1
+        if len(self.values) < self.size:
+            self.values.append(value)
+            return
+        j = int(self._rng.integers(self.seen))
+        if j < self.size:
+            self.values[j] = value
 
 
 def write_csv_and_geojson(out: Path) -> tuple[int, int]:
@@ -413,16 +448,18 @@ def _cluster(scheduler: str | None, workers: int | None) -> Iterator[Any]:
     """A Dask client of the scheduler at ``scheduler``, else of an embedded ``LocalCluster``
     of ``workers`` processes (default: the usable cores; as :func:`solver.batch.
     reconstruct_many` would start), closed at the end."""
+    import dask
     from distributed import Client, LocalCluster
 
-    if scheduler is not None:
-        with Client(scheduler) as client:
+    with dask.config.set(DASK_LOGS):
+        if scheduler is not None:
+            with Client(scheduler) as client:
+                yield client
+            return
+        n = workers or len(os.sched_getaffinity(0))
+        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                          dashboard_address=":0") as cluster, Client(cluster) as client:
             yield client
-        return
-    n = workers or len(os.sched_getaffinity(0))
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=":0") as cluster, Client(cluster) as client:
-        yield client
 
 
 def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: Any,
@@ -431,15 +468,13 @@ def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: 
     they come; the summary and the time to the first result."""
     config = ReconstructionConfig(method=args.method)
     stats_path = out / "sensor_stats.jsonl"
-    previous = _read_stats(stats_path)
     first_result: list[float] = []
     bar = _progress(args.no_progress)
 
     def on_outcome(o: TrackOutcome) -> None:
         if not first_result:
             first_result.append(time.perf_counter() - started)
-        if isinstance(o, AssessedTrack) and o.sensors:
-            previous[o.key] = o.sensors
+        if isinstance(o, AssessedTrack) and o.sensors:  # on disk only, read back at the end
             with open(stats_path, "a", encoding="utf-8") as f:
                 f.write(json.dumps({"aircraft": o.key, "sensors": o.sensors}) + "\n")
         if bar is not None:
@@ -463,9 +498,8 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
             first_result_s: float | None, started: float) -> dict[str, Any]:
     """The whole-recording outputs once every track is in."""
     stats_path = out / "sensor_stats.jsonl"
-    previous = _read_stats(stats_path)
     stats = SensorStats(loaded.sensors, loaded.scan_periods)  # the periods read by now
-    for reports in previous.values():
+    for reports in _iter_stats(stats_path):
         stats.add(reports)
     sensor_rows = stats.rows()
     _write_sensor_csv(out, sensor_rows)
@@ -484,17 +518,29 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
     return result
 
 
-def _read_stats(path: Path) -> dict[str, list[dict[str, Any]]]:
-    """Per-track sensor statistics of earlier runs (a resumed run keeps them; last wins)."""
-    out: dict[str, list[dict[str, Any]]] = {}
-    if path.exists():
-        for line in path.read_text(encoding="utf-8").splitlines():
+def _iter_stats(path: Path) -> Iterator[list[dict[str, Any]]]:
+    """The per-track sensor statistics of this run and earlier ones (a resumed run keeps
+    them), one track at a time; a track written twice counts once, its last line. Streamed
+    (twice through the file: the last line of each aircraft, then the lines): what is held
+    is the aircraft keys, not their statistics."""
+    if not path.exists():
+        return
+    last: dict[str, int] = {}
+    for i, entry in _stats_lines(path):
+        last[entry["aircraft"]] = i
+    for i, entry in _stats_lines(path):
+        if last[entry["aircraft"]] == i:
+            yield entry["sensors"]
+
+
+def _stats_lines(path: Path) -> Iterator[tuple[int, dict[str, Any]]]:
+    with open(path, encoding="utf-8") as f:
+        for i, line in enumerate(f):
             try:
                 entry = json.loads(line)
             except ValueError:  # torn by a killed run
                 continue
-            out[entry["aircraft"]] = entry["sensors"]
-    return out
+            yield i, entry
 
 
 def _progress(disabled: bool) -> Any:

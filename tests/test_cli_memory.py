@@ -1,5 +1,6 @@
 """The command line reads a recording in parts: the memory its reading and splitting hold is
-the aircraft in the air, not the recording (a recording 6x as long peaks as high)."""
+the aircraft in the air, not the recording (a recording 6x as long peaks as high), and what
+it keeps of the tracks it has reconstructed does not grow with their number."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import json
 import tracemalloc
 
 import numpy as np
-from test_io_asterix import SENSOR_FILE
+import pytest
+from test_io_asterix import SENSOR_FILE, SENSORS
 
 import solver.cli as cli
 from solver.frames import LocalFrame
@@ -68,3 +70,155 @@ def test_streamed_reading_memory_is_flat_in_the_recording_length(tmp_path, monke
     finally:
         tracemalloc.stop()
     assert whole > 2 * peak_l, (whole, peak_l)
+
+
+def _asterix(path, aircraft: int) -> int:
+    """:func:`_table`'s flights as a raw ASTERIX recording (CAT021, libasterix encodes)."""
+    from solver.io.asterix import encode_rows
+    from solver.io.tables import read_table
+
+    n = _table(path.with_suffix(".csv"), aircraft)
+    rows, _ = read_table(path.with_suffix(".csv"))
+    path.write_bytes(encode_rows(rows, SENSORS))
+    return n
+
+
+def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monkeypatch):
+    """An ASTERIX file is memory-mapped and decoded unit by unit: the reading of a recording
+    6x as long peaks as high (it was read whole: the peak grew with the file)."""
+    monkeypatch.setattr(cli, "STREAM_CHUNK_BYTES", 1 << 12)
+    sensors = tmp_path / "sensors.json"
+    sensors.write_text(json.dumps(SENSOR_FILE))
+    short, long = tmp_path / "short.ast", tmp_path / "long.ast"
+    n_short, n_long = _asterix(short, 8), _asterix(long, 48)
+    _asterix(tmp_path / "warm.ast", 2)
+    _peak_while_streaming(tmp_path / "warm.ast", sensors)
+    tracks_s, plots_s, peak_s = _peak_while_streaming(short, sensors)
+    tracks_l, plots_l, peak_l = _peak_while_streaming(long, sensors)
+    assert (tracks_s, plots_s, tracks_l, plots_l) == (8, n_short, 48, n_long)
+    assert long.stat().st_size > 5 * short.stat().st_size
+    assert peak_l < 1.5 * peak_s, (peak_s, peak_l, long.stat().st_size)
+
+
+def _stub_task(key, table, config, time_limit_s, figures_dir=None):
+    """What :func:`solver.cli.assess_track` returns, without the reconstruction: the
+    track's rows and its sensor's statistics."""
+    import pyarrow as pa
+
+    from solver.batch import SEGMENT_COLUMNS, TRACK_COLUMNS
+
+    n = len(table)
+    cols = {c: pa.array(np.zeros(n)) for c in TRACK_COLUMNS}
+    cols["aircraft"] = pa.array([key] * n)
+    cols["sensor"] = pa.array(["ADSB"] * n)
+    cols["plot"] = pa.array(np.arange(n, dtype=np.int32))
+    segments = {c: pa.array(np.zeros(3)) for c in SEGMENT_COLUMNS}
+    segments["aircraft"] = pa.array([key] * 3)
+    report = {"id": "ADSB", "kind": "position", "plots": n, "plots_gated": 0,
+              "range_residual_mean_m": None, "position_residual_rms_m": 10.0 + n % 7,
+              "range_bias_m": None, "span_s": float(np.ptp(table.t)), "median_step_s": 1.0}
+    return cli.AssessedTrack(key, "done", n, 0.0, None, [], pa.table(cols),
+                             pa.table(segments), sensors=[report])
+
+
+def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
+    """Bytes this process (the command line's, with the embedded cluster's scheduler) still
+    holds after reconstructing ``tracks`` tracks of 200 plots through ``cli._reconstruct``
+    on ``client`` (``_stub_task`` on the worker)."""
+    import argparse
+    import gc
+    import time
+
+    from solver.batch import TrackProblem
+    from solver.plots import PlotTable
+
+    adsb = SENSORS.sensors[-1]
+    frame = LocalFrame(46.2, 14.5)
+    t = np.arange(200.0)
+    lat, lon = frame.to_geodetic(-20_000.0 + 200.0 * t, np.zeros_like(t))
+    table = PlotTable.build([adsb], t, np.zeros(t.size, int), lat_deg=lat, lon_deg=lon)
+    loaded = cli.Streamed(SENSORS, cli.Problems(), (TrackProblem(f"A{k:05d}", table)
+                                                    for k in range(tracks)))
+    args = argparse.Namespace(method="refined", no_progress=True, figures=False,
+                              time_limit=None, retry_failed=False)
+    out = tmp_path / f"out{tracks}"
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before, _ = tracemalloc.get_traced_memory()
+        summary, _ = cli._reconstruct(args, out, loaded, client, time.perf_counter())
+        del loaded
+        gc.collect()
+        after, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert summary.done == tracks
+    stats = cli.SensorStats(SENSORS, {})
+    for reports in cli._iter_stats(out / "sensor_stats.jsonl"):
+        stats.add(reports)
+    row = {r["sensor"]: r for r in stats.rows()}["ADSB"]
+    assert row["tracks"] == tracks and row["plots"] == 200 * tracks
+    return after - before
+
+
+def test_the_command_lines_memory_is_flat_in_the_tracks(tmp_path, monkeypatch):
+    """What the command line's process keeps of the tracks it has sent and received (the
+    ledger, the sensors' statistics, Dask's message logs of the client and of the embedded
+    cluster's scheduler) does not grow with their number: 360 tracks leave about as much
+    as 60 (Dask's default logs kept the last 1,000 task messages, the tracks' plots in them,
+    about 30 KB a track; the statistics of every track were kept to the end)."""
+    monkeypatch.setattr(cli, "assess_track", _stub_task)
+    with cli._cluster(None, 1) as client:
+        _retained_by_the_run(tmp_path, 20, client)  # the cluster's first tasks
+        short = _retained_by_the_run(tmp_path, 60, client)
+        long = _retained_by_the_run(tmp_path, 360, client)
+    assert long - short < 1_000_000, (short, long)
+
+
+def _radar_report(k: int) -> dict:
+    return {"id": "R1", "kind": "radar", "plots": 10 + k, "plots_gated": k % 2,
+            "span_s": 100.0 + k, "median_step_s": 4.0 + 0.01 * (k % 5),
+            "range_residual_mean_m": 1.0 + k % 3, "range_residual_rms_m": 50.0 + k % 4,
+            "azimuth_residual_mean_rad": 1e-4 * (k % 3), "azimuth_residual_rms_rad": 1e-3,
+            "position_residual_rms_m": None, "range_bias_m": float(k % 7),
+            "azimuth_bias_rad": 1e-4 * (k % 5), "time_bias_s": 0.1 * (k % 3)}
+
+
+def test_sensor_statistics_are_exact_below_their_sample_and_bounded_above(monkeypatch):
+    """SensorStats pools the tracks' reports in fixed-size accumulators: with no more tracks
+    than its median sample the medians and rates are the exact ones; beyond, what it holds
+    stays at the sample's size."""
+    monkeypatch.setattr(cli, "MEDIAN_SAMPLE", 8)
+    reports = [_radar_report(k) for k in range(8)]
+    stats = cli.SensorStats(SENSORS, {})
+    for r in reports:
+        stats.add([r])
+    row = {r["sensor"]: r for r in stats.rows()}["R1"]
+    period = float(np.median([r["median_step_s"] for r in reports]))
+    expected = sum(r["span_s"] / period + 1 for r in reports)
+    assert row["scan_period_s"] == period and row["tracks"] == 8
+    assert row["detection_rate"] == pytest.approx(
+        min(sum(r["plots"] for r in reports) / expected, 1.0), rel=1e-12)
+    biases = np.median([[r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]]
+                        for r in reports], axis=0)
+    assert row["range_bias_m"] == biases[0] and row["time_bias_s"] == biases[2]
+    n = sum(r["plots"] - r["plots_gated"] for r in reports)
+    mean = sum((r["plots"] - r["plots_gated"]) * r["range_residual_mean_m"]
+               for r in reports) / n
+    assert row["range_residual_mean_m"] == pytest.approx(mean, rel=1e-12)
+    for k in range(8, 5000):
+        stats.add([_radar_report(k)])
+    acc = stats.acc["R1"]
+    assert len(acc["steps"].values) == len(acc["biases"].values) == 8
+    assert acc["steps"].seen == 5000 and stats.rows()[0]["tracks"] == 5000
+
+
+def test_statistics_file_is_read_one_track_at_a_time_last_line_wins(tmp_path):
+    path = tmp_path / "sensor_stats.jsonl"
+    lines = [{"aircraft": "A", "sensors": [_radar_report(1)]},
+             {"aircraft": "B", "sensors": [_radar_report(2)]},
+             {"aircraft": "A", "sensors": [_radar_report(3)]}]
+    path.write_text("".join(json.dumps(x) + "\n" for x in lines) + '{"aircraft": "C", "se')
+    got = list(cli._iter_stats(path))
+    assert got == [[_radar_report(2)], [_radar_report(3)]]
+    assert list(cli._iter_stats(tmp_path / "none.jsonl")) == []

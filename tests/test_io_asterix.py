@@ -502,3 +502,42 @@ def test_pcap_link_layers_and_packets_that_are_not_asterix():
     sll = [struct.pack(">HHHQH", 0, 1, 6, 0, 0x0800) + _ipv4(x) for x in b]  # Linux cooked
     rec = read_recording(_capture(sll, 113), SENSORS)
     assert not rec.problems and len(rec.rows) == len(enc.plots)
+
+
+
+def test_a_file_is_read_memory_mapped_with_its_pages_released_behind(tmp_path, monkeypatch):
+    """iter_recording of a file (memory-mapped) gives the parts it gives from the file's bytes
+    (raw and pcap), and gives the mapping's pages back behind the reading: page-aligned, never
+    past what was read, one stretch after the other (release step 4 KiB here, 1 MiB by
+    default; units of 1 KiB)."""
+    import mmap
+
+    from solver.io import asterix
+    from solver.io.asterix import iter_recording
+
+    released: list[tuple[int, int, int]] = []
+
+    class Spy(asterix._Release):
+        def upto(self, pos: int) -> None:
+            before = self.done
+            super().upto(pos)
+            if self.done != before:
+                released.append((before, self.done, pos))
+
+    monkeypatch.setattr(asterix, "_Release", Spy)
+    monkeypatch.setattr(asterix, "RELEASE_STEP", mmap.PAGESIZE)
+    enc = encode_recording(duration=400.0)
+    for data in (enc.data, pcap(enc.blocks)):
+        path = tmp_path / "recording"
+        path.write_bytes(data)
+        whole = list(iter_recording(data, SENSORS, chunk_bytes=1024))
+        released.clear()
+        parts = list(iter_recording(path, SENSORS, chunk_bytes=1024))
+        assert len(parts) == len(whole) > 10
+        for a, b in zip(parts, whole, strict=True):
+            np.testing.assert_array_equal(a.rows.t, b.rows.t)
+            np.testing.assert_array_equal(a.rows.origin, b.rows.origin)
+            assert [str(p) for p in a.problems.entries] == [str(p) for p in b.problems.entries]
+        assert released and released[0][0] == 0 and released[-1][1] > len(data) // 2
+        assert all(done % mmap.PAGESIZE == 0 and done <= pos for _, done, pos in released)
+        assert all(x[1] == y[0] for x, y in itertools.pairwise(released))

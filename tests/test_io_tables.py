@@ -162,3 +162,28 @@ def pacsv_write(table: pa.Table, path) -> None:
     import pyarrow.csv as pacsv
 
     pacsv.write_csv(table, path)
+
+
+def test_unwrap_time_of_day_vectorised_equals_value_by_value():
+    """The vectorised unwrap gives what unwrapping one value after the other gives: random
+    recordings across midnight, jumps of about 12 h (ties), NaN and infinite values, with and
+    without the time before the first value."""
+    from solver.io.tables import _unwrap_loop
+
+    rng = np.random.default_rng(16)
+    for trial in range(2000):
+        n = int(rng.integers(0, 30))
+        if trial % 3 == 0:
+            tod = np.mod(np.cumsum(rng.exponential(3000.0, n)) + rng.uniform(0, 86400), 86400)
+        elif trial % 3 == 1:
+            tod = np.round(rng.uniform(0, 86400, n) * 128) / 128
+        else:
+            tod = rng.choice([0.0, 1.0, 21600.0, 43199.5, 43200.0, 43200.5, 86399.0], n)
+        u = rng.random(n)
+        tod[u < 0.1] = np.nan
+        tod[(u > 0.1) & (u < 0.13)] = np.inf
+        tod[(u > 0.13) & (u < 0.15)] = -np.inf
+        previous = (np.nan, float(rng.uniform(0, 3 * 86400)), 43200.0, np.inf)[trial % 4]
+        with np.errstate(invalid="ignore"):
+            np.testing.assert_array_equal(unwrap_time_of_day(tod, previous),
+                                          _unwrap_loop(tod, previous))

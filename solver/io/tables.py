@@ -180,8 +180,40 @@ def unwrap_time_of_day(tod: FloatArray, previous: float = np.nan) -> FloatArray:
     times grow across midnight (86399.9 then 0.1 -> 86400.1) while a late report from just
     before midnight, arriving after one from just after, stays on its own day (jumps of less
     than 12 h either way are taken as they are). ``previous``: the unwrapped time before the
-    first value (a recording read in pieces)."""
+    first value (a recording read in pieces). Non-finite values stay as they are before the
+    first finite one (or ``previous``), NaN after it.
+
+    Vectorised: the day of each finite value is the day of the one before plus the rounded
+    jump between the two in days (their sum over the values); where a jump is within 1e-9
+    day of a half day (where rounding the day-shifted difference, as :func:`_unwrap_loop`
+    does, could differ) the values are unwrapped one by one."""
     tod = np.asarray(tod, dtype=float)
+    prev = float(previous)
+    fin = np.isfinite(tod)
+    idx = np.flatnonzero(fin)
+    out = tod.copy()
+    if np.isfinite(prev):
+        out[~fin] = np.nan
+    elif idx.size:
+        after = out[idx[0] + 1:]
+        after[~fin[idx[0] + 1:]] = np.nan
+    if idx.size == 0:
+        return out
+    v = tod[idx]
+    jump = (v[:-1] - v[1:]) / DAY_S
+    if np.any(np.abs(np.abs(jump - np.floor(jump)) - 0.5) < 1e-9):
+        return _unwrap_loop(tod, prev)
+    first = np.round((prev - v[0]) / DAY_S) if np.isfinite(prev) else 0.0
+    day = np.empty_like(v)
+    day[0] = first
+    np.cumsum(np.round(jump), out=day[1:])
+    day[1:] += first
+    out[idx] = v + day * DAY_S
+    return out
+
+
+def _unwrap_loop(tod: FloatArray, previous: float) -> FloatArray:
+    """:func:`unwrap_time_of_day` value by value."""
     out = np.empty_like(tod)
     day = 0.0
     prev = float(previous)
