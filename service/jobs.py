@@ -502,15 +502,19 @@ class JobRunner:
     def _dask(self) -> Any:
         with self._client_lock:
             if self._client is None:
+                import dask
                 from distributed import Client, LocalCluster
 
-                if self.settings.dask_scheduler:
-                    self._client = Client(self.settings.dask_scheduler, timeout=30)
-                else:
-                    self._cluster = LocalCluster(
-                        n_workers=self.settings.jobs_workers, threads_per_worker=1,
-                        processes=True, dashboard_address=None)
-                    self._client = Client(self._cluster)
+                from solver.batch import dask_settings
+
+                with dask.config.set(dask_settings()):
+                    if self.settings.dask_scheduler:
+                        self._client = Client(self.settings.dask_scheduler, timeout=30)
+                    else:
+                        self._cluster = LocalCluster(
+                            n_workers=self.settings.jobs_workers, threads_per_worker=1,
+                            processes=True, dashboard_address=None)
+                        self._client = Client(self._cluster)
             return self._client
 
     def _run(self, job: JobRecord) -> None:

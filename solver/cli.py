@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import queue
 import re
 import sys
@@ -37,7 +36,14 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from .batch import BatchSummary, TrackOutcome, reconstruct_many, solve_track
+from .batch import (
+    BatchSummary,
+    TrackOutcome,
+    dask_settings,
+    embedded_cluster,
+    reconstruct_many,
+    solve_track,
+)
 from .config import ReconstructionConfig
 from .frames import LocalFrame
 from .inputs import InputError
@@ -59,11 +65,6 @@ MAP_POINTS_PER_TRACK = 200  # a recording map draws each track with at most this
 STREAM_CHUNK_BYTES = 1 << 18  # ASTERIX decoded in units of this size when streaming
 STREAM_BATCH_ROWS = 1 << 15  # a plot table read in batches of this many rows when streaming
 READ_AHEAD_TRACKS = 64  # complete tracks the reading thread may hold ahead of the cluster
-DASK_LOGS = {"distributed.admin.low-level-log-length": 16}
-"""Dask keeps the last ``low-level-log-length`` (default 1,000) messages of every batched
-stream for debugging: the client's to the scheduler and, in the embedded cluster, the
-scheduler's to each worker, whose task messages carry the tracks' plots (tens of KB each):
-the command line's memory grew with the tracks submitted, up to 1,000 per stream."""
 
 
 # ----------------------------------------------------------------------------- the task
@@ -449,16 +450,14 @@ def _cluster(scheduler: str | None, workers: int | None) -> Iterator[Any]:
     of ``workers`` processes (default: the usable cores; as :func:`solver.batch.
     reconstruct_many` would start), closed at the end."""
     import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    with dask.config.set(DASK_LOGS):
+    with dask.config.set(dask_settings()):
         if scheduler is not None:
             with Client(scheduler) as client:
                 yield client
             return
-        n = workers or len(os.sched_getaffinity(0))
-        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                          dashboard_address=":0") as cluster, Client(cluster) as client:
+        with embedded_cluster(workers) as cluster, Client(cluster) as client:
             yield client
 
 

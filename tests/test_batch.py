@@ -12,7 +12,13 @@ import pyarrow.parquet as pq
 import pytest
 from test_io_asterix import SENSORS, encode_recording
 
-from solver.batch import PROGRESS, TRACK_COLUMNS, TrackProblem, reconstruct_many
+from solver.batch import (
+    MMAP_THRESHOLD_BYTES,
+    PROGRESS,
+    TRACK_COLUMNS,
+    TrackProblem,
+    reconstruct_many,
+)
 from solver.io.asterix import read_recording
 from solver.io.split import split_aircraft
 from solver.plots import PlotTable
@@ -163,8 +169,12 @@ def test_embedded_local_cluster_by_default(tmp_path, tracks, monkeypatch):
     summary = reconstruct_many(tracks, tmp_path / "out", workers=2, time_limit_s=120.0,
                                task=_task_reporting_pid(tmp_path))
     assert (summary.done, summary.failed) == (2, 1)
-    assert os.getpid() not in {int(p.read_text()) for p in tmp_path.glob("pid-*")}
-    assert len(list(tmp_path.glob("pid-*"))) == 2  # two worker processes did the work
+    seen = [json.loads(p.read_text()) for p in tmp_path.glob("pid-*")]
+    assert os.getpid() not in {w["pid"] for w in seen}
+    assert len(seen) == 2  # two worker processes did the work
+    for w in seen:  # solver.batch.dask_settings reached the workers
+        assert w["mmap_threshold"] == str(MMAP_THRESHOLD_BYTES)
+        assert w["profile"] is False
 
 
 def _task_reporting_pid(folder):
@@ -174,9 +184,13 @@ def _task_reporting_pid(folder):
         import os
         import time
 
+        import dask
+
         from solver.batch import solve_track
 
-        (folder / f"pid-{os.getpid()}").write_text(str(os.getpid()))
+        (folder / f"pid-{os.getpid()}").write_text(json.dumps({
+            "pid": os.getpid(), "mmap_threshold": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
+            "profile": dask.config.get("distributed.worker.profile.enabled")}))
         time.sleep(0.5)
         return solve_track(key, table, config, limit)
 
