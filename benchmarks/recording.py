@@ -36,6 +36,7 @@ import itertools
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -359,6 +360,9 @@ def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | 
     if budget_s is not None:
         deadline = min(deadline or np.inf, time.time() + budget_s)
     import psutil
+
+    # a cold run: the command line resumes from what an earlier run left in ``out``
+    shutil.rmtree(out, ignore_errors=True)
 
     cmd = [sys.executable, "-m", "solver.cli", str(built.recording), "--sensors",
            str(built.sensors), "--out", str(out), "--workers", str(workers), "--no-progress"]
