@@ -662,6 +662,17 @@ class _Decoder:
             q = self._memo[memo_key] = item.variation.content.as_quantity(unit)
         return q
 
+    def _track_number(self, item: Any, what: str, name: str) -> int:
+        """The track number subitem ``name`` of I161 (``NO_INT`` without it), read once per
+        raw value."""
+        if item is None:
+            return NO_INT
+        memo_key = (what, item.as_uint())
+        trn = self._memo.get(memo_key)
+        if trn is None:
+            trn = self._memo[memo_key] = int(item.variation.get_item(name).as_uint())
+        return trn
+
     def _cat048(self, rec: Any, at: int) -> tuple | None:
         sensor = self._sensor(rec, 48, at, RadarSensor)
         if sensor is None:
@@ -692,14 +703,8 @@ class _Decoder:
                                   f"{sensor!r} not validated or garbled: not used",
                                   key=f"{sensor}/fl")
                 fl = np.nan
-        i220, i161 = get("220"), get("161")
-        if i161 is None:
-            trn = NO_INT
-        else:
-            memo_key = ("161/48", i161.as_uint())
-            trn = self._memo.get(memo_key)
-            if trn is None:
-                trn = self._memo[memo_key] = int(i161.variation.get_item("TRN").as_uint())
+        i220 = get("220")
+        trn = self._track_number(get("161"), "161/48", "TRN")
         return (self._unsigned(i140, "s"), sensor, rho * NM_M, theta, np.nan, np.nan,
                 fl * FL_M, fl, NO_INT if i220 is None else int(i220.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 48), trn, at)
@@ -726,14 +731,8 @@ class _Decoder:
             alt = fl * FL_M
         elif i140 is not None:
             alt = self._memo_quantity("140/21", i140, "ft") * FT_M
-        i080, i161 = get("080"), get("161")
-        if i161 is None:
-            trn = NO_INT
-        else:
-            memo_key = ("161/21", i161.as_uint())
-            trn = self._memo.get(memo_key)
-            if trn is None:
-                trn = self._memo[memo_key] = int(i161.variation.get_item("TRNUM").as_uint())
+        i080 = get("080")
+        trn = self._track_number(get("161"), "161/21", "TRNUM")
         return (self._unsigned(time, "s"), sensor, np.nan, np.nan, lat, lon, alt, fl,
                 NO_INT if i080 is None else int(i080.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 21), trn, at)
