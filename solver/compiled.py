@@ -19,7 +19,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Sequence
-from functools import cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import casadi as ca
@@ -108,34 +108,49 @@ def is_compiled(name: str) -> bool:
     return name in _COMPILED
 
 
+MAP_SIZES = tuple(2**k for k in range(4, 13))  # column counts of the cached maps (16..4096)
+
+
+@lru_cache(maxsize=64)
+def _mapped(f: ca.Function, size: int) -> ca.Function:
+    """``f.map(size)``, built once: a map costs 0.6-2 ms to build, as much as evaluating 350
+    Jacobians of the motion model with it (a 350-plot refinement built three, one per call).
+    Its buffer (13 us) is made per call, so threads never share one."""
+    return f.map(size)
+
+
 def columns(f: ca.Function, *args: np.ndarray) -> list[np.ndarray]:
     """Evaluate ``f`` on every column of ``args`` (input ``i`` shaped ``(size_in(i), m)``):
     output ``j`` as a dense ``(m, *size_out(j))`` array.
 
-    Through :meth:`casadi.Function.buffer` of ``f.map(m)``, which reads and writes numpy memory
-    directly; calling ``f`` instead returns a ``DM`` whose conversion to numpy goes through a
-    Python list (about 80 ns per element: 16 of the 21 ms of 6000 Jacobians of the motion map).
+    Through :meth:`casadi.Function.buffer` of a cached ``f.map(size)`` (``size`` from
+    :data:`MAP_SIZES`: chunks of the largest, the rest padded by repeating its last column),
+    which reads and writes numpy memory directly; calling ``f`` instead returns a ``DM`` whose
+    conversion to numpy goes through a Python list (about 80 ns per element: 16 of the 21 ms of
+    6000 Jacobians of the motion map).
     """
     m = args[0].shape[1]
     outs = [np.zeros((m, *f.size_out(j))) for j in range(f.n_out())]
-    if m == 0:
-        return outs
-    ins = []
     for i, a in enumerate(args):
         if not f.sparsity_in(i).is_dense() or a.shape != (f.size1_in(i), m):
             raise ValueError(f"input {i} of {f.name()}: expected a dense "
                              f"{f.size1_in(i)} x {m} array, got {a.shape}")
-        ins.append(np.asfortranarray(a, dtype=float).reshape(-1, order="F"))
-    nz = [np.empty(m * f.nnz_out(j)) for j in range(f.n_out())]
-    buf, evaluate = f.map(m).buffer()
-    for i, a in enumerate(ins):
-        buf.set_arg(i, memoryview(a))
-    for j, r in enumerate(nz):
-        buf.set_res(j, memoryview(r))
-    evaluate()
-    if buf.ret() != 0:
-        raise RuntimeError(f"evaluating {f.name()} failed (status {buf.ret()})")
-    for j, out in enumerate(outs):
-        sp = f.sparsity_out(j)
-        out[:, np.array(sp.row()), np.array(sp.get_col())] = nz[j].reshape(m, sp.nnz())
+    for start in range(0, m, MAP_SIZES[-1]):
+        stop = min(start + MAP_SIZES[-1], m)
+        size = next(s for s in MAP_SIZES if s >= stop - start)
+        pad = np.r_[start:stop, np.full(size - (stop - start), stop - 1)]
+        ins = [np.asfortranarray(a[:, pad], dtype=float).reshape(-1, order="F") for a in args]
+        nz = [np.empty(size * f.nnz_out(j)) for j in range(f.n_out())]
+        buf, evaluate = _mapped(f, size).buffer()
+        for i, a in enumerate(ins):
+            buf.set_arg(i, memoryview(a))
+        for j, r in enumerate(nz):
+            buf.set_res(j, memoryview(r))
+        evaluate()
+        if buf.ret() != 0:
+            raise RuntimeError(f"evaluating {f.name()} failed (status {buf.ret()})")
+        for j, out in enumerate(outs):
+            sp = f.sparsity_out(j)
+            out[start:stop, np.array(sp.row()), np.array(sp.get_col())] = \
+                nz[j].reshape(size, sp.nnz())[: stop - start]
     return outs

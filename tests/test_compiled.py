@@ -188,18 +188,19 @@ def test_columns_equals_column_by_column_calls():
     f = ca.Function("cols", [s, dt], [ca.jacobian(out, s), out])
     assert not f.sparsity_out(0).is_dense()
     rng = np.random.default_rng(5)
-    m = 50
-    S = np.vstack([rng.normal(0, 5e4, (2, m)), rng.uniform(-4, 4, (1, m)),
-                   rng.uniform(60, 300, (1, m)), rng.uniform(-30, 30, (1, m)),
-                   rng.uniform(-5, 5, (1, m))])
-    S[4, ::5] = 0.0
-    T = rng.uniform(0, 20, (1, m))
-    jac, val = compiled.columns(f, S, T)
-    assert jac.shape == (m, 6, 6) and val.shape == (m, 6, 1)
-    for k in range(m):
-        j_ref, v_ref = f(S[:, k], T[0, k])
-        np.testing.assert_array_equal(jac[k], np.array(j_ref))
-        np.testing.assert_array_equal(val[k], np.array(v_ref))
+    # 50: one padded map; 4096: one whole map; 4096 + 17: a whole map and a padded one
+    for m in (50, compiled.MAP_SIZES[-1], compiled.MAP_SIZES[-1] + 17):
+        S = np.vstack([rng.normal(0, 5e4, (2, m)), rng.uniform(-4, 4, (1, m)),
+                       rng.uniform(60, 300, (1, m)), rng.uniform(-30, 30, (1, m)),
+                       rng.uniform(-5, 5, (1, m))])
+        S[4, ::5] = 0.0
+        T = rng.uniform(0, 20, (1, m))
+        jac, val = compiled.columns(f, S, T)
+        assert jac.shape == (m, 6, 6) and val.shape == (m, 6, 1)
+        for k in range(m):
+            j_ref, v_ref = f(S[:, k], T[0, k])
+            np.testing.assert_array_equal(jac[k], np.array(j_ref))
+            np.testing.assert_array_equal(val[k], np.array(v_ref))
     empty = compiled.columns(f, S[:, :0], T[:, :0])
     assert empty[0].shape == (0, 6, 6)
     with pytest.raises(ValueError, match="input 1"):

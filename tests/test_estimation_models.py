@@ -178,3 +178,22 @@ def test_cv_smoothed_means_equal_the_recursive_rts_smoother():
         rhs.append(np.zeros(4))
     ls = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0].reshape(n, 4)
     np.testing.assert_allclose(got, ls[:, [0, 2, 1, 3]], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("m", [1, 2])
+def test_covariance_update_equals_the_full_update_and_the_information_form(m):
+    """The covariance-only Joseph update against :func:`update` and against the information
+    form ``(P^-1 + H^T R^-1 H)^-1``, for one and two measured components."""
+    from solver.estimation.kalman import covariance_update
+
+    rng = np.random.default_rng(m)
+    A = rng.normal(size=(6, 6))
+    P = A @ A.T + np.eye(6)
+    H = rng.normal(size=(m, 6))
+    B = rng.normal(size=(m, m))
+    R = B @ B.T + 0.5 * np.eye(m)
+    got = covariance_update(P, H, R)
+    np.testing.assert_allclose(got, update(np.zeros(6), P, np.zeros(m), H, R)[1], rtol=1e-12,
+                               atol=1e-12)
+    info = np.linalg.inv(np.linalg.inv(P) + H.T @ np.linalg.solve(R, H))
+    np.testing.assert_allclose(got, info, rtol=1e-9, atol=1e-10)

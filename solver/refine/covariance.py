@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import compiled
 from ..config import RefineSettings
-from ..estimation.kalman import predict, rts_smoother, update
+from ..estimation.kalman import covariance_update, rts_smoother
 from ..inputs import Bounds, FloatArray
 from ..motion import motion_function
 from ..sensors import ALTITUDE_RANGE_M
@@ -94,30 +94,30 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
     if variant.altitude:
         prior += [(ALTITUDE_RANGE_M[1] - ALTITUDE_RANGE_M[0]) ** 2 / 12, HD_MAX**2 / 3]
     prior += list(np.asarray(bias_sigma, float) ** 2)
-    xs = np.zeros(nx)
     xf, xp = np.zeros((n, nx)), np.zeros((n, nx))
     Pf, Pp = np.empty((n, nx, nx)), np.empty((n, nx, nx))
     P = np.diag(prior)
-    nu2 = np.zeros(2)
     alt_H = np.zeros((1, nx))
     if variant.altitude:
         alt_H[0, NH] = 1.0
     if time_gauge > 0:  # the pseudo-measurement sum(time offsets) = 0 (see the NLP's gauge)
         g = np.zeros((1, nx))
         g[0, NH + 2 * variant.altitude + 2::BIAS_TERMS] = 1.0
-        _, P, _, _ = update(xs, P, np.zeros(1), g, np.array([[1.0 / time_gauge]]))
+        P = covariance_update(P, g, np.array([[1.0 / time_gauge]]))
+    consider = np.zeros(n, bool) if consider_from is None else np.arange(n) >= consider_from
+    alt_R = 1.0 / np.where(data.alt_info > 0, data.alt_info, 1.0) if variant.altitude else None
     for k in range(n):
         if check is not None and k % CHECK_EVERY == 0:
             check()
         if k:
-            _, P = predict(xs, P, Phi[k - 1], Q[k - 1])
+            P = Phi[k - 1] @ P @ Phi[k - 1].T + Q[k - 1]
         Pp[k] = P
-        if measured[k] and consider_from is not None and k >= consider_from:
+        if measured[k] and consider[k]:
             P = _consider_update(P, H[k], R[k], NH + 2 * variant.altitude)
         elif measured[k]:
-            _, P, _, _ = update(xs, P, nu2, H[k], R[k])
-        if variant.altitude and data.alt_info[k] > 0:
-            _, P, _, _ = update(xs, P, np.zeros(1), alt_H, np.array([[1 / data.alt_info[k]]]))
+            P = covariance_update(P, H[k], R[k])
+        if alt_R is not None and data.alt_info[k] > 0:
+            P = covariance_update(P, alt_H, alt_R[k : k + 1, None])
         Pf[k] = P
     _, Ps = rts_smoother(xf, Pf, xp, Pp, Phi)
     return Ps

@@ -31,14 +31,11 @@ def segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segme
     change = np.any(np.abs(np.diff(ctl, axis=0)) > tol, axis=1)
     starts = np.concatenate([[0], np.flatnonzero(change) + 1])
     ends = np.append(starts[1:], m - 1)
-    segs = []
-    for a, b in zip(starts, ends, strict=True):
-        sel = ctl[a:b] if b > a else ctl[a: a + 1]
-        u, w = np.mean(sel, axis=0)
-        segs.append(Segment(float(t_n[a]), float(t_n[b]), float(s_n[a, 0]), float(s_n[a, 1]),
-                            float(np.mod(s_n[a, 2], 2 * math.pi)), float(s_n[a, 3]), float(u),
-                            float(w)))
-    return segs
+    # each segment's controls: the mean over its intervals [start, end) (a lone node: its own)
+    mean = np.add.reduceat(ctl, starts, axis=0) / (ends - starts)[:, None] if m > 1 else ctl
+    return [Segment(*map(float, row)) for row in np.column_stack(
+        [t_n[starts], t_n[ends], s_n[starts, 0], s_n[starts, 1],
+         np.mod(s_n[starts, 2], 2 * math.pi), s_n[starts, 3], mean])]
 
 
 def series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray, t: FloatArray,
