@@ -5,6 +5,10 @@ Dask LocalCluster; a rerun resumes."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -99,3 +103,27 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
                  str(tmp_path / "out2"), "--no-progress"])
     assert code == 2
     assert "sensors[0].lat_deg" in capsys.readouterr().err
+
+
+def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
+    """``python -m solver.cli`` runs the module as ``__main__``; its task must still be
+    ``solver.cli.assess_track``, pickled by reference (a ``__main__`` function is pickled by
+    value, and so is every result's class): the worker then imports ``solver.cli``."""
+    from distributed import Client, LocalCluster
+
+    d, _ = recording
+    root = Path(__file__).resolve().parent.parent
+    monkeypatch.setenv("TRAJRECON_COMPILE", "0")  # the worker interprets: same results
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster, Client(cluster) as client:
+        assert not any(client.run(lambda: "solver.cli" in sys.modules).values())
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            [str(root), *filter(None, [os.environ.get("PYTHONPATH")])])}
+        done = subprocess.run(
+            [sys.executable, "-m", "solver.cli", str(d / "day.ast"), "--sensors",
+             str(d / "sensors.json"), "--out", str(tmp_path / "out"), "--scheduler",
+             cluster.scheduler_address, "--no-progress"], cwd=root, env=env,
+            capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert all(client.run(lambda: "solver.cli" in sys.modules).values())
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
