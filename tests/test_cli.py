@@ -4,6 +4,7 @@ Dask LocalCluster; a rerun resumes."""
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import subprocess
@@ -93,9 +94,11 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
     d, _ = recording
     rec = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE))
     write_table(rec.rows, tmp_path / "plots.csv")
+    thresholds = gc.get_threshold()
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
                  str(tmp_path / "out"), "--workers", "1", "--no-progress"])
     assert code == 0
+    assert gc.get_threshold() == thresholds  # the run's collector setting is undone
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps([{**SENSOR_FILE[0], "lat_deg": 95.0}]))
