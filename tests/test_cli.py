@@ -130,3 +130,16 @@ def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
         assert done.returncode == 0, done.stderr
         assert all(client.run(lambda: "solver.cli" in sys.modules).values())
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
+
+
+def test_key_groups_select_what_a_scan_per_key_selects():
+    from solver.cli import _key_groups
+
+    rng = np.random.default_rng(16)
+    keys = np.array([f"{v:06X}" for v in rng.integers(0, 7, 500)], dtype=object)
+    expected = [(k, np.flatnonzero(keys == k)) for k in dict.fromkeys(keys.tolist())]
+    got = list(_key_groups(keys))
+    assert [k for k, _ in got] == [k for k, _ in expected]
+    for (_, a), (_, b) in zip(got, expected, strict=True):
+        assert np.array_equal(a, b)
+    assert list(_key_groups(keys[:0])) == []
