@@ -345,15 +345,26 @@ def dask_settings() -> dict[str, Any]:
     """Dask settings for the embedded cluster and the client (``dask.config.set``): short
     debugging logs (Dask keeps the last 1,000 messages of each batched stream, task messages
     with the tracks' plots among them: memory growing with the tracks), no statistical
-    profiler in the workers (a stack sample every 10 ms), and :data:`MMAP_THRESHOLD_BYTES`
-    beside Dask's own worker environment."""
+    profiler in the workers (a stack sample every 10 ms), :data:`MMAP_THRESHOLD_BYTES`
+    beside Dask's own worker environment, and :data:`QUIET_LOOPS`."""
     import dask
 
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
     environ["MALLOC_MMAP_THRESHOLD_"] = MMAP_THRESHOLD_BYTES
     return {"distributed.admin.low-level-log-length": 16,
             "distributed.worker.profile.enabled": False,
-            "distributed.nanny.pre-spawn-environ": environ}
+            "distributed.nanny.pre-spawn-environ": environ, **QUIET_LOOPS}
+
+
+QUIET_LOOPS = {"distributed.admin.tick.interval": "1s",
+               "distributed.worker.memory.monitor-interval": "500ms"}
+"""Fewer periodic callbacks in the event loops of the scheduler, nannies and workers. Dask's
+event-loop health tick runs every 20 ms in every server (it only measures how late it runs, to
+warn past ``distributed.admin.tick.limit``, 3 s) and the memory monitors every 100 ms. Measured
+on an idle embedded cluster of 2 workers (this machine, 20 s): CPU of a core 6.4% in the main
+process and 2.3% in each worker with Dask's defaults, 1.4% and 0.5% with these: on a run of
+the 2,000-aircraft benchmark recording (about 630 s on 2 workers) some 50 CPU-seconds, 0.05 ms
+a plot, taken from the reconstruction's cores. Memory is still checked twice a second."""
 
 
 def embedded_cluster(workers: int | None = None) -> Any:

@@ -15,6 +15,7 @@ from test_io_asterix import SENSORS, encode_recording
 from solver.batch import (
     MMAP_THRESHOLD_BYTES,
     PROGRESS,
+    QUIET_LOOPS,
     TRACK_COLUMNS,
     TrackProblem,
     reconstruct_many,
@@ -175,6 +176,7 @@ def test_embedded_local_cluster_by_default(tmp_path, tracks, monkeypatch):
     for w in seen:  # solver.batch.dask_settings reached the workers
         assert w["mmap_threshold"] == str(MMAP_THRESHOLD_BYTES)
         assert w["profile"] is False
+        assert w["tick"] == QUIET_LOOPS["distributed.admin.tick.interval"]
 
 
 def _task_reporting_pid(folder):
@@ -190,7 +192,8 @@ def _task_reporting_pid(folder):
 
         (folder / f"pid-{os.getpid()}").write_text(json.dumps({
             "pid": os.getpid(), "mmap_threshold": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
-            "profile": dask.config.get("distributed.worker.profile.enabled")}))
+            "profile": dask.config.get("distributed.worker.profile.enabled"),
+            "tick": dask.config.get("distributed.admin.tick.interval")}))
         time.sleep(0.5)
         return solve_track(key, table, config, limit)
 

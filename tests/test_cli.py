@@ -4,7 +4,12 @@ Dask LocalCluster; a rerun resumes."""
 
 from __future__ import annotations
 
+import gc
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -89,9 +94,11 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
     d, _ = recording
     rec = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE))
     write_table(rec.rows, tmp_path / "plots.csv")
+    thresholds = gc.get_threshold()
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
                  str(tmp_path / "out"), "--workers", "1", "--no-progress"])
     assert code == 0
+    assert gc.get_threshold() == thresholds  # the run's collector setting is undone
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps([{**SENSOR_FILE[0], "lat_deg": 95.0}]))
@@ -99,3 +106,40 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
                  str(tmp_path / "out2"), "--no-progress"])
     assert code == 2
     assert "sensors[0].lat_deg" in capsys.readouterr().err
+
+
+def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
+    """``python -m solver.cli`` runs the module as ``__main__``; its task must still be
+    ``solver.cli.assess_track``, pickled by reference (a ``__main__`` function is pickled by
+    value, and so is every result's class): the worker then imports ``solver.cli``."""
+    from distributed import Client, LocalCluster
+
+    d, _ = recording
+    root = Path(__file__).resolve().parent.parent
+    monkeypatch.setenv("TRAJRECON_COMPILE", "0")  # the worker interprets: same results
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster, Client(cluster) as client:
+        assert not any(client.run(lambda: "solver.cli" in sys.modules).values())
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            [str(root), *filter(None, [os.environ.get("PYTHONPATH")])])}
+        done = subprocess.run(
+            [sys.executable, "-m", "solver.cli", str(d / "day.ast"), "--sensors",
+             str(d / "sensors.json"), "--out", str(tmp_path / "out"), "--scheduler",
+             cluster.scheduler_address, "--no-progress"], cwd=root, env=env,
+            capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert all(client.run(lambda: "solver.cli" in sys.modules).values())
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
+
+
+def test_key_groups_select_what_a_scan_per_key_selects():
+    from solver.cli import _key_groups
+
+    rng = np.random.default_rng(16)
+    keys = np.array([f"{v:06X}" for v in rng.integers(0, 7, 500)], dtype=object)
+    expected = [(k, np.flatnonzero(keys == k)) for k in dict.fromkeys(keys.tolist())]
+    got = list(_key_groups(keys))
+    assert [k for k, _ in got] == [k for k, _ in expected]
+    for (_, a), (_, b) in zip(got, expected, strict=True):
+        assert np.array_equal(a, b)
+    assert list(_key_groups(keys[:0])) == []
