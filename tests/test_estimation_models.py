@@ -180,10 +180,11 @@ def test_cv_smoothed_means_equal_the_recursive_rts_smoother():
     np.testing.assert_allclose(got, ls[:, [0, 2, 1, 3]], rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("m", [1, 2])
+@pytest.mark.parametrize("m", [1, 2, 3])
 def test_covariance_update_equals_the_full_update_and_the_information_form(m):
     """The covariance-only Joseph update against :func:`update` and against the information
-    form ``(P^-1 + H^T R^-1 H)^-1``, for one and two measured components."""
+    form ``(P^-1 + H^T R^-1 H)^-1``, for one, two (closed-form ``S^-1``) and three measured
+    components."""
     from solver.estimation.kalman import covariance_update
 
     rng = np.random.default_rng(m)

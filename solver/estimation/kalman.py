@@ -1,7 +1,7 @@
 """Kalman predict / update / smooth (FilterPy-style explicit matrices, Joseph-form updates).
 
 - :func:`predict`, :func:`update` : one step of a linear Gaussian filter;
-  :func:`covariance_update` : its covariance alone (one or two measured components).
+  :func:`covariance_update` : its covariance alone.
 - :func:`position_update` : update of a state whose position sits at indices ``pos`` from one
   polar plot, as a converted measurement or an EKF update (see ``measurements.py``), or from a
   linear position fix of another sensor.
@@ -47,16 +47,18 @@ def update(x: FloatArray, P: FloatArray, nu: FloatArray, H: FloatArray, R: Float
 
 
 def covariance_update(P: FloatArray, H: FloatArray, R: FloatArray) -> FloatArray:
-    """The covariance of :func:`update` alone (Joseph form, the same equations) for one or two
-    measured components, ``S^-1`` in closed form: a fifth of its cost in a loop over nodes,
-    where ``update``'s general inverse, determinant and mean went to waste."""
+    """The covariance of :func:`update` alone (Joseph form, the same equations); ``S^-1`` in
+    closed form for one or two measured components: half its cost in a loop over nodes, where
+    ``update``'s general inverse, determinant and mean went to waste."""
     PHt = P @ H.T
     S = H @ PHt + R
     if S.shape == (1, 1):
         Sinv = 1.0 / S
-    else:
+    elif S.shape == (2, 2):
         a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
         Sinv = np.array([[d, -b], [-c, a]]) / (a * d - b * c)
+    else:
+        Sinv = np.linalg.inv(S)
     K = PHt @ Sinv
     IKH = np.eye(P.shape[0]) - K @ H
     return IKH @ P @ IKH.T + K @ R @ K.T
