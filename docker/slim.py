@@ -272,8 +272,9 @@ def check(work: Path) -> None:
     assert np.allclose(scipy.linalg.expm(np.diag([0.0, 1.0])), np.diag([1.0, np.e]))
     banded = scipy.linalg.solveh_banded(np.array([[0.0, 1.0], [4.0, 4.0]]), np.ones(2))
     assert np.allclose(banded, [0.2, 0.2]), banded
-    from service.workers import synthetic_track, warm_up
+    from service.workers import warm_up
     from solver.cli import main as cli
+    from solver.warmup import synthetic_track
 
     warm_up([3], "ipopt")  # sqpmethod: the Dockerfile's warm-up before, the service's below
 

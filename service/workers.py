@@ -21,9 +21,9 @@ from multiprocessing.connection import Connection
 import numpy as np
 
 from solver.config import ReconstructionConfig
-from solver.inputs import InputError, Plots, Radar
-from solver.motion import propagate
+from solver.inputs import InputError
 from solver.results import FilterEstimate, Reconstruction
+from solver.warmup import synthetic_track
 
 from .convert import Job, response_dict
 from .logs import setup_logging
@@ -43,14 +43,6 @@ class Outcome:
     solver_failures: int = 0
     error_loc: tuple[str | int, ...] = ()
     error_message: str = ""
-
-
-def synthetic_track(n: int) -> tuple[Plots, Radar]:
-    """``n`` noiseless plots every 10 s of a 200 m/s aircraft turning at 2 m/s^2 (warm-up)."""
-    t = 10.0 * np.arange(n)
-    x, z, _, _ = propagate(50e3, 20e3, 0.5, 200.0, 2.0, 0.2, t)
-    radar = Radar(range_error_m=300.0, azimuth_error_rad=np.deg2rad(0.5))
-    return Plots.from_arrays(t, np.hypot(x, z), np.arctan2(z, x)), radar
 
 
 def warm_up(window_sizes: list[int], nlp_solver: str) -> None:

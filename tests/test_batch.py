@@ -177,11 +177,13 @@ def test_embedded_local_cluster_by_default(tmp_path, tracks, monkeypatch):
         assert w["mmap_threshold"] == str(MMAP_THRESHOLD_BYTES)
         assert w["profile"] is False
         assert w["tick"] == QUIET_LOOPS["distributed.admin.tick.interval"]
+        assert w["warmed"] > 0  # solver.batch.warm_workers ran before the worker's first track
 
 
 def _task_reporting_pid(folder):
-    """solve_track that leaves a file named by its process id, and takes at least 0.5 s so
-    that both workers get tracks."""
+    """solve_track that leaves a file named by its process id (what its first track found
+    there: the settings, and the refinement solvers already built), and takes at least 0.5 s
+    so that both workers get tracks."""
     def task(key, table, config, limit):
         import os
         import time
@@ -189,11 +191,15 @@ def _task_reporting_pid(folder):
         import dask
 
         from solver.batch import solve_track
+        from solver.refine.nlp import block_solver
 
-        (folder / f"pid-{os.getpid()}").write_text(json.dumps({
-            "pid": os.getpid(), "mmap_threshold": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
-            "profile": dask.config.get("distributed.worker.profile.enabled"),
-            "tick": dask.config.get("distributed.admin.tick.interval")}))
+        report = folder / f"pid-{os.getpid()}"
+        if not report.exists():
+            report.write_text(json.dumps({
+                "pid": os.getpid(), "mmap_threshold": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
+                "profile": dask.config.get("distributed.worker.profile.enabled"),
+                "tick": dask.config.get("distributed.admin.tick.interval"),
+                "warmed": block_solver.cache_info().currsize}))
         time.sleep(0.5)
         return solve_track(key, table, config, limit)
 

@@ -92,7 +92,7 @@ import json, numpy as np
 from solver import compiled
 from solver.config import ReconstructionConfig
 from solver.reconstruct import reconstruct
-from service.workers import synthetic_track
+from solver.warmup import synthetic_track
 plots, radar = synthetic_track(120)
 rng = np.random.default_rng(0)
 plots = type(plots).from_arrays(plots.t, plots.range_m + rng.normal(0, 150, plots.t.size),
