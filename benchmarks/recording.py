@@ -428,7 +428,33 @@ def run_cli(built: Built, out: Path, workers: int, log: Path, deadline: float | 
             "peak_rss_cli_halves_mb": [
                 max((m for t, m in sampler.root_series if t <= half), default=0) / 2**20,
                 max((m for t, m in sampler.root_series if t > half), default=0) / 2**20],
-            "command": " ".join(cmd[1:])}
+            "command": " ".join(cmd[1:]), "out": str(out)}
+
+
+def in_task_rate(out: Path, in_process: dict[str, Any]) -> dict[str, Any] | None:
+    """The in-process sample's tracks as a command-line run reconstructed them: plots per
+    second of their ``elapsed_s`` in the run's ``progress.jsonl`` (the task on the worker,
+    ``assess_track``, without Dask's per-task work or the start-up), beside the in-process
+    rate of the same tracks. None without a ledger or a common track."""
+    ledger = out / "progress.jsonl"
+    if not ledger.exists():
+        return None
+    sample = {t["aircraft"]: t for t in in_process["per_track"]}
+    seen = {}
+    for line in ledger.read_text(encoding="utf-8").splitlines():
+        try:
+            e = json.loads(line)
+        except ValueError:
+            continue
+        if e["status"] == "done" and e["aircraft"] in sample:
+            seen[e["aircraft"]] = e["elapsed_s"]
+    if not seen:
+        return None
+    plots = sum(sample[k]["plots"] for k in seen)
+    in_task = sum(seen.values())
+    here = sum(sample[k]["s"] for k in seen)
+    return {"tracks": len(seen), "plots": plots, "in_task_s": in_task, "in_process_s": here,
+            "plots_per_s": plots / in_task, "in_process_plots_per_s": plots / here}
 
 
 def _committed_plots(out: Path) -> tuple[int, int, int]:
@@ -538,6 +564,7 @@ def measure(spec: RecordingSpec, work: Path, *, sample: int, small_fraction: flo
     for n in workers:
         c = result["cli"][str(n)] = run_cli(built, work / f"out-{n}", n, work / f"cli-{n}.log",
                                             deadline, budget_s)
+        c["same_tracks_in_task"] = in_task_rate(work / f"out-{n}", result["in_process"])
         keep()
         _log(f"{n} worker(s): {c['plots_per_s_end_to_end']:.0f} plots/s, peak "
              f"{c['peak_rss_mb']:.0f} MB, {c['wall_s']:.0f} s, exit {c['exit_code']}, "
@@ -676,6 +703,15 @@ def write_report(r: dict[str, Any], out: Path, command: str) -> None:
                   f"track): {ip['plots']} plots in {ip['elapsed_s']:.1f} s = "
                   f"{ip['plots_per_s']:.0f} plots/s ({ip['plots_per_cpu_s']:.0f} plots per "
                   "CPU-second)."]
+        for k, c in r["cli"].items():
+            same = c.get("same_tracks_in_task")
+            if same:
+                lines += ["", f"The same {same['tracks']} tracks inside the {k}-worker run's "
+                          "tasks (their `elapsed_s` in its `progress.jsonl`: `assess_track` "
+                          "on the worker, without Dask's per-task work or the start-up): "
+                          f"{same['plots_per_s']:.0f} plots/s, "
+                          f"{same['plots_per_s'] / same['in_process_plots_per_s']:.2f}x the "
+                          "in-process rate of those tracks."]
     d = r.get("decode")
     if d:
         unit = (f", in units of {d['chunk_bytes'] // 1024} KiB as the command line"
@@ -731,6 +767,10 @@ def main(argv: list[str] | None = None) -> int:
         r = json.loads(Path(args.report_from).read_text())
         if "decode" not in r and Path(r["recording"]["recording"]).exists():
             r["decode"] = decode_rate(Path(r["recording"]["recording"]))
+        for c in r["cli"].values():  # runs from before the comparison was recorded
+            if "same_tracks_in_task" not in c and r.get("in_process"):
+                out_dir = c.get("out") or c["command"].split("--out ")[1].split()[0]
+                c["same_tracks_in_task"] = in_task_rate(Path(out_dir), r["in_process"])
         if args.notes:
             r["notes"] = Path(args.notes).read_text().strip().split("\n")
         target = Path(args.out) if args.out else Path(args.report_from).with_suffix("")
