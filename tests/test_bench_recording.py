@@ -4,6 +4,7 @@ time-shifted real trajectories still physically valid."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import fields
 
 import numpy as np
@@ -16,6 +17,7 @@ from benchmarks.recording import (
     RecordingSpec,
     aircraft_truths,
     build,
+    in_task_rate,
     real_truths,
     sensor_set,
     simulate,
@@ -105,3 +107,23 @@ def test_decoded_plots_fly_at_aircraft_speeds(built):
         v = np.hypot(np.diff(x), np.diff(z)) / np.diff(t)
         assert np.median(v) < SPEED_BOUNDS[1]  # noise of 30 m on 5-s steps adds little
         assert np.median(v) > SPEED_BOUNDS[0] - 20.0
+
+
+def test_in_task_rate_compares_the_same_tracks(tmp_path):
+    ledger = [{"aircraft": "A", "status": "done", "plots": 100, "elapsed_s": 0.2},
+              {"aircraft": "B", "status": "failed", "plots": 50, "elapsed_s": 0.1},
+              {"aircraft": "C", "status": "done", "plots": 300, "elapsed_s": 0.5},
+              {"aircraft": "D", "status": "done", "plots": 80, "elapsed_s": 0.1}]
+    (tmp_path / "progress.jsonl").write_text(
+        "".join(json.dumps(e) + "\n" for e in ledger) + '{"airc')  # a torn last line
+    sample = {"per_track": [{"aircraft": "A", "plots": 100, "s": 0.1},
+                            {"aircraft": "B", "plots": 50, "s": 0.05},
+                            {"aircraft": "C", "plots": 300, "s": 0.3},
+                            {"aircraft": "E", "plots": 70, "s": 0.07}]}
+    r = in_task_rate(tmp_path, sample)
+    assert r is not None
+    # A and C only: B failed in the run, D is not in the sample, E not in the run
+    assert (r["tracks"], r["plots"]) == (2, 400)
+    assert r["plots_per_s"] == pytest.approx(400 / 0.7)
+    assert r["in_process_plots_per_s"] == pytest.approx(400 / 0.4)
+    assert in_task_rate(tmp_path / "nothing", sample) is None
