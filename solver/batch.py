@@ -387,6 +387,7 @@ class _engine:
         self.executor, self.scheduler, self.workers = executor, scheduler, workers
         self.config = config
         self.owned: list[Any] = []
+        self.client: Any = None  # a Dask client: the warm-ups' (to cancel at the end)
         self.warming: list[Any] = []
 
     def __enter__(self) -> tuple[Callable[..., Any], Callable[[list[Any]], Any], int]:

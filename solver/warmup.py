@@ -10,6 +10,8 @@ and still left 1.38 s for that track: the solvers are cheap, the compiling is no
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from .config import ReconstructionConfig
@@ -38,8 +40,6 @@ def warm_refinement(config: ReconstructionConfig | None = None) -> float:
     the default method), once per method and process; returns the seconds it took (0.0 when
     done before). A Dask task: ``solver.batch`` runs one on every worker as a run's first
     work, so a long-lived cluster (the service's jobs) pays it once per worker, not per run."""
-    import time
-
     from .reconstruct import reconstruct
 
     config = config or ReconstructionConfig()
