@@ -3,8 +3,9 @@
 The L1 prior on control changes is replaced by a Gaussian of the same variance (a Laplace
 density ``exp(-lambda |Delta| / 2)`` has variance ``8 / lambda^2``, scaled by
 ``covariance_scale``), the dynamics and the plots' residuals are linearised about the solution,
-and the Kalman filter and Rauch-Tung-Striebel smoother of :mod:`solver.estimation.kalman` over
-the nodes give the marginal covariance of the Gauss-Newton posterior. The state is the node
+and the covariance recursions of the Kalman filter and Rauch-Tung-Striebel smoother over the
+nodes (:mod:`solver.estimation.covariance_pass`) give the marginal covariance of the
+Gauss-Newton posterior. The state is the node
 solution ``(x, z, phi, v, u, w[, h, hd])`` followed by the estimated radar offsets, which are
 constant states (so their smoothed covariance is their posterior covariance, and the track's
 covariance includes their uncertainty). A residual down-weighted by the robust loss enters with
@@ -21,7 +22,8 @@ import numpy as np
 
 from .. import compiled
 from ..config import RefineSettings
-from ..estimation.kalman import covariance_update, rts_smoother
+from ..estimation.covariance_pass import filtered_covariances, smoothed_covariances
+from ..estimation.kalman import covariance_update
 from ..inputs import Bounds, FloatArray
 from ..motion import motion_function
 from ..sensors import ALTITUDE_RANGE_M
@@ -30,7 +32,7 @@ from .nodes import NodeData, info_matrices
 
 NH = 6  # horizontal node state: x, z, phi, v, u, w
 
-CHECK_EVERY = 1024  # nodes between deadline checks (about 0.1 s of the forward pass)
+CHECK_EVERY = 1024  # nodes between deadline checks (about 15 ms of the forward pass)
 
 
 @cache
@@ -67,7 +69,7 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
     """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets).
 
     ``check`` is called every :data:`CHECK_EVERY` nodes of the forward pass (a deadline: on a
-    15,000-node track the pass takes about a second, past a deadline the solves had met).
+    15,000-node track the forward pass takes about 0.2 s, past a deadline the solves had met).
 
     ``consider_from``: from this node on the offsets were held, not estimated (later blocks of
     a long track), so they are *consider* states there (Schmidt-Kalman: their gain is zero, the
@@ -94,44 +96,25 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
     if variant.altitude:
         prior += [(ALTITUDE_RANGE_M[1] - ALTITUDE_RANGE_M[0]) ** 2 / 12, HD_MAX**2 / 3]
     prior += list(np.asarray(bias_sigma, float) ** 2)
-    xf, xp = np.zeros((n, nx)), np.zeros((n, nx))
-    Pf, Pp = np.empty((n, nx, nx)), np.empty((n, nx, nx))
-    P = np.diag(prior)
-    alt_H = np.zeros((1, nx))
-    if variant.altitude:
-        alt_H[0, NH] = 1.0
+    P0 = np.diag(prior)
     if time_gauge > 0:  # the pseudo-measurement sum(time offsets) = 0 (see the NLP's gauge)
         g = np.zeros((1, nx))
         g[0, NH + 2 * variant.altitude + 2::BIAS_TERMS] = 1.0
-        P = covariance_update(P, g, np.array([[1.0 / time_gauge]]))
-    consider = np.zeros(n, bool) if consider_from is None else np.arange(n) >= consider_from
-    alt_R = 1.0 / np.where(data.alt_info > 0, data.alt_info, 1.0) if variant.altitude else None
-    for k in range(n):
-        if check is not None and k % CHECK_EVERY == 0:
-            check()
-        if k:
-            P = Phi[k - 1] @ P @ Phi[k - 1].T + Q[k - 1]
-        Pp[k] = P
-        if measured[k] and consider[k]:
-            P = _consider_update(P, H[k], R[k], NH + 2 * variant.altitude)
-        elif measured[k]:
-            P = covariance_update(P, H[k], R[k])
-        if alt_R is not None and data.alt_info[k] > 0:
-            P = covariance_update(P, alt_H, alt_R[k : k + 1, None])
-        Pf[k] = P
-    _, Ps = rts_smoother(xf, Pf, xp, Pp, Phi)
+        P0 = covariance_update(P0, g, np.array([[1.0 / time_gauge]]))
+    gain = np.ones((n, nx))
+    if consider_from is not None:  # the offsets' rows of the gain are zero from there on
+        gain[consider_from:, NH + 2 * variant.altitude:] = 0.0
+    gain[~measured] = 0.0
+    updates = [(H, np.where(measured[:, None, None], R, np.eye(2)), gain)]
+    if variant.altitude:
+        on = data.alt_info > 0
+        alt_H = np.zeros((n, 1, nx))
+        alt_H[:, 0, NH] = 1.0
+        alt_R = 1.0 / np.where(on, data.alt_info, 1.0)
+        updates.append((alt_H, alt_R[:, None, None], np.broadcast_to(on[:, None], (n, nx)) * 1.0))
+    Pp, Pf = filtered_covariances(P0, Phi, Q, tuple(updates), check, CHECK_EVERY)
+    Ps = smoothed_covariances(Pf, Pp, Phi)
     return Ps
-
-
-def _consider_update(P: np.ndarray, H: np.ndarray, R: np.ndarray, first_consider: int
-                     ) -> np.ndarray:
-    """Joseph-form update with the Kalman gain of the states from ``first_consider`` on set to
-    zero: ``K = P H^T S^-1``, ``K[c:] = 0``, ``P = (I - K H) P (I - K H)^T + K R K^T``."""
-    S = H @ P @ H.T + R
-    K = np.linalg.solve(S, H @ P).T
-    K[first_consider:] = 0.0
-    IKH = np.eye(P.shape[0]) - K @ H
-    return IKH @ P @ IKH.T + K @ R @ K.T
 
 
 def _plot_jacobians(sol: np.ndarray, biases: np.ndarray, data: NodeData, variant: Variant,

@@ -1,0 +1,169 @@
+"""The covariance recursions of a Kalman filter and RTS smoother over many steps, in CasADi.
+
+The refinement's Laplace covariance (:mod:`solver.refine.covariance`) runs a covariance-only
+filter and smoother over every node of a track. As a Python loop of numpy calls a node cost
+about 40 us, and the pass was a tenth of a whole reconstruction. Here one step is a small CasADi
+matrix function and the steps are chained by ``mapaccum``, which evaluates the whole chain in
+CasADi's virtual machine without returning to Python. The equations are those of
+:func:`solver.estimation.kalman.covariance_update` and
+:func:`solver.estimation.kalman.rts_smoother`:
+
+- predict ``Pp_k = Phi_{k-1} P_{k-1} Phi_{k-1}^T + Q_{k-1}`` (``Pp_0 = P_0``);
+- two sequential updates per step (e.g. a plot's position, then its altitude), each in Joseph
+  form with a masked gain ``K = diag(g) P H^T S^-1``, ``S = H P H^T + R``,
+  ``P = (I - K H) P (I - K H)^T + K R K^T``: ``g`` is 1 for the states the measurement informs,
+  0 for *consider* states (Schmidt-Kalman), all 0 where there is no measurement;
+- smooth ``Ps_k = Pf_k + C_k (Ps_{k+1} - Pp_{k+1}) C_k^T`` (symmetrised), with the gains
+  ``C_k = Pf_k Phi_k^T Pp_{k+1}^-1`` from one batched numpy solve.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import cache
+
+import casadi as ca
+import numpy as np
+
+CHUNK_SIZES = tuple(2**k for k in range(4, 13))  # steps of the cached chains (16..4096)
+
+
+def _update(P: ca.MX, H: ca.MX, R: ca.MX, gain: ca.MX) -> ca.MX:
+    """Joseph-form update with the gain masked row by row; ``S^-1`` in closed form for one or
+    two measured components."""
+    PHt = ca.mtimes(P, H.T)
+    S = ca.mtimes(H, PHt) + R
+    if S.shape == (1, 1):
+        Sinv = 1.0 / S
+    else:
+        a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
+        Sinv = ca.vertcat(ca.horzcat(d, -b), ca.horzcat(-c, a)) / (a * d - b * c)
+    K = ca.mtimes(ca.diag(gain), ca.mtimes(PHt, Sinv))
+    IKH = ca.MX.eye(P.shape[0]) - ca.mtimes(K, H)
+    return ca.mtimes(ca.mtimes(IKH, P), IKH.T) + ca.mtimes(ca.mtimes(K, R), K.T)
+
+
+@cache
+def _filter_step(nx: int, m1: int, m2: int) -> ca.Function:
+    """``(P, Phi, Q, H1, R1, g1, H2, R2, g2) -> (Pf, Pp)``: one predict and two updates."""
+    P, Phi, Q = ca.MX.sym("P", nx, nx), ca.MX.sym("Phi", nx, nx), ca.MX.sym("Q", nx, nx)
+    H1, R1, g1 = ca.MX.sym("H1", m1, nx), ca.MX.sym("R1", m1, m1), ca.MX.sym("g1", nx)
+    H2, R2, g2 = ca.MX.sym("H2", m2, nx), ca.MX.sym("R2", m2, m2), ca.MX.sym("g2", nx)
+    Pp = ca.mtimes(ca.mtimes(Phi, P), Phi.T) + Q
+    Pf = _update(_update(Pp, H1, R1, g1), H2, R2, g2)
+    return ca.Function(f"cov_filter_step_{nx}_{m1}_{m2}", [P, Phi, Q, H1, R1, g1, H2, R2, g2],
+                       [Pf, Pp])
+
+
+@cache
+def _smoother_step(nx: int) -> ca.Function:
+    """``(Ps_next, Pf, C, Pp_next) -> Ps``: one RTS covariance step."""
+    Ps1, Pf, C, Pp1 = (ca.MX.sym(name, nx, nx) for name in ("Ps1", "Pf", "C", "Pp1"))
+    P = Pf + ca.mtimes(ca.mtimes(C, Ps1 - Pp1), C.T)
+    return ca.Function(f"cov_smoother_step_{nx}", [Ps1, Pf, C, Pp1], [0.5 * (P + P.T)])
+
+
+@cache
+def _chain(step: ca.Function, size: int) -> ca.Function:
+    """``step.mapaccum(size)``: the first input carried from step to step, built once."""
+    return step.mapaccum(size)
+
+
+def _run_chain(step: ca.Function, size: int, carry: np.ndarray, per_step: list[np.ndarray]
+               ) -> list[np.ndarray]:
+    """Evaluate ``size`` chained steps from ``carry``; ``per_step[i]`` is ``(size, *shape_i)``.
+    Returns each output as ``(size, *shape)`` (output 0 is the carry after each step).
+
+    Through :meth:`casadi.Function.buffer`, which reads and writes numpy memory directly (a
+    ``DM`` result would go through a Python list)."""
+    f = _chain(step, size)
+    # column-major data of a horizontal concatenation = each block's column-major data
+    ins = [np.ascontiguousarray(carry.T, dtype=float).ravel()]
+    ins += [np.ascontiguousarray(np.swapaxes(a, 1, 2), dtype=float).ravel() for a in per_step]
+    outs = [np.empty(f.nnz_out(j)) for j in range(f.n_out())]
+    buf, evaluate = f.buffer()
+    for i, a in enumerate(ins):
+        buf.set_arg(i, memoryview(a))
+    for j, r in enumerate(outs):
+        buf.set_res(j, memoryview(r))
+    evaluate()
+    if buf.ret() != 0:
+        raise RuntimeError(f"evaluating {f.name()} failed (status {buf.ret()})")
+    return [np.swapaxes(r.reshape(size, step.size2_out(j), step.size1_out(j)), 1, 2)
+            for j, r in enumerate(outs)]
+
+
+def _chunks(n: int, every: int) -> list[tuple[int, int, int]]:
+    """``(start, stop, size)``: runs of cached chain sizes, the largest that fit, none crossing a
+    multiple of ``every``; only a last run shorter than the smallest size is padded (to it)."""
+    out = []
+    for first in range(0, n, every):
+        start, end = first, min(first + every, n)
+        while start < end:
+            size = max((s for s in CHUNK_SIZES if s <= end - start), default=CHUNK_SIZES[0])
+            out.append((start, min(start + size, end), size))
+            start += size
+    return out
+
+
+def _padded(a: np.ndarray, start: int, stop: int, size: int) -> np.ndarray:
+    """Rows ``start:stop`` of ``a``, padded to ``size`` rows by repeating the last (the padded
+    steps' results are dropped)."""
+    return a[np.r_[start:stop, np.full(size - (stop - start), stop - 1)]]
+
+
+def filtered_covariances(P0: np.ndarray, Phi: np.ndarray, Q: np.ndarray,
+                         updates: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...],
+                         check: Callable[[], None] | None = None, check_every: int = 1024
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted and filtered covariances ``(Pp, Pf)``, each ``(n, nx, nx)``, of a filter
+    started at ``P0`` at step 0 (``Pp_0 = P0``) with transitions ``Phi[k], Q[k]`` from step
+    ``k`` to ``k + 1``.
+
+    ``updates``: one or two ``(H, R, gain)`` per step in the order applied, ``H (n, m, nx)``,
+    ``R (n, m, m)``, ``gain (n, nx)`` (the mask above; a step whose mask is all zero has no such
+    measurement, and its ``H``, ``R`` are not used). ``check`` is called before every
+    ``check_every`` steps (a deadline)."""
+    n, nx = Phi.shape[0], P0.shape[0]
+    if not 1 <= len(updates) <= 2:
+        raise ValueError("one or two updates per step")
+    if len(updates) == 1:  # a second update that never acts
+        updates = (*updates, (np.zeros((n, 1, nx)), np.ones((n, 1, 1)), np.zeros((n, nx))))
+    per_step = []
+    for H, R, gain in updates:
+        none = ~gain.any(axis=1)
+        H, R = H.copy(), R.copy()  # no measurement: S = R = I, K = 0, P unchanged
+        H[none], R[none] = 0.0, np.eye(R.shape[1])
+        per_step += [H, R, gain[:, :, None]]
+    step = _filter_step(nx, updates[0][0].shape[1], updates[1][0].shape[1])
+    # step k predicts over the transition k - 1 (none before step 0)
+    Phi_in = np.concatenate([np.eye(nx)[None], Phi[: n - 1]])
+    Q_in = np.concatenate([np.zeros((1, nx, nx)), Q[: n - 1]])
+    Pf, Pp = np.empty((n, nx, nx)), np.empty((n, nx, nx))
+    P = P0
+    for start, stop, size in _chunks(n, check_every):
+        if check is not None and start % check_every == 0:
+            check()
+        ins = [_padded(a, start, stop, size) for a in (Phi_in, Q_in, *per_step)]
+        f, p = _run_chain(step, size, P, ins)
+        Pf[start:stop], Pp[start:stop] = f[: stop - start], p[: stop - start]
+        P = Pf[stop - 1]
+    return Pp, Pf
+
+
+def smoothed_covariances(Pf: np.ndarray, Pp: np.ndarray, Phi: np.ndarray) -> np.ndarray:
+    """RTS-smoothed covariances ``(n, nx, nx)`` from :func:`filtered_covariances`' output."""
+    n, nx = Pf.shape[0], Pf.shape[1]
+    Ps = Pf.copy()
+    if n < 2:
+        return Ps
+    C = np.linalg.solve(Pp[1:], Phi[: n - 1] @ Pf[:-1]).transpose(0, 2, 1)
+    # backwards: step j smooths k = n - 2 - j
+    rev = (Pf[n - 2::-1], C[::-1], Pp[:0:-1])
+    step = _smoother_step(nx)
+    P = Pf[n - 1]
+    for start, stop, size in _chunks(n - 1, CHUNK_SIZES[-1]):
+        (out,) = _run_chain(step, size, P, [_padded(a, start, stop, size) for a in rev])
+        Ps[n - 2 - start: n - 2 - stop if n - 2 - stop >= 0 else None: -1] = out[: stop - start]
+        P = out[stop - start - 1]
+    return Ps
