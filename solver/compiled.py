@@ -151,6 +151,10 @@ def columns(f: ca.Function, *args: np.ndarray) -> list[np.ndarray]:
             raise RuntimeError(f"evaluating {f.name()} failed (status {buf.ret()})")
         for j, out in enumerate(outs):
             sp = f.sparsity_out(j)
-            out[start:stop, np.array(sp.row()), np.array(sp.get_col())] = \
-                nz[j].reshape(size, sp.nnz())[: stop - start]
+            if sp.is_dense():  # column-major blocks: a reshape, no scatter
+                out[start:stop] = nz[j].reshape(size, sp.size2(), sp.size1())[
+                    : stop - start].transpose(0, 2, 1)
+            else:
+                out[start:stop, np.array(sp.row()), np.array(sp.get_col())] = \
+                    nz[j].reshape(size, sp.nnz())[: stop - start]
     return outs

@@ -4,15 +4,18 @@ at any times, and per-sensor statistics of the plots against the track."""
 from __future__ import annotations
 
 import math
+from functools import cache
 
+import casadi as ca
 import numpy as np
 
+from .. import compiled
 from ..inputs import Bounds, FloatArray
-from ..motion import propagate
+from ..motion import propagate, propagate_ca
 from ..plots import PlotTable
 from ..results import Segment, SensorReport, StateSeries
 from ..sensors import RadarSensor
-from .covariance import NH, state_size, transitions
+from .covariance import NH
 from .layout import BIAS_TERMS, Variant
 
 
@@ -38,33 +41,49 @@ def segments(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds) -> list[Segme
          np.mod(s_n[starts, 2], 2 * math.pi), s_n[starts, 3], mean])]
 
 
+@cache
+def velocity_covariance() -> ca.Function:
+    """``(s, tau, vec P) -> C``: the ``(x, z, vx, vz)`` covariance at ``tau`` after a node with
+    state ``s = (x, z, phi, v, u, w)`` and covariance ``P`` (6 x 6, column-major):
+    ``C = M P M^T`` with ``M = T A``, ``A`` the motion map's Jacobian over ``tau`` (controls in
+    the state) and ``T`` the Jacobian of ``(x, z, v cos phi, v sin phi)`` at ``tau``."""
+    s, tau = ca.SX.sym("s", NH), ca.SX.sym("tau")
+    P = ca.reshape(ca.SX.sym("P", NH * NH), NH, NH)
+    moved = propagate_ca(s[:4], s[4], s[5], tau)
+    A = ca.jacobian(ca.vertcat(moved, s[4], s[5]), s)
+    phi, v = moved[2], moved[3]
+    T = ca.SX.zeros(4, NH)
+    T[0, 0] = T[1, 1] = 1.0
+    T[2, 2], T[2, 3] = -v * ca.sin(phi), ca.cos(phi)
+    T[3, 2], T[3, 3] = v * ca.cos(phi), ca.sin(phi)
+    M = ca.mtimes(T, A)
+    return compiled.function("velocity_covariance", [s, tau, ca.vec(P)],
+                             [ca.mtimes(ca.mtimes(M, P), M.T)], ["s", "tau", "P"], ["C"])
+
+
 def series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray, t: FloatArray,
            variant: Variant, nodes: np.ndarray | None = None) -> StateSeries:
     """States and ``(x, z, vx, vz)`` covariances at times ``t`` from the node solution,
     propagated from ``nodes`` (default: the last node at or before each time).
 
     Between nodes the control is constant, so the state at ``tau`` is a deterministic function
-    of the node state: ``P(tau) = A(tau) P_k A(tau)^T`` exactly for the linearised model.
+    of the node state: ``P(tau) = A(tau) P_k A(tau)^T`` exactly for the linearised model. ``A``
+    is block-diagonal (motion; height ``h + tau hd``; constant offsets), so the horizontal
+    block (:func:`velocity_covariance`) and the height's variance are computed apart.
     """
     k = (np.clip(np.searchsorted(t_nodes, t, side="right") - 1, 0, t_nodes.size - 1)
          if nodes is None else nodes)
     tau = t - t_nodes[k]
     s = sol[k]
     x, z, phi, v = propagate(s[:, 0], s[:, 1], s[:, 2], s[:, 3], s[:, 4], s[:, 5], tau)
-    m = t.size
-    nx = state_size(variant)
-    A = transitions(s, tau, variant)
-    P = A @ cov_nodes[k] @ A.transpose(0, 2, 1)
-    T = np.zeros((m, 4, nx))
-    T[:, 0, 0] = T[:, 1, 1] = 1.0
-    c, sn = np.cos(phi), np.sin(phi)
-    T[:, 2, 2], T[:, 2, 3] = -v * sn, c
-    T[:, 3, 2], T[:, 3, 3] = v * c, sn
-    cov = T @ P @ T.transpose(0, 2, 1)
-    out = StateSeries(t.copy(), x, z, v * c, v * sn, cov)
+    P6 = cov_nodes[k, :NH, :NH].transpose(0, 2, 1).reshape(-1, NH * NH)  # column-major
+    (cov,) = compiled.columns(velocity_covariance(), s[:, :NH].T, tau[None, :], P6.T)
+    out = StateSeries(t.copy(), x, z, v * np.cos(phi), v * np.sin(phi), cov)
     if variant.altitude:
         out.h = s[:, NH] + tau * s[:, NH + 1]
-        out.h_sigma = np.sqrt(np.maximum(P[:, NH, NH], 0.0))
+        Ph = cov_nodes[k, NH:NH + 2, NH:NH + 2]
+        var = Ph[:, 0, 0] + 2 * tau * Ph[:, 0, 1] + tau**2 * Ph[:, 1, 1]
+        out.h_sigma = np.sqrt(np.maximum(var, 0.0))
     return out
 
 
