@@ -9,6 +9,10 @@ Each (truth, profile, seed) is simulated once and handed to every estimator. Wal
 per estimator (CasADi solvers and imports are built once per process, not per track); CPU
 time is ``time.process_time`` (every thread of the process) over the same call, so plots per
 CPU-second is the per-core speed whatever threads a library starts.
+The speed comparison of the report (``--speed-reps``, default 3) then re-times the smoothers it
+compares on the first seed's tracks: every repetition runs each of them on each track in turn
+(the order rotated between repetitions), and each (track, estimator) keeps its least CPU time, so
+a burst of other work on this shared machine, which only ever adds time, drops out.
 An estimator that raises is recorded as a failure in the report; the run goes on.
 """
 
@@ -66,7 +70,13 @@ class BenchResult:
     n_plots: dict[tuple[str, str], list[int]] = field(default_factory=dict)
     figure_data: dict[tuple[str, str], tuple[SimulatedTrack, SimulatedTrack | None,
                                              dict[str, Estimate]]] = field(default_factory=dict)
+    # (profile, estimator) -> plots, least CPU seconds per track summed, each repetition's sum
+    speed: dict[tuple[str, str], dict] = field(default_factory=dict)
+    speed_reps: int = 0
     elapsed_s: float = 0.0
+
+
+SPEED_ESTIMATORS = ("ss-cv-rts", "imm-smoother", "recon-refined-m3-R2")
 
 
 def _simulate_pair(truth_name: str, profile: RadarProfile, seed: int, need_alt: bool,
@@ -94,7 +104,7 @@ def _warm_up(estimators: list[Estimator], profile: RadarProfile) -> None:
 def run_benchmark(truths: list[str], profiles: list[str], seeds: list[int],
                   estimators: list[Estimator], t_max: float | None = None,
                   figure_cases: tuple[tuple[str, str], ...] = FIGURE_CASES,
-                  progress: bool = True) -> BenchResult:
+                  progress: bool = True, speed_reps: int = 0) -> BenchResult:
     """Simulate every (truth, profile, seed) once and run every applicable estimator on it."""
     res = BenchResult()
     start = time.perf_counter()
@@ -130,8 +140,40 @@ def run_benchmark(truths: list[str], profiles: list[str], seeds: list[int],
         if keep:
             res.figure_data[(tname, pname)] = (track, alt, kept)
     bar.close()
+    if speed_reps > 0:
+        timed = [e for e in estimators if e.name in SPEED_ESTIMATORS]
+        for pname in profiles:
+            _time_speed(res, pname, truths, seeds[0], [e for e in timed if e.applies_to(pname)],
+                        speed_reps, t_max)
     res.elapsed_s = time.perf_counter() - start
     return res
+
+
+def _time_speed(res: BenchResult, pname: str, truths: list[str], seed: int,
+                estimators: list[Estimator], reps: int, t_max: float | None) -> None:
+    """Least CPU time of each estimator on each track over ``reps`` interleaved repetitions
+    (see the module docstring) into ``res.speed``."""
+    profile = PROFILES[pname]
+    tracks = [_simulate_pair(tn, profile, seed, False, t_max)[0] for tn in truths]
+    cpu = np.full((reps, len(estimators), len(tracks)), np.inf)
+    for r in range(reps):
+        for i, track in enumerate(tracks):
+            for j in np.roll(np.arange(len(estimators)), r + i):
+                c0 = time.process_time()
+                try:
+                    estimators[j].run(track.plots, profile.radar(), pname)
+                except Exception:  # recorded by the accuracy loop
+                    continue
+                cpu[r, j, i] = time.process_time() - c0
+    plots = sum(len(t.plots) for t in tracks)
+    res.speed_reps = reps
+    for j, est in enumerate(estimators):
+        least = cpu[:, j, :].min(axis=0)
+        if np.all(np.isfinite(least)):
+            res.speed[(pname, est.name)] = {
+                "plots": plots, "cpu_s": float(least.sum()),
+                "plots_per_cpu_s": plots / float(least.sum()),
+                "rep_cpu_s": [float(c) for c in cpu[:, j, :].sum(axis=1)]}
 
 
 def summaries(res: BenchResult) -> tuple[dict, dict]:
@@ -187,6 +229,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="output directory (default benchmarks/results, quick: results/quick)")
     ap.add_argument("--no-figures", action="store_true")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--speed-reps", type=int, default=None,
+                    help="repetitions of the interleaved speed timing of "
+                    f"{', '.join(SPEED_ESTIMATORS)} on the first seed (default 3, quick 1; "
+                    "0: none)")
     return ap.parse_args(argv)
 
 
@@ -207,12 +253,13 @@ def main(argv: list[str] | None = None) -> int:
     cases = tuple((t, p) for t, p in FIGURE_CASES if t in truths and p in profiles)
     if not cases:
         cases = ((truths[0], profiles[0]),)
+    speed_reps = args.speed_reps if args.speed_reps is not None else (1 if args.quick else 3)
     res = run_benchmark(truths, profiles, seeds, estimators, t_max, cases,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress, speed_reps=speed_reps)
     settings = {"command": "python -m benchmarks.run " + " ".join(argv or sys.argv[1:]),
                 "profiles": profiles, "truths": truths, "seeds": seeds,
                 "estimators": [e.name for e in estimators], "t_max": t_max,
-                "quick": args.quick}
+                "quick": args.quick, "speed_reps": speed_reps}
     out = args.out or (RESULTS_DIR / "quick" if args.quick else RESULTS_DIR)
     report = write_outputs(res, settings, environment(), out, figures=not args.no_figures)
     print(f"wrote {report} ({res.elapsed_s:.0f} s, {len(res.failures)} failures)")

@@ -78,3 +78,40 @@ def test_cli_quick_arguments_parse():
     assert args.quick and args.profiles == ["ssr"] and args.estimators == ["ss-*"]
     names = [e.name for e in select(["ss-*"])]
     assert names == ["ss-cv-kf", "ss-cv-rts", "ss-cv-rts+alt"]
+
+
+def test_speed_stage_interleaves_and_keeps_the_least_cpu_time(tmp_path):
+    """The speed stage times the compared smoothers on the first seed's tracks, each repetition
+    in a rotated order, and keeps each (track, estimator)'s least CPU time."""
+    calls: list[str] = []
+
+    def spy(name):
+        def fn(plots, radar, profile):
+            calls.append(name)
+            return select(["raw"])[0].run(plots, radar, profile)
+        return fn
+
+    ests = [Estimator(n, "baseline", spy(n)) for n in bench_run.SPEED_ESTIMATORS]
+    truths = ["calibration__vienna", "calibration__bornholm"]
+    res = bench_run.run_benchmark(truths, ["ssr"], [4, 5], ests, t_max=200.0, figure_cases=(),
+                                  progress=False, speed_reps=3)
+    timed = calls[len(ests) * (1 + len(truths) * 2):]  # after the warm-up and accuracy loop
+    assert len(timed) == 3 * len(truths) * len(ests)
+    firsts = [timed[k * len(ests)] for k in range(3 * len(truths))]
+    assert len(set(firsts)) == len(ests)  # every estimator goes first somewhere
+    plots = sum(len(bench_run._simulate_pair(t, bench_run.PROFILES["ssr"], 4, False, 200.0)[0]
+                    .plots) for t in truths)
+    for n in bench_run.SPEED_ESTIMATORS:
+        s = res.speed[("ssr", n)]
+        assert s["plots"] == plots and len(s["rep_cpu_s"]) == 3
+        assert s["cpu_s"] <= min(s["rep_cpu_s"]) + 1e-12
+        assert s["plots_per_cpu_s"] == plots / s["cpu_s"]
+    settings = {"command": "test", "profiles": ["ssr"], "truths": truths, "seeds": [4, 5],
+                "estimators": list(bench_run.SPEED_ESTIMATORS), "t_max": 200.0,
+                "quick": False, "speed_reps": 3}
+    env = {k: "x" for k in ("python", "machine", "cpus", "numpy", "casadi", "stonesoup",
+                            "filterpy", "commit", "date_utc")}
+    text = write_outputs(res, settings, env, tmp_path, figures=False).read_text()
+    assert "over 3 interleaved repetitions on seed 4's tracks" in text
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert data["speed_reps"] == 3 and "ssr/imm-smoother" in data["speed"]
