@@ -25,6 +25,8 @@ from functools import cache
 import casadi as ca
 import numpy as np
 
+from .. import compiled
+
 CHUNK_SIZES = tuple(2**k for k in range(4, 13))  # steps of the cached chains (16..4096)
 
 
@@ -72,23 +74,13 @@ def _chain(step: ca.Function, size: int) -> ca.Function:
 def _run_chain(step: ca.Function, size: int, carry: np.ndarray, per_step: list[np.ndarray]
                ) -> list[np.ndarray]:
     """Evaluate ``size`` chained steps from ``carry``; ``per_step[i]`` is ``(size, *shape_i)``.
-    Returns each output as ``(size, *shape)`` (output 0 is the carry after each step).
-
-    Through :meth:`casadi.Function.buffer`, which reads and writes numpy memory directly (a
-    ``DM`` result would go through a Python list)."""
+    Returns each output as ``(size, *shape)`` (output 0 is the carry after each step)."""
     f = _chain(step, size)
     # column-major data of a horizontal concatenation = each block's column-major data
     ins = [np.ascontiguousarray(carry.T, dtype=float).ravel()]
     ins += [np.ascontiguousarray(np.swapaxes(a, 1, 2), dtype=float).ravel() for a in per_step]
     outs = [np.empty(f.nnz_out(j)) for j in range(f.n_out())]
-    buf, evaluate = f.buffer()
-    for i, a in enumerate(ins):
-        buf.set_arg(i, memoryview(a))
-    for j, r in enumerate(outs):
-        buf.set_res(j, memoryview(r))
-    evaluate()
-    if buf.ret() != 0:
-        raise RuntimeError(f"evaluating {f.name()} failed (status {buf.ret()})")
+    compiled.evaluate_into(f, ins, outs)
     return [np.swapaxes(r.reshape(size, step.size2_out(j), step.size1_out(j)), 1, 2)
             for j, r in enumerate(outs)]
 
