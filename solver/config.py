@@ -52,9 +52,10 @@ class RefineSettings:
     % ellipses). ``switch_threshold``: control changes above it (m/s^2) are kept as switches by the
     polish solve, the rest held at zero (0: no polish); ``polish_penalty_scale`` scales the L1
     weights in that solve. ``ipopt_tol``: IPOPT's convergence tolerance (chi-square units; against
-    1e-6, 1e-5 moves the dev tracks by at most 0.4 m with 6 % fewer iterations (``python -m
-    benchmarks.refine_profile``) and the block seams of tests/test_refine.py from 0.02 to 0.04 m;
-    1e-4 saves 8 % more but moves a dev track by 1.7 m and a seam by 0.96 m).
+    1e-6, 1e-5 moves the dev tracks by at most 0.01 m with 6 % fewer iterations (``python -m
+    benchmarks.refine_profile``, 2026-11-26; 0.4 m in an earlier run) and the block seams of
+    tests/test_refine.py from 0.02 to 0.04 m; 1e-4 saves 8 % more but moves a dev track by up to
+    10.4 m (1.7 m earlier) and a seam by 0.96 m).
     """
 
     max_node_step_s: float = 20.0
