@@ -83,7 +83,7 @@ def per_truth_table(per_truth: dict, profile: str, estimators: list[str]) -> str
     return "\n".join(lines)
 
 
-def speed_table(res: BenchResult, overall: dict, profiles: list[str], seeds: list[int]
+def speed_table(res: BenchResult, overall: dict, profiles: list[str]
                 ) -> list[str]:
     """Plots per CPU-second of the Stone Soup CV smoother, the IMM smoother and the refined
     reconstruction: from the interleaved speed timing when the run made it, with the single
@@ -92,10 +92,10 @@ def speed_table(res: BenchResult, overall: dict, profiles: list[str], seeds: lis
     md = [""]
     if res.speed:
         md += [f"Speed per core (plots per CPU-second, all threads counted), least CPU time of "
-               f"each estimator on each track over {res.speed_reps} interleaved repetitions on "
-               f"seed {seeds[0]}'s tracks (the order rotated, so other work on the machine "
-               "drops out); the last column is the ratio from the accuracy loop's single timed "
-               "calls (all seeds) for comparison:", "",
+               f"each estimator on each track and seed over {res.speed_reps} interleaved "
+               "repetitions (the order rotated, so other work on the machine drops out); the "
+               "last column is the ratio from the accuracy loop's single timed calls for "
+               "comparison:", "",
                "| profile | ss-cv-rts | imm-smoother | recon-refined-m3-R2 | ratio to ss-cv-rts "
                "| ratio to imm-smoother | repetitions' spread (recon / imm) | single calls: "
                "ratio to imm-smoother |", "|---|---:|---:|---:|---:|---:|---|---:|"]
@@ -202,7 +202,7 @@ def write_outputs(res: BenchResult, settings: dict, env: dict[str, str], out: Pa
         cells = [f"{_f(m['rms_pos'])} m, {_f(m['rms_speed'], 1)} m/s" if m else "-" for m in ms]
         ratio = _x(ms[2]["rms_pos"] / ms[1]["rms_pos"]) if ms[1] and ms[2] else "-"
         md.append(f"| {p} | " + " | ".join(cells) + f" | {ratio} |")
-    md += speed_table(res, overall, profiles, settings["seeds"])
+    md += speed_table(res, overall, profiles)
     for p in profiles:
         md += ["", f"## Profile `{p}`", "", headline_table(overall, best, p), "",
                "RMS position error (m) per track:", "",

@@ -9,8 +9,9 @@ Each (truth, profile, seed) is simulated once and handed to every estimator. Wal
 per estimator (CasADi solvers and imports are built once per process, not per track); CPU
 time is ``time.process_time`` (every thread of the process) over the same call, so plots per
 CPU-second is the per-core speed whatever threads a library starts.
-The speed comparison of the report (``--speed-reps``, default 3) then re-times the smoothers it
-compares on the first seed's tracks: every repetition runs each of them on each track in turn
+The speed comparison of the report (``--speed-reps``, default 2) then re-times the smoothers it
+compares on every track and seed of the run (the reconstruction's speed differs by up to 2x from
+seed to seed on the same tracks): every repetition runs each of them on each track in turn
 (the order rotated between repetitions), and each (track, estimator) keeps its least CPU time, so
 a burst of other work on this shared machine, which only ever adds time, drops out.
 An estimator that raises is recorded as a failure in the report; the run goes on.
@@ -143,18 +144,19 @@ def run_benchmark(truths: list[str], profiles: list[str], seeds: list[int],
     if speed_reps > 0:
         timed = [e for e in estimators if e.name in SPEED_ESTIMATORS]
         for pname in profiles:
-            _time_speed(res, pname, truths, seeds[0], [e for e in timed if e.applies_to(pname)],
+            _time_speed(res, pname, truths, seeds, [e for e in timed if e.applies_to(pname)],
                         speed_reps, t_max)
     res.elapsed_s = time.perf_counter() - start
     return res
 
 
-def _time_speed(res: BenchResult, pname: str, truths: list[str], seed: int,
+def _time_speed(res: BenchResult, pname: str, truths: list[str], seeds: list[int],
                 estimators: list[Estimator], reps: int, t_max: float | None) -> None:
     """Least CPU time of each estimator on each track over ``reps`` interleaved repetitions
     (see the module docstring) into ``res.speed``."""
     profile = PROFILES[pname]
-    tracks = [_simulate_pair(tn, profile, seed, False, t_max)[0] for tn in truths]
+    tracks = [_simulate_pair(tn, profile, seed, False, t_max)[0]
+              for tn in truths for seed in seeds]
     cpu = np.full((reps, len(estimators), len(tracks)), np.inf)
     for r in range(reps):
         for i, track in enumerate(tracks):
@@ -231,8 +233,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--speed-reps", type=int, default=None,
                     help="repetitions of the interleaved speed timing of "
-                    f"{', '.join(SPEED_ESTIMATORS)} on the first seed (default 3, quick 1; "
-                    "0: none)")
+                    f"{', '.join(SPEED_ESTIMATORS)} on every track and seed (default 2, "
+                    "quick 1; 0: none)")
     return ap.parse_args(argv)
 
 
@@ -253,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     cases = tuple((t, p) for t, p in FIGURE_CASES if t in truths and p in profiles)
     if not cases:
         cases = ((truths[0], profiles[0]),)
-    speed_reps = args.speed_reps if args.speed_reps is not None else (1 if args.quick else 3)
+    speed_reps = args.speed_reps if args.speed_reps is not None else (1 if args.quick else 2)
     res = run_benchmark(truths, profiles, seeds, estimators, t_max, cases,
                         progress=not args.no_progress, speed_reps=speed_reps)
     settings = {"command": "python -m benchmarks.run " + " ".join(argv or sys.argv[1:]),
