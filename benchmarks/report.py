@@ -83,6 +83,14 @@ def per_truth_table(per_truth: dict, profile: str, estimators: list[str]) -> str
     return "\n".join(lines)
 
 
+def _spread(speed: dict | None) -> str:
+    """How much slower the slowest repetition was than the fastest, in all."""
+    if not speed:
+        return "-"
+    reps = speed["rep_cpu_s"]
+    return f"{max(reps) / min(reps) - 1:.0%}"
+
+
 def speed_table(res: BenchResult, overall: dict, profiles: list[str]
                 ) -> list[str]:
     """Plots per CPU-second of the Stone Soup CV smoother, the IMM smoother and the refined
@@ -113,15 +121,8 @@ def speed_table(res: BenchResult, overall: dict, profiles: list[str]
             continue
         sp = [res.speed.get((p, n)) for n in names]
         ref, imm, rec = (s["plots_per_cpu_s"] if s else float("nan") for s in sp)
-
-        def spread(s: dict | None) -> str:
-            if not s:
-                return "-"
-            reps = s["rep_cpu_s"]
-            return f"{max(reps) / min(reps) - 1:.0%}"
-
         md.append(f"| {p} | {_f(ref)} | {_f(imm)} | {_f(rec)} | {_x(rec / ref)} "
-                  f"| {_x(rec / imm)} | {spread(sp[2])} / {spread(sp[1])} "
+                  f"| {_x(rec / imm)} | {_spread(sp[2])} / {_spread(sp[1])} "
                   f"| {_x(one[2] / one[1])} |")
     return md
 

@@ -87,7 +87,8 @@ def _run_chain(step: ca.Function, size: int, carry: np.ndarray, per_step: list[n
 
 def _chunks(n: int, every: int) -> list[tuple[int, int, int]]:
     """``(start, stop, size)``: runs of cached chain sizes, the largest that fit, none crossing a
-    multiple of ``every``; only a last run shorter than the smallest size is padded (to it)."""
+    multiple of ``every``; a run shorter than the smallest size (the end of a segment) is padded
+    to it."""
     out = []
     for first in range(0, n, every):
         start, end = first, min(first + every, n)
