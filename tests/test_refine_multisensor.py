@@ -329,3 +329,42 @@ def test_offsets_only_where_observable():
     assert abs((ta - tb) - 0.4) < 3 * rec.sensors[0].time_bias_sigma_s * np.sqrt(2)
     # the track keeps the mean of the two clocks: 0.2 s (about 40 m) from A's stamps' truth
     assert _rms(rec, x, z) < 60.0
+
+
+def test_held_offsets_are_consider_states_for_every_measurement(monkeypatch):
+    """After the first block the offsets are held, so no later measurement, plot or Mode C
+    altitude, may inform them in the covariance: their posterior equals that of the same
+    covariance pass with every measurement after the first block removed."""
+    import solver.refine as refine_pkg
+    from solver.refine.covariance import NH
+
+    seen = {}
+    real = refine_pkg.node_covariance
+
+    def spy(*args, **kwargs):
+        seen["args"], seen["kwargs"] = args, kwargs
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(refine_pkg, "node_covariance", spy)
+    a = RadarSensor(150.0, np.deg2rad(0.24), id="A", site=Site(46.2, 14.4, 380.0),
+                    estimate_bias=True)
+    # radar plots without altitude beside ADS-B with it: the height is estimated, and every
+    # ADS-B plot is an altitude update too
+    table, *_ = _simulate((a, SSR_B, PositionSensor("ADSB", 30.0)),
+                          ((4.8, 0.3), (4.0, 1.1), (5.0, 2.0)), noise=1.0, seed=5,
+                          biases={0: (150.0, 0.0, 0.0)}, t_end=900.0)
+    reconstruct(table, config=ReconstructionConfig(
+        refine=RefineSettings(block_nodes=128, overlap_nodes=64)))
+    args = list(seen["args"])
+    t_nodes, data, variant, k = args[0], args[3], args[4], args[10]
+    assert variant.altitude and variant.biases == 1 and 0 < k < t_nodes.size
+    assert (data.alt_info[k:] > 0).any() and (data.weight[k:] > 0).any()
+    full = real(*args, **seen["kwargs"])
+    weight, alt_info = data.weight.copy(), data.alt_info.copy()
+    weight[k:], alt_info[k:] = 0.0, 0.0
+    args[3] = dataclasses.replace(data, weight=weight, alt_info=alt_info)
+    cut = real(*args, **seen["kwargs"])
+    b = slice(NH + 2, NH + 5)
+    np.testing.assert_allclose(full[-1][b, b], cut[-1][b, b], rtol=1e-9)
+    # and the later measurements do inform the track's own states
+    assert full[-1][0, 0] < 0.5 * cut[-1][0, 0]

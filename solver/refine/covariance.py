@@ -101,17 +101,16 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
         g = np.zeros((1, nx))
         g[0, NH + 2 * variant.altitude + 2::BIAS_TERMS] = 1.0
         P0 = covariance_update(P0, g, np.array([[1.0 / time_gauge]]))
-    gain = np.ones((n, nx))
-    if consider_from is not None:  # the offsets' rows of the gain are zero from there on
-        gain[consider_from:, NH + 2 * variant.altitude:] = 0.0
-    gain[~measured] = 0.0
-    updates = [(H, R, gain)]  # R unused where the gain is zero (no plot)
+    informed = np.ones((n, nx))  # the states a measurement at each node may inform
+    if consider_from is not None:  # the offsets' rows of every gain are zero from there on
+        informed[consider_from:, NH + 2 * variant.altitude:] = 0.0
+    updates = [(H, R, informed * measured[:, None])]  # R unused where the gain is zero
     if variant.altitude:
         on = data.alt_info > 0
         alt_H = np.zeros((n, 1, nx))
         alt_H[:, 0, NH] = 1.0
         alt_R = 1.0 / np.where(on, data.alt_info, 1.0)
-        updates.append((alt_H, alt_R[:, None, None], np.broadcast_to(on[:, None], (n, nx)) * 1.0))
+        updates.append((alt_H, alt_R[:, None, None], informed * on[:, None]))
     Pp, Pf = filtered_covariances(P0, Phi, Q, tuple(updates), check, CHECK_EVERY)
     Ps = smoothed_covariances(Pf, Pp, Phi)
     return Ps
