@@ -318,6 +318,32 @@ def test_a_track_the_bounds_do_not_fit_rejects_no_plot_and_says_why(speed, side)
     assert diag.warnings == [] and diag.extra["v_at_bound_share"] == 0.0
 
 
+@pytest.mark.parametrize("threshold", [RefineSettings.switch_threshold, 0.0])
+def test_only_a_solve_the_polish_follows_is_loose(monkeypatch, threshold):
+    """The cold first solve runs to ``first_solve_tol`` only when the polish solve follows it;
+    every solve whose answer can be the result (the polish, or the only solve when there is no
+    polish) runs to ``ipopt_tol``."""
+    import solver.refine as refine_pkg
+
+    calls = []
+    real = refine_pkg.solve_block
+
+    def spy(*args, **kwargs):
+        calls.append((args[7] is not None, kwargs["tol"]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(refine_pkg, "solve_block", spy)
+    plots, radar = _straight(200.0)
+    st = RefineSettings(switch_threshold=threshold)
+    rec = reconstruct(plots, radar, ReconstructionConfig(refine=st))
+    assert rec.diagnostics.extra["rejected_plots"] == 0
+    if threshold > 0:
+        assert calls == [(False, st.first_solve_tol), (True, st.ipopt_tol)]
+        assert st.first_solve_tol > st.ipopt_tol
+    else:  # no wild plot and no switch to hold: the first solve is the answer
+        assert calls == [(False, st.ipopt_tol)]
+
+
 def test_sigmas_far_too_small_reject_no_plot_and_say_why():
     """Radar sigmas declared 10 times too small: 36 of 63 plots of a straight pass are more than
     5 (declared) sigma from the track, too many to be wild plots; nothing gets zero weight."""
@@ -332,6 +358,7 @@ def test_sigmas_far_too_small_reject_no_plot_and_say_why():
     ("switch_penalty_u", 0.0, "must be positive"),  # the covariance divides by it
     ("level_smoothing", 0.0, "must be positive"),
     ("ipopt_tol", float("nan"), "must be positive"),
+    ("first_solve_tol", 0.0, "must be positive"),
     ("level_penalty_w", -0.1, "must be zero or positive"),
     ("level_relief_u", -1.0, "must be zero or positive"),
     ("huber_delta", 0.0, "must be positive or None"),

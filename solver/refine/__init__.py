@@ -72,13 +72,19 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     The initial guess is the means of a constant-velocity smoother on the plots' ellipses
     (``config.refine.init == "smoother"``, default; with the altitude estimated, at the constant
     height the smoother fits best) or the sliding-window result ``initial`` (``"sliding"``). The
-    start decides the iteration count, not the answer: started at the true trajectory instead,
-    the refinement reached the same solutions (pooled RMS equal to 1e-8 m over the six dev
-    tracks, seeds 100 and 101, for each of seed000 and seed001; more iterations: 37 against 20
-    on one track). ``deadline`` (``time.monotonic()``): IPOPT stops at its next iteration after
-    it and :class:`DeadlineExceeded` is raised; the covariance and sampling after the solves
-    check it too (on 15,000 nodes they take about 1.7 s, which a deadline met by the solves
-    was overshot by).
+    start as such decides the iteration count, not the answer: started at the true trajectory
+    with the same level-relief weights, the refinement reached the same solutions (positions
+    0.39 m RMS apart over the seven dev tracks of seed000, seeds 100 and 101; 267 against 272
+    iterations). But the relief weights come from the start's lateral acceleration, and there a
+    better pilot pays: relieved by the true ``u`` instead, the pooled RMS falls from 363.0 to
+    351.6 m (seed000), 317.0 to 306.6 m (seed001) and 75.0 to 74.6 m (ssr). Pilots tried
+    without gain on every profile: the same smoother at q 10-300 m^2/s^3, the first solve's
+    ``u`` (under 0.4 % better, 50 % more polish iterations).
+
+    ``deadline`` (``time.monotonic()``): IPOPT stops at its next iteration after it and
+    :class:`DeadlineExceeded` is raised; the covariance and sampling after the solves check it
+    too (on 15,000 nodes they take about 1.7 s, which a deadline met by the solves was
+    overshot by).
     """
     t0 = time.perf_counter()
     st: RefineSettings = config.refine
@@ -131,8 +137,12 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     clock = {"ipopt": 0.0, "model": 0.0}  # s inside IPOPT calls / in its model evaluations
     nlp.set_deadline(deadline)
 
+    # the cold first solve only chooses what the polish solve (if one follows) holds and weighs
+    first_tol = st.first_solve_tol if st.switch_threshold > 0 and n > 1 else st.ipopt_tol
+
     def solve_all(start_guess: np.ndarray, data: NodeData, biases: np.ndarray,
-                  fixed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, int, int]:
+                  fixed: np.ndarray | None, tol: float = st.ipopt_tol
+                  ) -> tuple[np.ndarray, np.ndarray, int, int]:
         out = np.empty((n, len(solution_columns(variant))))
         prev: np.ndarray | None = None
         fails = its = 0
@@ -141,7 +151,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
             t_call = time.perf_counter()
             blk = solve_block(pb, start, stop, data, start_guess, biases, prev,
                               None if fixed is None else fixed[:, start:stop], duals[j],
-                              hold_biases=j > 0)
+                              hold_biases=j > 0, tol=tol)
             clock["ipopt"] += time.perf_counter() - t_call
             clock["model"] += blk.model_s
             duals[j] = blk.duals
@@ -155,7 +165,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
 
     try:
         biases0 = np.zeros((variant.biases, BIAS_TERMS))
-        sol, biases, failures, iters = solve_all(guess, data, biases0, None)
+        sol, biases, failures, iters = solve_all(guess, data, biases0, None, first_tol)
         solves = len(blocks)
         # Sensors whose plots lie far closer to the track than their declared sigmas: weight
         # them by the scatter they show (re-solved from the solution, at most a few rounds).

@@ -56,11 +56,14 @@ def ladder(n: int) -> int:
 
 
 def build_solvers(variants: tuple[Variant, ...] = (Variant(),)) -> None:
-    """Build every block solver of the ladder (about 2 s per variant), e.g. before serving."""
+    """Build every block solver the default settings use (the cold first solve at
+    ``first_solve_tol``, the warm ones at ``ipopt_tol``) over the ladder (about 2 s per
+    variant), e.g. before serving."""
+    st = RefineSettings()
     for v in variants:
         for n in LADDER:
-            nlp.block_solver(n, v)
-            nlp.block_solver(n, v, warm=True)
+            nlp.block_solver(n, v, tol=st.first_solve_tol)
+            nlp.block_solver(n, v, warm=True, tol=st.ipopt_tol)
 
 
 def cut(n: int, size: int, overlap: int) -> list[tuple[int, int, int]]:
@@ -107,10 +110,12 @@ class Problem(NamedTuple):
 
 def solve_block(pb: Problem, start: int, stop: int, data: NodeData, guess: np.ndarray,
                 biases: np.ndarray, prev: np.ndarray | None, fixed: np.ndarray | None,
-                duals: tuple[np.ndarray, np.ndarray] | None, hold_biases: bool) -> BlockResult:
-    """Solve nodes ``[start, stop)``; ``prev`` (the previous block's node solution, or None)
-    fixes the start; ``fixed`` (``(2, m)`` bool) marks control changes held at exactly zero
-    (polish step); ``duals`` warm-start IPOPT; ``hold_biases`` fixes the offsets at ``biases``.
+                duals: tuple[np.ndarray, np.ndarray] | None, hold_biases: bool,
+                tol: float) -> BlockResult:
+    """Solve nodes ``[start, stop)`` to IPOPT's tolerance ``tol``; ``prev`` (the previous
+    block's node solution, or None) fixes the start; ``fixed`` (``(2, m)`` bool) marks control
+    changes held at exactly zero (polish step); ``duals`` warm-start IPOPT; ``hold_biases`` fixes
+    the offsets at ``biases``.
     """
     st, bounds, v = pb.settings, pb.bounds, pb.variant
     V, G, P, E = (node_variables(v), global_variables(v), node_parameters(v),
@@ -118,7 +123,7 @@ def solve_block(pb: Problem, start: int, stop: int, data: NodeData, guess: np.nd
     t = pb.t_nodes[start:stop]
     m = t.size
     size = ladder(m)
-    solver = nlp.block_solver(size, v, duals is not None, st.ipopt_tol)
+    solver = nlp.block_solver(size, v, duals is not None, tol)
     sl = slice(start, stop)
     par = np.zeros((P.size, size))
     par[P["dt"], : m - 1] = np.diff(t)
