@@ -51,20 +51,21 @@ class RefineSettings:
     98 %) and 90.5 / 95.5 / 96.7 % of the real dev tracks (seed000 / seed001 / ssr with altitude, 95
     % ellipses). ``switch_threshold``: control changes above it (m/s^2) are kept as switches by the
     polish solve, the rest held at zero (0: no polish); ``polish_penalty_scale`` scales the L1
-    weights in that solve. ``ipopt_tol``: IPOPT's convergence tolerance (chi-square units; against
-    1e-6, 1e-5 moves the dev tracks by at most 0.01 m with 6 % fewer iterations (``python -m
-    benchmarks.refine_profile``, 2026-11-26; 0.4 m in an earlier run) and the block seams of
-    tests/test_refine.py from 0.02 to 0.04 m; 1e-4 saves 8 % more but moves a dev track by up to
-    10.4 m (1.7 m earlier) and a seam by 0.96 m). ``first_solve_tol``: IPOPT's tolerance of the
-    first, cold-started solve when the polish solve follows it (``switch_threshold > 0``): that
-    solve only chooses the switches, the wild plots and the sensors' weight scales, and the
-    polish solve, warm-started, meets ``ipopt_tol``. 3e-4 against 1e-5: 10 / 10 / 10 % fewer
-    iterations in all on dev seeds 100-107 (seed000 / seed001 / ssr: 1311 -> 1181, 1267 -> 1138,
-    1183 -> 1067), RMS position unchanged (353.45 / 320.57 -> 320.54 / 72.95 m). Looser gives
-    little more (1e-2: 12 %) and lands some blocked solves in another local solution (on the
-    blocked seed-like track of tests/test_refine.py, 1.6 m from the one-block solution at 1e-3,
-    205 m in a 6 m/s^2 turn at 1e-2; 0.5 m at 3e-4); looser complementarity or constraint
-    tolerances cost the polish solve more iterations than they save.
+    weights in that solve. ``ipopt_tol``: IPOPT's convergence tolerance of the solves whose
+    answer is the result (chi-square units; against 1e-6, 1e-5 moves the dev tracks by at most
+    0.09 m with 5 % fewer iterations, 1e-4 by as much with 2 % fewer still: ``python -m
+    benchmarks.refine_profile`` with the first solve at ``first_solve_tol``, 2026-11-26; before
+    it, 1e-4 moved a dev track by 10.4 m and a block seam by 0.96 m). ``first_solve_tol``:
+    IPOPT's tolerance of the first, cold-started solve when the polish solve follows it
+    (``switch_threshold > 0``; never tighter than ``ipopt_tol``): that solve only chooses the
+    switches, the wild plots and the sensors' weight scales, and the polish solve, warm-started,
+    meets ``ipopt_tol``. 3e-4 against 1e-5: 10 / 10 / 10 % fewer iterations in all on dev seeds
+    100-107 (seed000 / seed001 / ssr: 1311 -> 1181, 1267 -> 1138, 1183 -> 1067), RMS position
+    unchanged (353.45 / 320.57 -> 320.54 / 72.95 m). Looser gives little more (1e-2: 12 %) and
+    lands some blocked solves in another local solution (on the blocked seed-like track of
+    tests/test_refine.py, 1.6 m from the one-block solution at 1e-3, 205 m in a 6 m/s^2 turn at
+    1e-2; 0.5 m at 3e-4); looser complementarity or constraint tolerances cost the polish solve
+    more iterations than they save.
     """
 
     max_node_step_s: float = 20.0

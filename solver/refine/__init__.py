@@ -138,7 +138,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     nlp.set_deadline(deadline)
 
     # the cold first solve only chooses what the polish solve (if one follows) holds and weighs
-    first_tol = st.first_solve_tol if st.switch_threshold > 0 and n > 1 else st.ipopt_tol
+    first_tol = (max(st.first_solve_tol, st.ipopt_tol) if st.switch_threshold > 0 and n > 1
+                 else st.ipopt_tol)
 
     def solve_all(start_guess: np.ndarray, data: NodeData, biases: np.ndarray,
                   fixed: np.ndarray | None, tol: float = st.ipopt_tol
