@@ -137,9 +137,10 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     clock = {"ipopt": 0.0, "model": 0.0}  # s inside IPOPT calls / in its model evaluations
     nlp.set_deadline(deadline)
 
-    # the cold first solve only chooses what the polish solve (if one follows) holds and weighs
-    first_tol = (max(st.first_solve_tol, st.ipopt_tol) if st.switch_threshold > 0 and n > 1
-                 else st.ipopt_tol)
+    # the polish solve holds the switches the first one did not select; when it follows, the
+    # cold first solve only chooses what it holds and weighs, to a looser tolerance
+    polish = st.switch_threshold > 0 and n > 1
+    first_tol = max(st.first_solve_tol, st.ipopt_tol) if polish else st.ipopt_tol
 
     def solve_all(start_guess: np.ndarray, data: NodeData, biases: np.ndarray,
                   fixed: np.ndarray | None, tol: float = st.ipopt_tol
@@ -186,7 +187,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         quad = data.quad(sol, biases, variant.altitude)
         rejected = wild_plots(quad[plot_node], t_nodes, sol, bounds, st, diag)
         fixed = None
-        if st.switch_threshold > 0 and n > 1:
+        if polish:
             fixed = np.zeros((2, n), dtype=bool)
             fixed[:, 1:] = np.abs(np.diff(sol[:, 4:6], axis=0)).T <= st.switch_threshold
         if fixed is not None or rejected.size:
