@@ -80,10 +80,12 @@ class TrackOutcome:
     states: pa.Table | None = None
     segments: pa.Table | None = None
     extras: dict[str, Any] = field(default_factory=dict)
+    cpu_s: float | None = None  # the task thread's CPU time (elapsed_s - cpu_s: waiting)
 
     def ledger(self, part: str | None) -> dict[str, Any]:
         return {"aircraft": self.key, "status": self.status, "plots": self.plots,
-                "elapsed_s": round(self.elapsed_s, 4), "error": self.error,
+                "elapsed_s": round(self.elapsed_s, 4),
+                "cpu_s": None if self.cpu_s is None else round(self.cpu_s, 4), "error": self.error,
                 "warnings": self.warnings, "part": part}
 
 
@@ -120,7 +122,7 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
     (e.g. per-sensor statistics, a figure) fills ``TrackOutcome.extras``, on the worker."""
     from .reconstruct import reconstruct
 
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.thread_time()
     deadline = None if time_limit_s is None else time.monotonic() + time_limit_s
     try:
         rec = reconstruct(table, config=config or ReconstructionConfig(), deadline=deadline)
@@ -129,9 +131,10 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
         more = extras(rec) if extras is not None else {}
     except Exception as e:  # isolated: one track's failure is its own
         return TrackOutcome(key, "failed", len(table), time.perf_counter() - start,
-                            f"{type(e).__name__}: {e}")
+                            f"{type(e).__name__}: {e}", cpu_s=time.thread_time() - cpu)
     return TrackOutcome(key, "done", len(table), time.perf_counter() - start, None,
-                        list(rec.diagnostics.warnings), states, segments, more)
+                        list(rec.diagnostics.warnings), states, segments, more,
+                        cpu_s=time.thread_time() - cpu)
 
 
 def _states_table(key: str, table: PlotTable, rec: Any) -> pa.Table:

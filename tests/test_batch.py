@@ -78,6 +78,10 @@ def test_local_cluster_two_workers(tmp_path, tracks, client):
     entries = ledger(out)
     assert sorted(e["aircraft"] for e in entries) == ["3C6DD4", "4CA2D1", "TOO-SHORT"]
     assert {e["aircraft"]: e["status"] for e in entries}["TOO-SHORT"] == "failed"
+    for e in entries:  # the task thread's CPU time: a solve on a worker, not waiting
+        assert 0.0 < e["cpu_s"] <= e["elapsed_s"] + 1e-3
+        if e["status"] == "done":
+            assert e["cpu_s"] > 0.5 * e["elapsed_s"]
     assert pq.read_table(out / "segments.parquet").num_rows > 0
 
 

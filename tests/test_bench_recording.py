@@ -18,6 +18,7 @@ from benchmarks.recording import (
     aircraft_truths,
     build,
     in_task_rate,
+    pooled_in_process,
     real_truths,
     sensor_set,
     simulate,
@@ -127,3 +128,21 @@ def test_in_task_rate_compares_the_same_tracks(tmp_path):
     assert r["plots_per_s"] == pytest.approx(400 / 0.7)
     assert r["in_process_plots_per_s"] == pytest.approx(400 / 0.4)
     assert in_task_rate(tmp_path / "nothing", sample) is None
+    assert "plots_per_cpu_s" not in r  # a ledger from before cpu_s was recorded
+    for e, cpu in zip(ledger, (0.15, 0.1, 0.45, 0.1), strict=True):
+        e["cpu_s"] = cpu
+    (tmp_path / "progress.jsonl").write_text("".join(json.dumps(e) + "\n" for e in ledger))
+    assert in_task_rate(tmp_path, sample)["plots_per_cpu_s"] == pytest.approx(400 / 0.6)
+
+
+def test_the_in_process_reference_pools_every_timing():
+    before = {"plots": 1000, "elapsed_s": 0.5, "cpu_s": 0.4, "plots_per_s": 2000.0}
+    after = {"plots": 1000, "elapsed_s": 1.5, "cpu_s": 1.0, "plots_per_s": 1000 / 1.5}
+    assert pooled_in_process({}) is None
+    once = pooled_in_process({"in_process": before})
+    assert once is not None and once["plots_per_s"] == pytest.approx(2000.0)
+    ref = pooled_in_process({"in_process": before, "in_process_after": {"1": after}})
+    assert ref is not None and ref["timings"] == 2
+    assert ref["plots_per_s"] == pytest.approx(2000 / 2.0)  # plots over time, not a mean of rates
+    assert ref["plots_per_cpu_s"] == pytest.approx(2000 / 1.4)
+    assert ref["each_plots_per_s"] == [2000, 667]
