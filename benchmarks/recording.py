@@ -771,11 +771,11 @@ def write_report(r: dict[str, Any], out: Path, command: str) -> None:
     if "speedup_2_vs_1" in v:
         x = v["speedup_2_vs_1"]
         lines.append(f"- 2 workers >= 1.8x one worker (end to end): "
-                     f"**{'met' if x['met'] else 'missed'}** ({_f(x['value'], '.2f')}x).")
+                     f"**{'met' if x['met'] else 'missed'}** ({_f(x['value'], '.4f')}x).")
     if "one_worker_vs_in_process" in v:
         x = v["one_worker_vs_in_process"]
         lines.append(f"- one worker (end to end) >= 0.9x the in-process throughput: "
-                     f"**{'met' if x['met'] else 'missed'}** ({_f(x['value'], '.2f')}x).")
+                     f"**{'met' if x['met'] else 'missed'}** ({_f(x['value'], '.4f')}x).")
     if "peak_memory_mb" in v:
         x = v["peak_memory_mb"]
         lines.append(f"- peak memory < 2 GB: **{'met' if x['met'] else 'missed'}** "
