@@ -79,7 +79,9 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     better pilot pays: relieved by the true ``u`` instead, the pooled RMS falls from 363.0 to
     351.6 m (seed000), 317.0 to 306.6 m (seed001) and 75.0 to 74.6 m (ssr). Pilots tried
     without gain on every profile: the same smoother at q 10-300 m^2/s^3, the first solve's
-    ``u`` (under 0.4 % better, 50 % more polish iterations).
+    ``u`` (under 0.4 % better, 50 % more polish iterations), the IMM smoother's turn rate times
+    speed (its per-profile tuning; dev seeds 100 and 101: 366.9 / 320.5 / 74.7 m against 363.0 /
+    317.0 / 75.0 m) and the larger of that and the start's (363.7 / 317.3 / 74.9 m).
 
     ``deadline`` (``time.monotonic()``): IPOPT stops at its next iteration after it and
     :class:`DeadlineExceeded` is raised; the covariance and sampling after the solves check it
