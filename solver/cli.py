@@ -24,6 +24,7 @@ import json
 import math
 import queue
 import re
+import signal
 import sys
 import threading
 import time
@@ -39,6 +40,7 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
 from .batch import (
+    PROGRESS,
     BatchSummary,
     TrackOutcome,
     dask_settings,
@@ -636,13 +638,44 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM (a batch scheduler's or a container's stop), unwound like Ctrl-C."""
+
+
+def _stop_on_sigterm(signum: int, frame: Any) -> None:
+    raise Stopped()
+
+
+def _finished_tracks(out: Path) -> int:
+    """Tracks with a line in ``OUT/progress.jsonl`` (finished and kept; a torn last line is
+    not one)."""
+    try:
+        lines = (out / PROGRESS).read_bytes().splitlines()
+    except OSError:
+        return 0
+    return sum(1 for line in lines if line.endswith(b"}"))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Exit status: 0 all tracks done, 1 some failed, 2 bad input, 130 / 143 stopped by
+    SIGINT / SIGTERM (the cluster closed, the finished tracks kept: the same command resumes)."""
     args = parser().parse_args(argv)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _stop_on_sigterm) if main_thread else None
     try:
         result = run(args)
     except (InputError, FileNotFoundError) as e:
         print(f"trajrecon: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:
+        name = "SIGTERM" if isinstance(e, Stopped) else "SIGINT"
+        print(f"trajrecon: stopped by {name}; {_finished_tracks(Path(args.out))} finished "
+              f"tracks are kept in {args.out}: the same command resumes from there",
+              file=sys.stderr)
+        return 143 if isinstance(e, Stopped) else 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     print_summary(result)
     return 1 if result["failed"] else 0
 

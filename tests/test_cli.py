@@ -143,3 +143,60 @@ def test_key_groups_select_what_a_scan_per_key_selects():
     for (_, a), (_, b) in zip(got, expected, strict=True):
         assert np.array_equal(a, b)
     assert list(_key_groups(keys[:0])) == []
+
+
+def test_sigterm_closes_the_cluster_and_the_same_command_resumes(tmp_path):
+    """A batch scheduler's or a container's stop (SIGTERM to the command line alone): the
+    embedded cluster is closed (no worker process left, no leaked semaphore), the exit status
+    is 143 and the message names the finished tracks kept; the same command then does the
+    rest, every track once. The stop comes after the first commit, mid-run or (on a fast
+    machine, all tracks in one commit) while the outputs are written: the same checks hold."""
+    import signal
+    import time
+
+    import psutil
+    from test_io_asterix import Flight
+
+    flights = tuple(Flight(0x400000 + k, 2_000.0 * k, -1_500.0 * k, 180.0 - 5 * k, 60.0,
+                           300.0 + k, (110 + k, 210 + k)) for k in range(8))
+    enc = encode_recording(duration=150.0, flights=flights)
+    (tmp_path / "day.ast").write_bytes(enc.data)
+    (tmp_path / "sensors.json").write_text(json.dumps(SENSOR_FILE))
+    out = tmp_path / "out"
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(root), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    cmd = [sys.executable, "-m", "solver.cli", str(tmp_path / "day.ast"), "--sensors",
+           str(tmp_path / "sensors.json"), "--out", str(out), "--workers", "1", "--no-progress"]
+
+    def ledger() -> list[str]:
+        path = out / "progress.jsonl"
+        text = path.read_text() if path.exists() else ""
+        return [json.loads(line)["aircraft"] for line in text.splitlines() if line.endswith("}")]
+
+    proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        waited = time.monotonic() + 180
+        while not ledger():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < waited, "no track finished in 180 s"
+            time.sleep(0.05)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    kept = ledger()  # all of them when the stop came after the last commit (tracks are
+    assert 1 <= len(kept) <= len(flights)  # committed every 5 s): then it stopped the outputs
+    assert f"stopped by SIGTERM; {len(kept)} finished tracks are kept in {out}" in err
+    assert "leaked" not in err and "Traceback" not in err, err
+    assert children, "the embedded cluster's processes"
+    _, alive = psutil.wait_procs(children, timeout=10)
+    assert not alive, alive
+
+    assert main(cmd[3:]) == 0  # the same command, in this process
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["skipped"], summary["done"]) == (len(kept), len(flights) - len(kept))
+    assert sorted(ledger()) == sorted(f"{f.address:06X}" for f in flights)
