@@ -438,18 +438,11 @@ def in_task_rate(out: Path, in_process: dict[str, Any]) -> dict[str, Any] | None
     second of their ``elapsed_s`` in the run's ``progress.jsonl`` (the task on the worker,
     ``assess_track``, without Dask's per-task work or the start-up), beside the in-process
     rate of the same tracks. None without a ledger or a common track."""
-    ledger = out / "progress.jsonl"
-    if not ledger.exists():
-        return None
+    from solver.batch import ledger_entries
+
     sample = {t["aircraft"]: t for t in in_process["per_track"]}
-    seen = {}
-    for line in ledger.read_text(encoding="utf-8").splitlines():
-        try:
-            e = json.loads(line)
-        except ValueError:
-            continue
-        if e["status"] == "done" and e["aircraft"] in sample:
-            seen[e["aircraft"]] = e
+    seen = {e["aircraft"]: e for e in ledger_entries(out)
+            if e["status"] == "done" and e["aircraft"] in sample}
     if not seen:
         return None
     plots = sum(sample[k]["plots"] for k in seen)

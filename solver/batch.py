@@ -182,6 +182,21 @@ def _segments_table(key: str, rec: Any) -> pa.Table:
 # ------------------------------------------------------------------------------- output
 
 
+def ledger_entries(out: str | Path) -> list[dict[str, Any]]:
+    """The finished tracks' lines of ``OUT/progress.jsonl``, in order (none without it; a
+    killed run's torn last line is not one)."""
+    path = Path(out) / PROGRESS
+    if not path.exists():
+        return []
+    entries = []
+    for line in path.read_bytes().split(b"\n"):
+        try:
+            entries.append(json.loads(line))
+        except ValueError:  # a torn last line of a killed run, or the empty tail
+            continue
+    return entries
+
+
 class _Store:
     """The output directory: parts, the progress ledger, resume."""
 
@@ -195,19 +210,14 @@ class _Store:
         self.finished: dict[str, str] = {}  # aircraft -> status, of the earlier runs
         parts: set[str] = set()
         if self.ledger_path.exists():
-            lines = self.ledger_path.read_bytes().split(b"\n")
-            good = []
-            for line in lines:
-                try:
-                    entry = json.loads(line)
-                except ValueError:  # a torn last line of a killed run
-                    continue
-                good.append(line)
+            lines = [x for x in self.ledger_path.read_bytes().split(b"\n") if x]
+            entries = ledger_entries(out)
+            for entry in entries:
                 self.finished[entry["aircraft"]] = entry["status"]
                 if entry.get("part"):
                     parts.add(entry["part"])
-            if len(good) != len([x for x in lines if x]):
-                self._rewrite(good)
+            if len(entries) != len(lines):  # the torn line dropped (written as commit() does)
+                self._rewrite([json.dumps(e).encode() for e in entries])
         numbers = [0]
         for d in (self.tracks_dir, self.segments_dir):
             for f in d.iterdir():

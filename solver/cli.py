@@ -40,11 +40,11 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
 from .batch import (
-    PROGRESS,
     BatchSummary,
     TrackOutcome,
     dask_settings,
     embedded_cluster,
+    ledger_entries,
     reconstruct_many,
     solve_track,
 )
@@ -646,16 +646,6 @@ def _stop_on_sigterm(signum: int, frame: Any) -> None:
     raise Stopped()
 
 
-def _finished_tracks(out: Path) -> int:
-    """Tracks with a line in ``OUT/progress.jsonl`` (finished and kept; a torn last line is
-    not one)."""
-    try:
-        lines = (out / PROGRESS).read_bytes().splitlines()
-    except OSError:
-        return 0
-    return sum(1 for line in lines if line.endswith(b"}"))
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Exit status: 0 all tracks done, 1 some failed, 2 bad input, 130 / 143 stopped by
     SIGINT / SIGTERM (the cluster closed, the finished tracks kept: the same command resumes)."""
@@ -669,7 +659,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt as e:
         name = "SIGTERM" if isinstance(e, Stopped) else "SIGINT"
-        print(f"trajrecon: stopped by {name}; {_finished_tracks(Path(args.out))} finished "
+        print(f"trajrecon: stopped by {name}; {len(ledger_entries(args.out))} finished "
               f"tracks are kept in {args.out}: the same command resumes from there",
               file=sys.stderr)
         return 143 if isinstance(e, Stopped) else 130
