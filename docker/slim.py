@@ -324,7 +324,7 @@ def serve(body: dict) -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     env = {**os.environ, "TRAJRECON_HOST": "127.0.0.1", "TRAJRECON_PORT": str(port),
-           "TRAJRECON_WORKERS": "1", "TRAJRECON_JITCC_REAL": "/nonexistent/gcc"}
+           "TRAJRECON_WORKERS": "1", "CC": "/nonexistent/gcc"}
     url = f"http://127.0.0.1:{port}"
     proc = subprocess.Popen([sys.executable, "-m", "service"], env=env, cwd="/",
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)

@@ -246,7 +246,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         setup_logging(settings.log_level)
         LOGGER.info("starting", extra={"fields": {
             **settings.model_dump(),
-            "c_compiler": compiled.compiler() or "none: the motion model is interpreted"}})
+            "c_compiler": compiled.compiler() or "none",
+            "jit": compiled.jit_command() or "none: the motion model is interpreted"}})
         pool.start()
         jobs.start()
         yield

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import casadi as ca
@@ -29,12 +30,17 @@ def _motion_pair(tmp_name: str) -> tuple[ca.Function, ca.Function]:
     return compiled.function(tmp_name, *args), ca.Function("vm", *args)
 
 
+_CHOICES = (compiled.compiler, compiled.cache_dir, compiled.jit_command)
+
+
 @pytest.fixture
 def fresh_compiler(monkeypatch):
-    """Re-read the compiler choice from the (monkeypatched) environment."""
-    compiled.compiler.cache_clear()
+    """Re-read the compiler and cache choices from the (monkeypatched) environment."""
+    for f in _CHOICES:
+        f.cache_clear()
     yield monkeypatch
-    compiled.compiler.cache_clear()
+    for f in _CHOICES:
+        f.cache_clear()
 
 
 @needs_cc
@@ -63,9 +69,11 @@ def test_compiled_motion_and_derivatives_equal_the_virtual_machine():
             np.testing.assert_allclose(xa, xb, rtol=1e-12, atol=1e-12 * (1 + np.abs(xb).max()))
 
 
-def test_compile_off_keeps_the_virtual_machine(fresh_compiler):
+def test_compile_off_keeps_the_virtual_machine(fresh_compiler, tmp_path):
     fresh_compiler.setenv("TRAJRECON_COMPILE", "0")
-    assert compiled.compiler() is None
+    fresh_compiler.setenv(compiled.CACHE_ENV, str(tmp_path))
+    (tmp_path / "0123.so").write_bytes(b"")  # a cache with entries does not turn it on
+    assert compiled.compiler() is None and compiled.jit_command() is None
     f, g = _motion_pair("motion_off")
     assert not compiled.is_compiled("motion_off")
     np.testing.assert_array_equal(np.array(f([1e4, 2e4, 0.3, 150], 2.0, 0.5, 8.0)),
@@ -77,6 +85,7 @@ def test_broken_compiler_falls_back_with_a_warning(fresh_compiler, tmp_path, cap
     cc.write_text("#!/bin/sh\necho 'cc: out of order' >&2\nexit 1\n")
     cc.chmod(0o755)
     fresh_compiler.setenv("CC", str(cc))
+    fresh_compiler.setenv(compiled.CACHE_ENV, str(tmp_path / "cache"))  # empty: nothing to load
     fresh_compiler.delenv("TRAJRECON_COMPILE", raising=False)
     assert compiled.compiler() == str(cc)
     with caplog.at_level(logging.WARNING, logger="solver.compiled"):
@@ -122,7 +131,7 @@ def test_refinement_is_the_same_compiled_or_interpreted():
 
 def test_the_motion_model_in_use_is_compiled_when_a_compiler_exists():
     motion_function()
-    assert compiled.is_compiled("motion") == (compiled.compiler() is not None)
+    assert compiled.is_compiled("motion") == (compiled.jit_command() is not None)
 
 
 _POOL = """
@@ -205,3 +214,156 @@ def test_columns_equals_column_by_column_calls():
     assert empty[0].shape == (0, 6, 6)
     with pytest.raises(ValueError, match="input 1"):
         compiled.columns(f, S, T[:, :-1])
+
+
+# ------------------------------------------------------------------ the compiled-object cache
+
+_COMPILE_MOTION = """
+import json, numpy as np
+from solver import compiled
+from solver.motion import motion_function
+f = motion_function()
+h = f.reverse(1).forward(1)  # a second derivative, as IPOPT's Hessian asks for
+x = {"state": [1e4, 2e4, 0.3, 150.0], "u": 2.0, "w": 0.5, "t": 8.0}
+seeds = {"adj_state_t": [0.1, -0.2, 0.3, 0.4], "fwd_state": [1.0, 2.0, 0.01, 3.0], "fwd_u": 0.1,
+         "fwd_w": -0.2, "fwd_t": 0.5}
+print(json.dumps({"compiled": compiled.is_compiled("motion"), "command": compiled.jit_command(),
+                  "f": np.array(f(*x.values())).ravel().tolist(),
+                  "h": np.array(h(**x, **seeds)["fwd_adj_state"]).ravel().tolist()}))
+"""
+
+
+def _counting_cc(tmp_path: Path) -> tuple[Path, Path]:
+    """A compiler that appends each command line to a log, then runs the real one."""
+    log, cc = tmp_path / "cc.log", tmp_path / "counting-cc"
+    cc.write_text(f"#!/bin/sh\necho \"$*\" >> {log}\nexec {compiled.compiler()} \"$@\"\n")
+    cc.chmod(0o755)
+    return cc, log
+
+
+def _motion_in_subprocess(env: dict) -> dict:
+    r = subprocess.run([sys.executable, "-c", _COMPILE_MOTION], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300, check=True,
+                       env={**os.environ, "PYTHONPATH": str(ROOT), **env})
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+@needs_cc
+def test_a_second_process_loads_the_cache_and_compiles_nothing(tmp_path):
+    cc, log = _counting_cc(tmp_path)
+    cache = tmp_path / "cache"
+    first = _motion_in_subprocess({"CC": str(cc), compiled.CACHE_ENV: str(cache)})
+    compiles = log.read_text().splitlines()
+    assert first["compiled"] and "jitcc.sh" in first["command"]
+    assert sum(" -c " in c for c in compiles) >= 4  # the function and three derivatives
+    assert len(list(cache.glob("*.o"))) >= 4 and len(list(cache.glob("*.so"))) >= 4
+    again = _motion_in_subprocess({"CC": str(cc), compiled.CACHE_ENV: str(cache)})
+    assert log.read_text().splitlines() == compiles, "the second process compiled"
+    # no compiler at all (the Docker image's final stage): the cache alone
+    alone = _motion_in_subprocess({"CC": str(tmp_path / "missing-cc"),
+                                   compiled.CACHE_ENV: str(cache)})
+    assert alone["compiled"] and alone["command"].endswith(" -")
+    off = _motion_in_subprocess({"TRAJRECON_COMPILE": "0", compiled.CACHE_ENV: str(cache)})
+    assert not off["compiled"]
+    for run in (again, alone):
+        assert run["f"] == first["f"] and run["h"] == first["h"]
+    np.testing.assert_allclose(first["f"], off["f"], rtol=1e-13)
+    np.testing.assert_allclose(first["h"], off["h"], rtol=1e-12, atol=1e-12)
+
+
+_C = "double f(double x) {{ return {} * x; }}\n"
+
+
+def _front(cache: Path, cc: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["sh", str(compiled.FRONT), str(cache), "x86_64", cc, *args],
+                          capture_output=True, text=True, timeout=60)
+
+
+@needs_cc
+def test_the_cache_key_is_the_source_and_the_flags_not_the_paths(tmp_path):
+    cc, log = _counting_cc(tmp_path)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+
+    def compile_(text: str, name: str, *flags: str) -> bytes:
+        src = tmp_path / f"{name}.c"
+        src.write_text(text)
+        r = _front(cache, str(cc), *flags, "-fPIC", "-c", str(src), "-o", str(src) + ".o")
+        assert r.returncode == 0, r.stderr
+        return Path(str(src) + ".o").read_bytes()
+
+    a = compile_(_C.format(2.0), "a", "-O1")
+    assert compile_(_C.format(2.0), "b", "-O1") == a  # same source elsewhere: from the cache
+    assert len(log.read_text().splitlines()) == 1
+    compile_(_C.format(3.0), "c", "-O1")  # another source
+    compile_(_C.format(2.0), "d", "-O2")  # other flags
+    assert len(log.read_text().splitlines()) == 3
+    assert len(list(cache.glob("*.o"))) == 3 and not list(cache.glob(".tmp.*"))
+
+
+@needs_cc
+def test_a_failed_compile_is_not_cached_and_no_compiler_misses_cleanly(tmp_path):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    src = tmp_path / "bad.c"
+    src.write_text("this is not C\n")
+    r = _front(cache, compiled.compiler(), "-O1", "-c", str(src), "-o", str(tmp_path / "bad.o"))
+    assert r.returncode != 0 and not any(cache.iterdir())
+    src.write_text(_C.format(4.0))
+    r = _front(cache, "-", "-O1", "-c", str(src), "-o", str(tmp_path / "x.o"))
+    assert r.returncode == 1 and "not in" in r.stderr and "no compiler" in r.stderr
+
+
+@needs_cc
+def test_concurrent_processes_fill_the_cache_whole(tmp_path):
+    """Eight fronts compile the same source at once (workers starting together): each gets a
+    whole object and the cache holds one whole entry, no temporary file."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    src = tmp_path / "same.c"
+    src.write_text(_C.format(5.0))
+    procs = [subprocess.Popen(["sh", str(compiled.FRONT), str(cache), "x86_64",
+                               compiled.compiler(), "-O1", "-fPIC", "-c", str(src), "-o",
+                               str(tmp_path / f"out{i}.o")], stderr=subprocess.PIPE)
+             for i in range(8)]
+    assert all(p.wait(timeout=60) == 0 for p in procs)
+    objects = {(tmp_path / f"out{i}.o").read_bytes() for i in range(8)}
+    (entry,) = cache.iterdir()
+    assert objects == {entry.read_bytes()} and entry.suffix == ".o"
+
+
+def test_stale_entries_are_pruned_only_where_a_compiler_can_rebuild(fresh_compiler, tmp_path):
+    fresh_compiler.setenv(compiled.CACHE_ENV, str(tmp_path))
+    fresh_compiler.delenv("TRAJRECON_COMPILE", raising=False)
+    old, new = tmp_path / "old.so", tmp_path / "new.so"
+    for f in (old, new):
+        f.write_bytes(b"\x7fELF")
+    stale = time.time() - compiled.STALE_S - 3600
+    os.utime(old, (stale, stale))
+    fresh_compiler.setenv("CC", str(tmp_path / "missing-cc"))  # no compiler: nothing removed
+    assert compiled.jit_command().endswith(" -")
+    assert old.exists()
+    for f in _CHOICES:
+        f.cache_clear()
+    fresh_compiler.setenv("CC", "/bin/true")  # stands for a compiler; nothing is compiled here
+    assert compiled.jit_command().endswith(" /bin/true")
+    assert not old.exists() and new.exists()
+
+
+def test_cache_off_or_unusable_compiles_every_time(fresh_compiler, tmp_path):
+    fresh_compiler.delenv("TRAJRECON_COMPILE", raising=False)
+    fresh_compiler.setenv("CC", "/bin/true")  # stands for a compiler; nothing is compiled here
+    fresh_compiler.setenv(compiled.CACHE_ENV, "off")
+    assert compiled.cache_dir() is None and compiled.jit_command() == "/bin/true"
+    for f in _CHOICES:
+        f.cache_clear()
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    fresh_compiler.setenv(compiled.CACHE_ENV, str(blocked / "cache"))  # cannot be created
+    assert compiled.cache_dir() is None and compiled.jit_command() == "/bin/true"
+    for f in _CHOICES:
+        f.cache_clear()
+    fresh_compiler.delenv(compiled.CACHE_ENV)
+    fresh_compiler.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert compiled.cache_dir() == tmp_path / "xdg" / "trajrecon" / "jit"
+    assert compiled.cache_dir().stat().st_mode & 0o777 == 0o700

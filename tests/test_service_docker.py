@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import re
 import shlex
 import shutil
@@ -250,11 +251,11 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
     where = subprocess.run(["python", "-c", "import service, solver; print(service.__file__)"],
                            cwd=workdir, env=env, capture_output=True, text=True, check=True)
     assert where.stdout.startswith(env["VIRTUAL_ENV"]), where.stdout
-    assert list(Path(env["TRAJRECON_JITCC_CACHE"]).glob("*.so")), "nothing compiled at build"
+    assert list(Path(env["TRAJRECON_JIT_CACHE"]).glob("*.so")), "nothing compiled at build"
 
     # docker run -e TRAJRECON_PORT=<port> -e TRAJRECON_HOST=127.0.0.1, and no compiler
     run_env = {**env, "TRAJRECON_WORKERS": "1", "TRAJRECON_PORT": port,
-               "TRAJRECON_HOST": "127.0.0.1", "TRAJRECON_JITCC_REAL": "/nonexistent/gcc"}
+               "TRAJRECON_HOST": "127.0.0.1", "CC": "/nonexistent/gcc"}
     proc = subprocess.Popen(cmd, cwd=workdir, env=run_env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -276,7 +277,10 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
     log = [json.loads(line) for line in proc.stderr.read().splitlines()]  # JSON from line 1
     starting = next(line for line in log if line["msg"] == "starting")
     assert (starting["host"], starting["port"]) == ("127.0.0.1", int(port))
-    assert starting["c_compiler"].endswith("trajrecon-jitcc")
+    # no compiler: the objects compiled at build time, through the caching front
+    assert starting["c_compiler"] == "none"
+    cache = f" {env['TRAJRECON_JIT_CACHE']} {platform.machine()} -"
+    assert starting["jit"].endswith(cache), starting["jit"]
     failed = [line for line in log if "failed, interpreting it instead" in line["msg"]]
     assert not failed, "the build-time cache missed: " + str(failed[:1])
 
