@@ -388,7 +388,19 @@ def embedded_cluster(workers: int | None = None) -> Any:
 
     n = workers or len(os.sched_getaffinity(0))
     return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                        dashboard_address=":0")
+                        dashboard_address=":0", preload=[__name__])
+
+
+def dask_setup(worker: Any) -> None:
+    """Dask's preload hook, run in each embedded worker process as it starts: ignore SIGINT.
+    Ctrl-C in a terminal reaches every process of the foreground group; the command line
+    closes its cluster itself, and a worker left to the signal printed a KeyboardInterrupt
+    traceback of its own (as the service's workers, which ignore it too)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 class _engine:

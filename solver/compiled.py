@@ -37,7 +37,9 @@ LOG = logging.getLogger(__name__)
 _COMPILED: set[str] = set()
 
 
-def _enabled() -> bool:
+@cache
+def enabled() -> bool:
+    """``TRAJRECON_COMPILE`` is not ``0`` (``false``, ``no``, ``off``); read once per process."""
     return os.environ.get("TRAJRECON_COMPILE", "1").strip().lower() not in ("0", "false", "no",
                                                                            "off")
 
@@ -45,7 +47,7 @@ def _enabled() -> bool:
 @cache
 def compiler() -> str | None:
     """Path of the C compiler to use, or None (disabled or not found)."""
-    return shutil.which(os.environ.get("CC") or "cc") if _enabled() else None
+    return shutil.which(os.environ.get("CC") or "cc") if enabled() else None
 
 
 CACHE_ENV = "TRAJRECON_JIT_CACHE"
@@ -95,7 +97,7 @@ def jit_command() -> str | None:
     a cache (``CC`` ``-`` without a compiler: the cache alone answers), the compiler alone
     when the cache cannot be used (no ``sh`` or ``sha256sum``, or a path with white space, which
     CasADi's command line would split); None: nothing can compile."""
-    if not _enabled():
+    if not enabled():
         return None
     cc, cache_path = compiler(), cache_dir()
     words = [str(FRONT), str(cache_path), cc or "-"]

@@ -182,6 +182,7 @@ def test_embedded_local_cluster_by_default(tmp_path, tracks, monkeypatch):
         assert w["profile"] is False
         assert w["tick"] == QUIET_LOOPS["distributed.admin.tick.interval"]
         assert w["warmed"] > 0  # solver.batch.warm_workers ran before the worker's first track
+        assert w["sigint_ignored"]  # solver.batch.dask_setup: Ctrl-C is the command line's
 
 
 def _task_reporting_pid(folder):
@@ -190,6 +191,7 @@ def _task_reporting_pid(folder):
     so that both workers get tracks."""
     def task(key, table, config, limit):
         import os
+        import signal
         import time
 
         import dask
@@ -203,7 +205,8 @@ def _task_reporting_pid(folder):
                 "pid": os.getpid(), "mmap_threshold": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
                 "profile": dask.config.get("distributed.worker.profile.enabled"),
                 "tick": dask.config.get("distributed.admin.tick.interval"),
-                "warmed": block_solver.cache_info().currsize}))
+                "warmed": block_solver.cache_info().currsize,
+                "sigint_ignored": signal.getsignal(signal.SIGINT) == signal.SIG_IGN}))
         time.sleep(0.5)
         return solve_track(key, table, config, limit)
 

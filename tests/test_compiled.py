@@ -30,7 +30,7 @@ def _motion_pair(tmp_name: str) -> tuple[ca.Function, ca.Function]:
     return compiled.function(tmp_name, *args), ca.Function("vm", *args)
 
 
-_CHOICES = (compiled.compiler, compiled.cache_dir, compiled.jit_command)
+_CHOICES = (compiled.enabled, compiled.compiler, compiled.cache_dir, compiled.jit_command)
 
 
 @pytest.fixture
