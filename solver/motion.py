@@ -118,10 +118,10 @@ def propagate_ca(state: ca.SX | ca.MX, u, w, t):
 
 
 @cache
-def motion_function() -> ca.Function:
+def motion_function(compile: bool = True) -> ca.Function:
     """``F(state[4], u, w, t) -> state[4]``, built once; compiled when a C compiler is at hand
-    (:mod:`solver.compiled`)."""
+    (:mod:`solver.compiled`) unless ``compile`` is False."""
     s = ca.SX.sym("s", 4)
     u, w, t = ca.SX.sym("u"), ca.SX.sym("w"), ca.SX.sym("t")
-    return compiled.function("motion", [s, u, w, t], [propagate_ca(s, u, w, t)],
-                             ["state", "u", "w", "t"], ["state_t"])
+    args = ([s, u, w, t], [propagate_ca(s, u, w, t)], ["state", "u", "w", "t"], ["state_t"])
+    return compiled.function("motion", *args) if compile else ca.Function("motion_vm", *args)

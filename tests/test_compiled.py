@@ -113,8 +113,8 @@ print(json.dumps({"compiled": compiled.is_compiled("motion"), "x": rec.at_plots.
 """
 
 
-def _refine_in_subprocess(compile_flag: str) -> dict:
-    env = {**os.environ, "TRAJRECON_COMPILE": compile_flag, "PYTHONPATH": str(ROOT)}
+def _refine_in_subprocess(compile_flag: str, **extra: str) -> dict:
+    env = {**os.environ, "TRAJRECON_COMPILE": compile_flag, "PYTHONPATH": str(ROOT), **extra}
     r = subprocess.run([sys.executable, "-c", _REFINE], env=env, cwd=ROOT, capture_output=True,
                        text=True, timeout=300, check=True)
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -367,3 +367,19 @@ def test_cache_off_or_unusable_compiles_every_time(fresh_compiler, tmp_path):
     fresh_compiler.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert compiled.cache_dir() == tmp_path / "xdg" / "trajrecon" / "jit"
     assert compiled.cache_dir().stat().st_mode & 0o777 == 0o700
+
+
+@needs_cc
+def test_a_cache_without_the_solvers_derivatives_and_no_compiler_interprets_them(tmp_path):
+    """A cache filled by a process that built the motion model alone, then no compiler: the
+    refinement's solvers fall back to the interpreted model (a warning), not to the sliding
+    windows, and give the interpreted answer."""
+    cache = tmp_path / "cache"
+    _motion_in_subprocess({compiled.CACHE_ENV: str(cache)})
+    partial = _refine_in_subprocess("1", CC=str(tmp_path / "missing-cc"),
+                                    **{compiled.CACHE_ENV: str(cache)})
+    off = _refine_in_subprocess("0")
+    assert partial["compiled"]  # the model itself came from the cache
+    assert partial["iterations"] == off["iterations"]
+    np.testing.assert_allclose(partial["x"], off["x"], atol=1e-6)
+    np.testing.assert_allclose(partial["z"], off["z"], atol=1e-6)

@@ -25,11 +25,13 @@ solve as the expanded SX graph and 30 times faster to build (about 0.3 s per siz
 
 from __future__ import annotations
 
+import logging
 import time
 from functools import cache
 
 import casadi as ca
 
+from .. import compiled
 from ..config import RefineSettings
 from ..motion import motion_function
 from ..sensors import ALTITUDE_FIT_DEGREE
@@ -44,6 +46,7 @@ from .layout import (
     node_variables,
 )
 
+LOG = logging.getLogger(__name__)
 _deadline = [float("inf")]  # time.monotonic() at which a running solve stops (set per solve)
 
 
@@ -96,7 +99,24 @@ def block_solver(n: int, variant: Variant = Variant(), warm: bool = False,  # no
                  tol: float = RefineSettings.ipopt_tol) -> ca.Function:
     """IPOPT solver for a block of ``n`` nodes: variables ``vec(X / node_scale)`` then the
     global offsets ``/ global_scale``; parameters ``vec(P)`` then the block's ``E`` (layouts in
-    :mod:`solver.refine.layout`)."""
+    :mod:`solver.refine.layout`).
+
+    IPOPT's derivatives of the compiled motion model are compiled as the solver is built. Where
+    that fails (no compiler, and a cache that holds the model but not these derivatives: seen
+    when another process filled it with the model alone), the solver is built on the
+    interpreted model instead, with a warning, rather than the refinement failing."""
+    try:
+        return _block_solver(n, variant, warm, tol, motion_function())
+    except RuntimeError as e:
+        if not compiled.is_compiled("motion"):
+            raise
+        LOG.warning("compiling the motion model's derivatives for the %d-node solver failed, "
+                    "interpreting them instead: %s", n, str(e).strip().splitlines()[-1])
+        return _block_solver(n, variant, warm, tol, motion_function(compile=False))
+
+
+def _block_solver(n: int, variant: Variant, warm: bool, tol: float,
+                  motion: ca.Function) -> ca.Function:
     V, G = node_variables(variant), global_variables(variant)
     P, E = node_parameters(variant), block_parameters(variant)
     Xs = ca.MX.sym("X", V.size, n)
@@ -113,7 +133,7 @@ def block_solver(n: int, variant: Variant = Variant(), warm: bool = False,  # no
     dup, dum, dwp, dwm = row(X, V, "du"), row(X, V, "du", 1), row(X, V, "dw"), row(X, V, "dw", 1)
     dt = row(Pm, P, "dt")
     s = ca.vertcat(x, z, phi, v)
-    f = motion_function().map(n - 1)
+    f = motion.map(n - 1)
     nxt = f(s[:, : n - 1], u[: n - 1], w[: n - 1], dt[: n - 1])
     g_dyn = (s[:, 1:] - nxt) / ca.repmat(ca.DM(node_scale(variant)[:4]), 1, n - 1)
     g_ctl = ca.vertcat(u - ca.horzcat(Em[E["u_prev"]], u[: n - 1]) - dup + dum,
