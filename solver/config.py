@@ -67,7 +67,7 @@ class RefineSettings:
     1e-2; 0.5 m at 3e-4); looser complementarity or constraint tolerances cost the polish solve
     more iterations than they save. Nor does a smoother level penalty in the first solve alone
     (``level_smoothing`` 0.1 / 0.2 there, 0.05 in the polish; dev seeds 100-107): the first solves
-    take 11-28 % fewer iterations but the polish solves 1.8-4.2x more, in all -1 / +6 / +15 %
+    take 15-33 % fewer iterations but the polish solves 1.8-4.2x more, in all -1 / +6 / +15 %
     (0.1) and +19 / +25 / +36 % (0.2), the same RMS to 0.07 m.
     """
 
