@@ -196,6 +196,11 @@ def _block_solver(n: int, variant: Variant, warm: bool, tol: float,
             "tol": tol,  # chi-square units (RefineSettings.ipopt_tol)
             "acceptable_tol": tol,
             "max_iter": 300,
+            # adaptive, also in the cold first solve: the monotone barrier from 0.01 there took
+            # 11 / 14 / 1 % less CPU on dev seeds 100-107 (seed000 / seed001 / ssr; its
+            # quality-function oracle is work in every iteration), but on the blocked seed-like
+            # track of tests/test_refine.py it chose other switches: 12.4 m from the one-block
+            # solution, against the test's 1 m
             "mu_strategy": "adaptive",
             # refine a linear solve only when its residual asks for it (IPOPT still checks
             # residual_ratio_max after every solve); IPOPT's default of at least one step costs
