@@ -9,7 +9,7 @@ Hessian evaluate 4x and 6x faster (7 -> 1.7 ms and 11.5 -> 1.8 ms per IPOPT iter
 Compiling is the bulk of a fresh process's start: the warm-up's 12 functions take 3-4 s of
 ``cc`` (0.46 s interpreted). So the compiler runs behind a cache (``jitcc.sh``, like ccache):
 objects keyed by the SHA-256 of their source, kept in :func:`cache_dir`, so only the first
-process on a machine compiles (warm-up 4.7 s -> about 0.8 s afterwards, measured in fresh
+process on a machine compiles (warm-up 4.6 s -> about 0.8 s afterwards, measured in fresh
 processes). A process without a compiler still loads what the cache holds (the Docker image's
 final stage).
 
