@@ -37,7 +37,12 @@ if [ "$cc" = - ]; then
 fi
 "$cc" "$@" || exit $?
 tmp="$cache/.tmp.$$"
-if cp "$out" "$tmp" 2>/dev/null; then  # written whole, then renamed: readers never see a part
+# written whole, then renamed: readers never see a part. Readable by all (CasADi's objects are
+# 0600, from mkstemp): the Docker image fills its cache as root and serves as another user;
+# a user's own cache stays private by its directory's mode (0700)
+if cp "$out" "$tmp" 2>/dev/null && chmod a+r "$tmp" 2>/dev/null; then
     mv -f "$tmp" "$entry" 2>/dev/null || rm -f "$tmp"
+else
+    rm -f "$tmp" 2>/dev/null
 fi
 exit 0

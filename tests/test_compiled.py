@@ -288,7 +288,9 @@ def test_the_cache_key_is_the_source_and_the_flags_not_the_paths(tmp_path):
     def compile_(text: str, name: str, *flags: str) -> bytes:
         src = tmp_path / f"{name}.c"
         src.write_text(text)
-        r = _front(cache, str(cc), *flags, "-fPIC", "-c", str(src), "-o", str(src) + ".o")
+        obj = Path(str(src) + ".o")
+        obj.touch(mode=0o600)  # as CasADi's output files, made by mkstemp
+        r = _front(cache, str(cc), *flags, "-fPIC", "-c", str(src), "-o", str(obj))
         assert r.returncode == 0, r.stderr
         return Path(str(src) + ".o").read_bytes()
 
@@ -299,6 +301,9 @@ def test_the_cache_key_is_the_source_and_the_flags_not_the_paths(tmp_path):
     compile_(_C.format(2.0), "d", "-O2")  # other flags
     assert len(log.read_text().splitlines()) == 3
     assert len(list(cache.glob("*.o"))) == 3 and not list(cache.glob(".tmp.*"))
+    # readable by other users (the Docker image compiles as root and runs as another user),
+    # though CasADi writes its objects 0600
+    assert all(e.stat().st_mode & 0o444 == 0o444 for e in cache.iterdir())
 
 
 @needs_cc

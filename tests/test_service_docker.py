@@ -251,7 +251,11 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
     where = subprocess.run(["python", "-c", "import service, solver; print(service.__file__)"],
                            cwd=workdir, env=env, capture_output=True, text=True, check=True)
     assert where.stdout.startswith(env["VIRTUAL_ENV"]), where.stdout
-    assert list(Path(env["TRAJRECON_JIT_CACHE"]).glob("*.so")), "nothing compiled at build"
+    cache = Path(env["TRAJRECON_JIT_CACHE"])
+    assert list(cache.glob("*.so")), "nothing compiled at build"
+    # the build stage fills the cache as root, the final stage (USER 10001) must read it
+    unreadable = [e.name for e in cache.iterdir() if not e.stat().st_mode & 0o004]
+    assert not unreadable, f"not readable by other users: {unreadable[:3]}"
 
     # docker run -e TRAJRECON_PORT=<port> -e TRAJRECON_HOST=127.0.0.1, and no compiler
     run_env = {**env, "TRAJRECON_WORKERS": "1", "TRAJRECON_PORT": port,
@@ -279,8 +283,8 @@ def test_dockerfile_steps_install_and_serve(tmp_path):
     assert (starting["host"], starting["port"]) == ("127.0.0.1", int(port))
     # no compiler: the objects compiled at build time, through the caching front
     assert starting["c_compiler"] == "none"
-    cache = f" {env['TRAJRECON_JIT_CACHE']} {platform.machine()} -"
-    assert starting["jit"].endswith(cache), starting["jit"]
+    front = f" {env['TRAJRECON_JIT_CACHE']} {platform.machine()} -"
+    assert starting["jit"].endswith(front), starting["jit"]
     failed = [line for line in log if "failed, interpreting it instead" in line["msg"]]
     assert not failed, "the build-time cache missed: " + str(failed[:1])
 
