@@ -105,14 +105,20 @@ def block_solver(n: int, variant: Variant = Variant(), warm: bool = False,  # no
     that fails (no compiler, and a cache that holds the model but not these derivatives: seen
     when another process filled it with the model alone), the solver is built on the
     interpreted model instead, with a warning, rather than the refinement failing."""
-    try:
-        return _block_solver(n, variant, warm, tol, motion_function())
-    except RuntimeError as e:
-        if not compiled.is_compiled("motion"):
-            raise
-        LOG.warning("compiling the motion model's derivatives for the %d-node solver failed, "
-                    "interpreting them instead: %s", n, str(e).strip().splitlines()[-1])
-        return _block_solver(n, variant, warm, tol, motion_function(compile=False))
+    motion = motion_function()
+    if not compiled.is_compiled("motion"):
+        return _block_solver(n, variant, warm, tol, motion)
+    if not _interpreted_derivatives:
+        try:
+            return _block_solver(n, variant, warm, tol, motion)
+        except RuntimeError as e:
+            LOG.warning("compiling the motion model's derivatives failed, interpreting them in "
+                        "this process's solvers: %s", str(e).strip().splitlines()[-1])
+            _interpreted_derivatives.append(True)  # later sizes do not try again
+    return _block_solver(n, variant, warm, tol, motion_function(compile=False))
+
+
+_interpreted_derivatives: list[bool] = []  # non-empty once compiling them failed
 
 
 def _block_solver(n: int, variant: Variant, warm: bool, tol: float,
