@@ -312,3 +312,39 @@ def test_benchmark_baseline_is_the_smoother_with_its_profile_tuning():
     ref = run_filter("imm_smoother", tr.plots, RADAR, **tuning).states
     np.testing.assert_array_equal(got.states, ref.states)
     assert tuning["future_modes"] and not TUNED["ssr"].imm_smoother_kim.future_modes
+
+
+@pytest.mark.parametrize("mode", ["ekf", "converted"])
+def test_stacked_update_equals_one_update_per_mode(mode):
+    """``kalman.stacked_position_update`` (the forward pass's three modes in one call) gives what
+    ``kalman.position_update`` gives for each state alone: a polar plot of the single radar, and
+    of a sensor set a polar plot and a linear fix with a correlated covariance."""
+    from solver.estimation.kalman import position_update, stacked_position_update
+    from solver.estimation.measurements import SensorPlots
+
+    rng = np.random.default_rng(11)
+    x = np.column_stack([rng.normal([30e3, -20e3], 500, (3, 2)), rng.normal(0, 150, (3, 2))])
+    L = rng.normal(0, 30, (3, 4, 4))
+    P = L @ np.swapaxes(L, -1, -2) + np.diag([400.0, 400.0, 25.0, 25.0])
+    single = PolarPlots(t=np.array([0.0, 4.0]), d=np.array([36e3, 36.2e3]),
+                        sigma_d=np.array([50.0, 50.0]), psi=np.array([-0.58, -0.59]),
+                        sigma_psi=1e-3)
+    cov = np.array([[900.0, 300.0], [300.0, 400.0]])
+    sensors = SensorPlots(t=np.array([0.0, 4.0, 4.0]), rows=np.arange(3),
+                          sensor=np.array([0, 0, 1]), n_sensors=2,
+                          polar=np.array([True, True, False]), d=np.array([36e3, 36.2e3, np.nan]),
+                          sigma_d=np.array([50.0, 50.0, np.nan]),
+                          psi=np.array([-0.58, -0.59, np.nan]),
+                          sigma_psi=np.array([1e-3, 1e-3, np.nan]),
+                          centre=np.array([[0.0, 0.0], [0.0, 0.0], [30.1e3, -20.2e3]]),
+                          cov=np.stack([np.eye(2), np.eye(2), cov]))
+    for meas, k in ((single, 1), (sensors, 1), (sensors, 2)):
+        xs, Ps, nis, logdet = stacked_position_update(x, P, meas, k, mode)
+        for j in range(3):
+            want = position_update(x[j], P[j], meas, k, (0, 1), mode)
+            np.testing.assert_allclose(xs[j], want[0], rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(Ps[j], want[1], rtol=1e-9, atol=1e-9)
+            assert nis[j] == pytest.approx(want[2], rel=1e-10)
+            assert logdet[j] == pytest.approx(want[3], rel=1e-12)
+    with pytest.raises(ValueError, match="measurement mode"):
+        stacked_position_update(x, P, single, 1, "ukf")

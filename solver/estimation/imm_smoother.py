@@ -39,7 +39,7 @@ from ..inputs import FloatArray
 from ..results import FilterEstimate
 from .common import SIGMA_V0, estimate
 from .discretize import van_loan
-from .kalman import position_update
+from .kalman import stacked_position_update
 from .measurements import PolarPlots, SensorPlots
 
 N_MODES = 3
@@ -51,7 +51,6 @@ DEFAULTS = {"q_cv": Q_CV, "q_ct": Q_CT, "omega_deg": OMEGA_DEG, "tau_cv": TAU_CV
 """``q_cv``, ``q_ct`` (m^2/s^3), turn rate of the turn models ``omega_deg`` (deg/s), mean
 sojourn times ``tau_cv``, ``tau_ct`` (s)."""
 
-_POS = (0, 1)
 _EYE4 = np.eye(4)
 
 
@@ -156,7 +155,7 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
       ``W_ij = P(m_{k-1} = i | m_k = j, Z^{k-1}) = Pi_ij mu_i / c_j``;
     - mixed ``x0_j = sum_i W_ij x_i``, ``P0_j = sum_i W_ij (P_i + (x_i - x0_j)(x_i - x0_j)^T)``;
     - model ``j``: ``x_j = Phi_j x0_j``, ``P_j = Phi_j P0_j Phi_j^T + Q_j``, then the position
-      update with plot ``k`` (``kalman.position_update``, Joseph form), likelihood
+      update with plot ``k`` (``kalman.stacked_position_update``, Joseph form), likelihood
       ``L_j = exp(-(nu^T S^-1 nu + log det S) / 2)``;
     - ``mu_j = c_j L_j / sum_l c_l L_l``.
 
@@ -172,7 +171,6 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
     PP = np.empty((max(n - 1, 0), N_MODES, 4, 4))
     xf[0], Pf[0], mu[0] = x0, P0, mu0
     PhiT = np.swapaxes(Phi, -1, -2)
-    loglik = np.empty(N_MODES)
     m, x, P = mu[0], xf[0], Pf[0]
     for k in range(1, n):
         joint = Pi[k - 1] * m[:, None]
@@ -190,10 +188,9 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
         xp = (Phi[k - 1] @ xm[:, :, None])[:, :, 0]
         Pp = Phi[k - 1] @ Pm @ PhiT[k - 1] + Q[k - 1]
         XP[k - 1], PP[k - 1] = xp, Pp
-        x, P = xf[k], Pf[k]
-        for j in range(N_MODES):
-            x[j], P[j], nis, logdet = position_update(xp[j], Pp[j], meas, k, _POS, measurement)
-            loglik[j] = -0.5 * (nis + logdet)
+        x, P, nis, logdet = stacked_position_update(xp, Pp, meas, k, measurement)
+        xf[k], Pf[k] = x, P
+        loglik = -0.5 * (nis + logdet)
         post = c * np.exp(loglik - loglik.max())
         total = post.sum()
         m = mu[k] = post / total if total > 0 and np.isfinite(total) else c
