@@ -158,19 +158,21 @@ def jit_options(cc: str) -> dict:
 
 
 def function(name: str, inputs: Sequence[ca.SX], outputs: Sequence[ca.SX],
-             input_names: Sequence[str], output_names: Sequence[str]) -> ca.Function:
+             input_names: Sequence[str], output_names: Sequence[str],
+             derivatives: bool = True) -> ca.Function:
     """An SX :class:`casadi.Function`, compiled if :func:`jit_command` can compile it.
 
-    The compiled function and its first derivatives are built (hence compiled) here, so a
-    broken toolchain is found now and logged, not inside a solver later.
+    The compiled function and (``derivatives``) its first derivatives are built (hence
+    compiled) here, so a broken toolchain is found now and logged, not inside a solver later.
     """
     args = (name, list(inputs), list(outputs), list(input_names), list(output_names))
     cc = jit_command()
     if cc is not None:
         try:
             f = ca.Function(*args, jit_options(cc))
-            f.forward(1)
-            f.reverse(1)
+            if derivatives:
+                f.forward(1)
+                f.reverse(1)
             _COMPILED.add(name)
             return f
         except Exception as e:  # CasADi reports compiler and loader errors as RuntimeError

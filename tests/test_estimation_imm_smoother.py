@@ -4,6 +4,7 @@ when the mode never switches, ``scipy.linalg.expm`` for the switching matrix, th
 coordinated-turn map for the turn transitions; accuracy and mode probabilities on a manoeuvring
 track; consistency on tracks drawn from its own model; degenerate inputs; the API."""
 
+import imm_reference
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -257,7 +258,7 @@ def test_future_mode_likelihood_against_a_pseudo_measurement():
     Ppair = np.array([[spd(1.0) for _ in range(3)] for _ in range(3)])
     W = rng.dirichlet(np.ones(3), size=3).T  # columns sum to 1
     white = np.linalg.inv(np.linalg.cholesky(Pp))
-    b = ims._future_weights(W, xs, Ps, xp, white, xpair, Ppair)
+    b = imm_reference.future_weights(W, xs, Ps, xp, white, xpair, Ppair)
     lik = np.array([[mvn_pdf(z[j], H @ xpair[i, j], H @ Ppair[i, j] @ H.T + np.eye(2))
                      for j in range(3)] for i in range(3)])
     ref = W * lik / (W * lik).sum(0)
@@ -285,12 +286,12 @@ def test_future_mode_likelihood_ignores_negative_information():
     far = near.copy()
     far[1, :, 2:] = 1e4  # mode 1's predictions far off in velocity
     args = (xs, Ps, xp, np.linalg.inv(np.linalg.cholesky(Pp)))
-    b_near = ims._future_weights(W, *args, near, Ppair)
-    b_far = ims._future_weights(W, *args, far, Ppair)
+    b_near = imm_reference.future_weights(W, *args, near, Ppair)
+    b_far = imm_reference.future_weights(W, *args, far, Ppair)
     np.testing.assert_allclose(b_near, 1 / 3)
     np.testing.assert_allclose(b_far, b_near)
     far[1, :, :2] = 100.0  # and far off in position, where there is information: less weight
-    b_pos = ims._future_weights(W, *args, far, Ppair)
+    b_pos = imm_reference.future_weights(W, *args, far, Ppair)
     assert np.all(b_pos[1] < 0.01) and np.allclose(b_pos.sum(0), 1.0)
 
 
@@ -314,37 +315,42 @@ def test_benchmark_baseline_is_the_smoother_with_its_profile_tuning():
     assert tuning["future_modes"] and not TUNED["ssr"].imm_smoother_kim.future_modes
 
 
-@pytest.mark.parametrize("mode", ["ekf", "converted"])
-def test_stacked_update_equals_one_update_per_mode(mode):
-    """``kalman.stacked_position_update`` (the forward pass's three modes in one call) gives what
-    ``kalman.position_update`` gives for each state alone: a polar plot of the single radar, and
-    of a sensor set a polar plot and a linear fix with a correlated covariance."""
-    from solver.estimation.kalman import position_update, stacked_position_update
+
+@pytest.mark.parametrize("case", ["ekf", "converted", "sensors", "kim"])
+def test_compiled_passes_equal_the_numpy_reference(case):
+    """The passes' steps as compiled CasADi functions (``imm_step``) give what the plain-numpy
+    passes they replaced give (``tests/imm_reference.py``: one ``kalman.position_update`` per
+    mode, the future-mode weights as tested above): polar plots (EKF and converted), polar plots
+    mixed with position fixes (``SensorPlots``), Kim's weights."""
     from solver.estimation.measurements import SensorPlots
 
-    rng = np.random.default_rng(11)
-    x = np.column_stack([rng.normal([30e3, -20e3], 500, (3, 2)), rng.normal(0, 150, (3, 2))])
-    L = rng.normal(0, 30, (3, 4, 4))
-    P = L @ np.swapaxes(L, -1, -2) + np.diag([400.0, 400.0, 25.0, 25.0])
-    single = PolarPlots(t=np.array([0.0, 4.0]), d=np.array([36e3, 36.2e3]),
-                        sigma_d=np.array([50.0, 50.0]), psi=np.array([-0.58, -0.59]),
-                        sigma_psi=1e-3)
-    cov = np.array([[900.0, 300.0], [300.0, 400.0]])
-    sensors = SensorPlots(t=np.array([0.0, 4.0, 4.0]), rows=np.arange(3),
-                          sensor=np.array([0, 0, 1]), n_sensors=2,
-                          polar=np.array([True, True, False]), d=np.array([36e3, 36.2e3, np.nan]),
-                          sigma_d=np.array([50.0, 50.0, np.nan]),
-                          psi=np.array([-0.58, -0.59, np.nan]),
-                          sigma_psi=np.array([1e-3, 1e-3, np.nan]),
-                          centre=np.array([[0.0, 0.0], [0.0, 0.0], [30.1e3, -20.2e3]]),
-                          cov=np.stack([np.eye(2), np.eye(2), cov]))
-    for meas, k in ((single, 1), (sensors, 1), (sensors, 2)):
-        xs, Ps, nis, logdet = stacked_position_update(x, P, meas, k, mode)
-        for j in range(3):
-            want = position_update(x[j], P[j], meas, k, (0, 1), mode)
-            np.testing.assert_allclose(xs[j], want[0], rtol=1e-12, atol=1e-9)
-            np.testing.assert_allclose(Ps[j], want[1], rtol=1e-9, atol=1e-9)
-            assert nis[j] == pytest.approx(want[2], rel=1e-10)
-            assert logdet[j] == pytest.approx(want[3], rel=1e-12)
-    with pytest.raises(ValueError, match="measurement mode"):
-        stacked_position_update(x, P, single, 1, "ukf")
+    measurement, future = ("converted" if case == "converted" else "ekf"), case != "kim"
+    if case == "sensors":  # every third plot a position fix (ADS-B-like) with a full covariance
+        polar = PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR)
+        n = len(polar)
+        fix = np.arange(n) % 3 == 2
+        centre, cov = polar.points(), polar.converted_cov()
+        rng = np.random.default_rng(4)
+        L = rng.normal(0, 20, (n, 2, 2))
+        cov[fix] = (L @ np.swapaxes(L, -1, -2) + 100 * np.eye(2))[fix]
+        meas = SensorPlots(t=polar.t, rows=np.arange(n), sensor=fix.astype(int), n_sensors=2,
+                           polar=~fix, d=np.where(fix, np.nan, polar.d),
+                           sigma_d=np.where(fix, np.nan, polar.sigma_d),
+                           psi=np.where(fix, np.nan, polar.psi),
+                           sigma_psi=np.where(fix, np.nan, polar.sigma_psi), centre=centre,
+                           cov=cov)
+    else:
+        meas = PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR)
+    dt = np.diff(meas.t)
+    Phi, Q = ims.transitions(dt, ims.Q_CV, ims.Q_CT, np.deg2rad(ims.OMEGA_DEG))
+    Pi = ims.switching_matrices(dt, ims.TAU_CV, ims.TAU_CT)
+    mu0 = ims.stationary(ims.TAU_CV, ims.TAU_CT)
+    got = ims.imm_forward(meas, Phi, Q, Pi, mu0, measurement)
+    want = imm_reference.imm_forward(meas, Phi, Q, Pi, mu0, measurement)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(b).max()))
+    got_s = ims.imm_backward(got, Phi, Q, future)
+    want_s = imm_reference.imm_backward(want, Phi, Q, future)
+    for a, b in zip(got_s, want_s, strict=True):
+        assert np.isfinite(a).all()
+        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-8 * max(1.0, np.abs(b).max()))

@@ -37,10 +37,10 @@ import numpy as np
 
 from ..inputs import FloatArray
 from ..results import FilterEstimate
+from . import imm_step
 from .common import SIGMA_V0, estimate
 from .discretize import van_loan
-from .kalman import stacked_position_update
-from .measurements import PolarPlots, SensorPlots
+from .measurements import MEASUREMENT_MODES, PolarPlots, SensorPlots
 
 N_MODES = 3
 MODE_NAMES = ("cv", "right", "left")
@@ -50,8 +50,6 @@ DEFAULTS = {"q_cv": Q_CV, "q_ct": Q_CT, "omega_deg": OMEGA_DEG, "tau_cv": TAU_CV
             "tau_ct": TAU_CT}
 """``q_cv``, ``q_ct`` (m^2/s^3), turn rate of the turn models ``omega_deg`` (deg/s), mean
 sojourn times ``tau_cv``, ``tau_ct`` (s)."""
-
-_EYE4 = np.eye(4)
 
 
 def switching_matrices(dt: FloatArray, tau_cv: float, tau_ct: float) -> FloatArray:
@@ -155,46 +153,67 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
       ``W_ij = P(m_{k-1} = i | m_k = j, Z^{k-1}) = Pi_ij mu_i / c_j``;
     - mixed ``x0_j = sum_i W_ij x_i``, ``P0_j = sum_i W_ij (P_i + (x_i - x0_j)(x_i - x0_j)^T)``;
     - model ``j``: ``x_j = Phi_j x0_j``, ``P_j = Phi_j P0_j Phi_j^T + Q_j``, then the position
-      update with plot ``k`` (``kalman.stacked_position_update``, Joseph form), likelihood
+      update with plot ``k`` (``kalman.position_update``, Joseph form), likelihood
       ``L_j = exp(-(nu^T S^-1 nu + log det S) / 2)``;
     - ``mu_j = c_j L_j / sum_l c_l L_l``.
 
     A mode with ``c_j = 0`` (absorbing chain) is mixed with ``mu`` and keeps probability 0.
+
+    Each step is one call of a compiled function (:mod:`.imm_step`).
     """
+    if measurement not in MEASUREMENT_MODES:
+        raise ValueError(f"unknown measurement mode {measurement!r} (use 'converted' or 'ekf')")
     n = len(meas)
     x0, P0 = _prior(meas)
+    m = max(n - 1, 0)
     xf = np.empty((n, N_MODES, 4))
     Pf = np.empty((n, N_MODES, 4, 4))
     mu = np.empty((n, N_MODES))
-    W = np.empty((max(n - 1, 0), N_MODES, N_MODES))
-    XP = np.empty((max(n - 1, 0), N_MODES, 4))
-    PP = np.empty((max(n - 1, 0), N_MODES, 4, 4))
     xf[0], Pf[0], mu[0] = x0, P0, mu0
-    PhiT = np.swapaxes(Phi, -1, -2)
-    m, x, P = mu[0], xf[0], Pf[0]
-    for k in range(1, n):
-        joint = Pi[k - 1] * m[:, None]
-        c = joint.sum(0)
-        if c.min() > 0:
-            w = joint / c
-        else:
-            w = np.divide(joint, c, out=np.repeat(m[:, None], N_MODES, 1), where=c > 0)
-        W[k - 1] = w
-        wt = w.T
-        xm = wt @ x  # (j, 4)
-        d = x[None, :, :] - xm[:, None, :]  # (j, i, 4)
-        Pm = (wt @ P.reshape(N_MODES, 16)).reshape(N_MODES, 4, 4) \
-            + (d * wt[:, :, None]).transpose(0, 2, 1) @ d
-        xp = (Phi[k - 1] @ xm[:, :, None])[:, :, 0]
-        Pp = Phi[k - 1] @ Pm @ PhiT[k - 1] + Q[k - 1]
-        XP[k - 1], PP[k - 1] = xp, Pp
-        x, P, nis, logdet = stacked_position_update(xp, Pp, meas, k, measurement)
-        xf[k], Pf[k] = x, P
-        loglik = -0.5 * (nis + logdet)
-        post = c * np.exp(loglik - loglik.max())
-        total = post.sum()
-        m = mu[k] = post / total if total > 0 and np.isfinite(total) else c
-    return ForwardPass(xf, Pf, mu, W, XP, PP)
+    if m == 0:
+        return ForwardPass(xf, Pf, mu, np.empty((0, N_MODES, N_MODES)),
+                           np.empty((0, N_MODES, 4)), np.empty((0, N_MODES, 4, 4)))
+    A = np.empty((m, imm_step.STEP_IN))
+    A[:, :48] = Phi.reshape(m, -1)
+    A[:, 48:96] = Q.reshape(m, -1)
+    A[:, 96:105] = Pi.reshape(m, -1)
+    A[:, 105:116] = _plot_rows(meas)[1:]
+    S = np.empty((n, imm_step.STATE))  # row k: the state after plot k
+    S[0] = np.concatenate([np.repeat(x0[None], N_MODES, 0).ravel(),
+                           np.repeat(P0[None], N_MODES, 0).ravel(), mu0])
+    E = np.empty((m, imm_step.EXTRA))
+    buf, evaluate = imm_step.forward_step(measurement).buffer()
+    for k in range(1, n):  # each step reads and writes the arrays' rows in place
+        buf.set_arg(0, memoryview(S[k - 1]))
+        buf.set_arg(1, memoryview(A[k - 1]))
+        buf.set_res(0, memoryview(S[k]))
+        buf.set_res(1, memoryview(E[k - 1]))
+        evaluate()
+    xf[1:] = S[1:, :12].reshape(m, N_MODES, 4)
+    Pf[1:] = S[1:, 12:60].reshape(m, N_MODES, 4, 4)
+    mu[1:] = S[1:, 60:]
+    return ForwardPass(xf, Pf, mu, E[:, :9].reshape(m, N_MODES, N_MODES),
+                       E[:, 9:21].reshape(m, N_MODES, 4), E[:, 21:].reshape(m, N_MODES, 4, 4))
+
+
+def _plot_rows(meas: PolarPlots | SensorPlots) -> FloatArray:
+    """``(n, 11)`` per plot ``(polar, d, psi, sigma_d, sigma_psi, centre, cov)`` for
+    :mod:`.imm_step`; the unused part of a row is finite (``d = 1``, unit covariance)."""
+    n = len(meas)
+    rows = np.zeros((n, 11))
+    rows[:, 7] = rows[:, 10] = 1.0
+    if isinstance(meas, SensorPlots):
+        polar = meas.polar.astype(bool)
+        rows[:, 0] = polar
+        for col, v in ((1, meas.d), (2, meas.psi), (3, meas.sigma_d), (4, meas.sigma_psi)):
+            rows[:, col] = np.where(polar, v, 1.0)
+        rows[~polar, 5:7] = meas.centre[~polar]
+        rows[~polar, 7:11] = meas.cov[~polar].reshape(-1, 4)
+    else:
+        rows[:, 0] = 1.0
+        rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4] = meas.d, meas.psi, meas.sigma_d, \
+            meas.sigma_psi
+    return rows
 
 
 def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: bool = True
@@ -223,7 +242,7 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
 
     (the later plots' information about ``x_{k+1}``: the smoothed over the forward mixed
     prediction ``xp``, ``Pp``, kept where it is positive; closed form in
-    :func:`_future_weights`).
+    :func:`.imm_step.backward_step`).
 
     The pair gains depend on the forward pass only and are computed for all steps at once.
     Returns the smoothed mode-conditioned states, covariances and mode probabilities.
@@ -250,68 +269,46 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
         # whitening by the forward prediction: Pp = U U^T, so the later plots' information is
         # compared with the prediction's in a metric that does not depend on units
         white = np.linalg.inv(np.linalg.cholesky(fw.Pp))
-    uniform = np.full((N_MODES, N_MODES), 1.0 / N_MODES)
+    # the recursion proper runs in CasADi (imm_step.backward_step), one call per step around
+    # numpy's eigh of the whitened smoothed covariances (the future-mode likelihoods' split)
+    m = n - 1
+    A = np.empty((m, imm_step.BACK_IN))
+    A[:, :9] = W.reshape(m, -1)
+    A[:, 9:21] = fw.xp.reshape(m, -1)
+    A[:, 21:69] = white.reshape(m, -1) if future_modes else 0.0
+    o = 69
+    for arr in (xpair, Ppair, a, B, C):
+        width = arr[0].size
+        A[:, o: o + width] = arr.reshape(m, -1)
+        o += width
+    A[0, o: o + 48] = 0.0
+    A[1:, o: o + 48] = A[:-1, 21:69]  # white of step k - 1
+    A[:, o + 48] = float(future_modes)
+    S = np.empty((n, imm_step.BACK_STATE))  # row k: the smoothed state at plot k
+    S[-1] = np.concatenate([xs[-1].ravel(), Ps[-1].ravel(), mus[-1]])
+    eigen = np.zeros(imm_step.EIGEN)
+    Ws = np.empty((N_MODES, 4, 4))
+    if future_modes:
+        Ws[:] = white[-1] @ Ps[-1] @ np.swapaxes(white[-1], -1, -2)
+    buf, evaluate = imm_step.backward_step().buffer()
+    buf.set_arg(1, memoryview(eigen))
+    buf.set_res(1, memoryview(Ws.reshape(-1)))
     for k in range(n - 2, -1, -1):
-        b = W[k]
         if future_modes:
-            b = _future_weights(b, xs[k + 1], Ps[k + 1], fw.xp[k], white[k], xpair[k],
-                                Ppair[k])
-        joint = b * mus[k + 1]
-        m = joint.sum(1)
-        mus[k] = m / m.sum()
-        if m.min() > 0:
-            wgt = joint / m[:, None]
-        else:
-            wgt = np.divide(joint, m[:, None], out=uniform.copy(), where=m[:, None] > 0)
-        xij = a[k] + (C[k] @ xs[k + 1][None, :, :, None])[..., 0]  # (i, j, 4)
-        Pij = B[k] + C[k] @ Ps[k + 1][None] @ CT[k]
-        wv = wgt[:, :, None]
-        x = (wv * xij).sum(1)
-        d = xij - x[:, None, :]
-        xs[k] = x
-        Ps[k] = (wv[..., None] * Pij).sum(1) + (d * wv).transpose(0, 2, 1) @ d
+            if np.isfinite(Ws).all():
+                ev, V = np.linalg.eigh(Ws)  # ascending; reads one triangle
+                eigen[:12], eigen[12:] = ev.ravel(), V.ravel()
+            else:  # absurd sigmas: no usable information, Kim's weights at this step
+                A[k, -1] = 0.0
+        buf.set_arg(0, memoryview(S[k + 1]))
+        buf.set_arg(2, memoryview(A[k]))
+        buf.set_res(0, memoryview(S[k]))
+        evaluate()
+    xs[:] = S[:, :12].reshape(n, N_MODES, 4)
+    Ps[:] = S[:, 12:60].reshape(n, N_MODES, 4, 4)
+    mus[:] = S[:, 60:]
     Ps = 0.5 * (Ps + np.swapaxes(Ps, -1, -2))
     return xs, Ps, mus
-
-
-def _future_weights(W: FloatArray, xs: FloatArray, Ps: FloatArray, xp: FloatArray,
-                    white: FloatArray, xpair: FloatArray, Ppair: FloatArray) -> FloatArray:
-    """``b_ij`` proportional to ``W_ij L_ij`` over ``i`` (see :func:`imm_backward`) for one step:
-    ``xs (j, 4)``, ``Ps (j, 4, 4)`` smoothed at ``k + 1``; ``xp`` the forward mixed prediction
-    and ``white = U^-1`` with ``Pp = U U^T`` its covariance; ``xpair (i, j, 4)``,
-    ``Ppair (i, j, 4, 4)`` the pair predictions.
-
-    The later plots' information about ``x_{k+1}`` is ``L = Ps^-1 - Pp^-1`` with the vector
-    ``e = Pp^-1 (xs - xp)``: a pseudo-measurement ``y = L^+ e`` of weight ``L``. In whitened
-    coordinates ``w = U^-1 x`` it is ``U^-1 Ps U^-T = V diag(s) V^T``, information
-    ``l = 1/s - 1`` along ``V``; directions with ``l <= 0`` (the mixture approximations can make
-    the smoothed spread exceed the prediction's) carry none and are dropped: negative
-    information would reward pair predictions for being far away. Whitening makes the split
-    independent of units (m against m/s). With ``T = diag(sqrt l) V^T U^-1``,
-    ``r = T (x^{ij} - xs) - diag(1/sqrt l) V^T U^-1 (xs - xp)`` and
-    ``M = I + T P^{ij} T^T`` (positive definite):
-    ``log L_ij = -(log det M + r^T M^-1 r) / 2`` up to a constant per ``j``."""
-    Ws = white @ Ps @ np.swapaxes(white, -1, -2)
-    if not np.isfinite(Ws).all():  # absurd sigmas: no usable information, keep Kim's weights
-        return W
-    s, V = np.linalg.eigh(Ws)  # ascending; reads one triangle
-    lam = 1.0 / np.maximum(s, 1e-300) - 1.0
-    keep = lam > 1e-9 * lam[:, :1]
-    sq = np.sqrt(np.where(keep, lam, 0.0))
-    VtU = np.swapaxes(V, -1, -2) @ white  # (j, 4, 4)
-    y = np.where(keep, (VtU @ (xs - xp)[:, :, None])[:, :, 0] / np.where(keep, sq, 1.0), 0.0)
-    T = sq[:, :, None] * VtU
-    r = T[None] @ (xpair - xs[None])[..., None] - y[None, :, :, None]  # (i, j, 4, 1)
-    M = T[None] @ Ppair @ np.swapaxes(T, -1, -2)[None] + _EYE4
-    chol = np.linalg.cholesky(M)
-    z = np.linalg.solve(chol, r)
-    logL = -np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1) - 0.5 * (z * z).sum((-2, -1))
-    b = W * np.exp(logL - logL.max(0))
-    tot = b.sum(0)
-    good = (tot > 0) & np.isfinite(tot)
-    if good.all():
-        return b / tot
-    return np.where(good[None], b / np.where(good, tot, 1.0)[None], W)
 
 
 def combine(x: FloatArray, P: FloatArray, mu: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -5,8 +5,6 @@
 - :func:`position_update` : update of a state whose position sits at indices ``pos`` from one
   polar plot, as a converted measurement or an EKF update (see ``measurements.py``), or from a
   linear position fix of another sensor.
-- :func:`stacked_position_update` : the same update for a stack of states (the modes of an
-  IMM) from one plot, in batched 2x2 closed forms.
 - :func:`filter_track` : a linear-model filter over a whole track (``Phi``, ``Q`` per step).
 - :func:`channel_filter` : many independent scalar-measurement filters at once (batch axis ``B``);
   used per radar coordinate; an optional gain rule replaces the Kalman gain.
@@ -90,56 +88,6 @@ def position_update(x: FloatArray, P: FloatArray, meas: PolarPlots | SensorPlots
     nu, J = polar_innovation(p, d, psi)
     R = np.diag([sigma_d**2, sigma_psi**2])
     return update(x, P, nu, J @ H, R)
-
-
-def stacked_position_update(x: FloatArray, P: FloatArray, meas: PolarPlots | SensorPlots, k: int,
-                            mode: str) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`position_update` of ``M`` states at once (position at indices 0, 1): ``x (M, m)``,
-    ``P (M, m, m)`` -> updated ``x``, ``P`` and per state ``nu^T S^-1 nu``, ``log det S``
-    ``(M,)``. The same equations (Joseph form), with the 2x2 ``S^-1`` and ``det S`` in closed
-    form and the measurement matrix ``[Hp, 0]`` used through its position block ``Hp``. In the
-    IMM smoother's forward pass (three modes in one call instead of three calls) it halved the
-    pass: 306-379 -> 153-169 us a plot (ssr profile, a 1,458-plot dev track, 3 alternated runs
-    each), the same results to 1e-10 m."""
-    if mode not in MEASUREMENT_MODES:
-        raise ValueError(f"unknown measurement mode {mode!r} (use 'converted' or 'ekf')")
-    M, m = x.shape
-    p = x[:, :2]
-    Hp = None  # the identity: a position fix or a converted plot
-    if isinstance(meas, SensorPlots) and not meas.polar[k]:
-        nu = meas.centre[k][None, :] - p
-        R = meas.cov[k][None]
-    else:
-        sigma_psi = float(meas.sigma_psi[k]) if isinstance(meas, SensorPlots) else meas.sigma_psi
-        d, psi, sigma_d = meas.d[k], meas.psi[k], meas.sigma_d[k]
-        if mode == "converted":
-            nu = np.array([d * np.cos(psi), d * np.sin(psi)])[None, :] - p
-            R = converted_cov(np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]),
-                              sigma_d, sigma_psi)
-        else:  # measurements.polar_innovation, per state
-            px, pz = p[:, 0], p[:, 1]
-            rho2 = px * px + pz * pz
-            rho = np.sqrt(rho2)
-            nu = np.empty((M, 2))
-            nu[:, 0] = d - rho
-            nu[:, 1] = np.mod(psi - np.arctan2(pz, px) + np.pi, 2 * np.pi) - np.pi
-            Hp = np.empty((M, 2, 2))
-            Hp[:, 0, 0], Hp[:, 0, 1] = px / rho, pz / rho
-            Hp[:, 1, 0], Hp[:, 1, 1] = -pz / rho2, px / rho2
-            R = np.array([[sigma_d**2, 0.0], [0.0, sigma_psi**2]])[None]
-    PHt = P[:, :, :2] if Hp is None else P[:, :, :2] @ np.swapaxes(Hp, -1, -2)  # P H^T
-    S = (PHt[:, :2, :] if Hp is None else Hp @ PHt[:, :2, :]) + R
-    a, b, c, e = S[:, 0, 0], S[:, 0, 1], S[:, 1, 0], S[:, 1, 1]
-    det = a * e - b * c
-    Sinv = np.stack([e, -b, -c, a], axis=-1).reshape(M, 2, 2) / det[:, None, None]
-    K = PHt @ Sinv
-    IKH = np.repeat(np.eye(m)[None], M, axis=0)
-    IKH[:, :, :2] -= K if Hp is None else K @ Hp
-    KT = np.swapaxes(K, -1, -2)
-    P = IKH @ P @ np.swapaxes(IKH, -1, -2) + K @ R @ KT
-    Sn = (Sinv @ nu[:, :, None])[:, :, 0]
-    nis = (nu * Sn).sum(1)
-    return x + (K @ nu[:, :, None])[:, :, 0], P, nis, np.log(det)
 
 
 def filter_track(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,

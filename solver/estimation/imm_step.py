@@ -1,0 +1,230 @@
+"""The IMM smoother's steps (:mod:`.imm_smoother`) as compiled CasADi functions.
+
+In numpy each step is a few dozen calls on 4x4 arrays (3 modes, 9 mode pairs), and their
+overhead was the smoother's cost. Here one step is one function (:func:`solver.compiled.function`:
+compiled when a C compiler or the compiled-object cache is at hand), called through its buffer
+on numpy memory. Measured on a 1,458-plot dev track of the ssr profile (3 alternated runs, least
+CPU time of 5 each): the forward pass 320-369 -> 7-13 us a plot, the backward pass 215-272 ->
+59-70 us (numpy's ``eigh`` of three 4x4 matrices, about 30 us, is half of it), the whole smoother
+1,670-1,920 -> 13,300-14,100 plots per CPU-second. Compiling the three functions takes about 4 s,
+once per machine.
+
+Forward (:func:`forward_step`): mixing ``c = Pi^T mu``, ``W_ij = Pi_ij mu_i / c_j`` (``mu`` where
+``c_j = 0``), mixed moments, prediction ``Phi_j``, ``Q_j``, the position update of
+:func:`.kalman.position_update` per mode (EKF or converted for a polar plot, linear for a fix,
+Joseph form) and ``mu_j`` proportional to ``c_j L_j``. Backward (:func:`backward_step`): the
+mode-pair recursion of :func:`.imm_smoother.imm_backward` with the later plots' mode
+likelihoods, given the eigen-decomposition numpy's ``eigh`` computes between the calls. The
+numpy passes they replaced are the tests' reference (``tests/imm_reference.py``): the same
+results to 1e-10 m on the dev tracks.
+
+Flat layouts (numpy row-major order): the state ``s = (x (3, 4), P (3, 4, 4), mu (3))``; the
+forward step's inputs ``(Phi (3, 4, 4), Q (3, 4, 4), Pi (3, 3), plot)`` with ``plot = (polar,
+d, psi, sigma_d, sigma_psi, centre (2), cov (2, 2))``; its extra outputs ``(W (3, 3), xp (3,
+4), Pp (3, 4, 4))``.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import casadi as ca
+
+from .. import compiled
+
+N_MODES = 3
+STATE = N_MODES * (4 + 16) + N_MODES  # x, P, mu
+STEP_IN = 2 * N_MODES * 16 + 9 + 11  # Phi, Q, Pi, plot
+EXTRA = 9 + N_MODES * (4 + 16)  # W, xp, Pp
+
+
+def _mat(v: ca.SX, rows: int, cols: int) -> ca.SX:
+    """A row-major flat block as a matrix."""
+    return ca.reshape(v, cols, rows).T
+
+
+def _flat(m: ca.SX) -> ca.SX:
+    """A matrix as a row-major flat block."""
+    return ca.vec(m.T)
+
+
+def _update(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
+            ) -> tuple[ca.SX, ca.SX, ca.SX]:
+    """Position update of one mode's ``(4,)``, ``(4, 4)`` prediction: updated state, covariance,
+    ``-(nu^T S^-1 nu + log det S) / 2``."""
+    polar, d, psi, sigma_d, sigma_psi = (plot[i] for i in range(5))
+    centre, cov = plot[5:7], _mat(plot[7:11], 2, 2)
+    px, pz = xp[0], xp[1]
+    rho2 = px * px + pz * pz
+    rho = ca.sqrt(rho2)
+    eye2 = ca.SX.eye(2)
+    if measurement == "ekf":
+        dpsi = ca.fmod(psi - ca.atan2(pz, px) + ca.pi, 2 * ca.pi)
+        dpsi = ca.if_else(dpsi < 0, dpsi + 2 * ca.pi, dpsi) - ca.pi  # numpy's mod: in [0, 2 pi)
+        nu_polar = ca.vertcat(d - rho, dpsi)
+        H_polar = ca.vertcat(ca.horzcat(px / rho, pz / rho), ca.horzcat(-pz / rho2, px / rho2))
+        R_polar = ca.diag(ca.vertcat(sigma_d**2, sigma_psi**2))
+    else:  # converted: the plot point, the covariance's Jacobian at the prediction
+        nu_polar = ca.vertcat(d * ca.cos(psi), d * ca.sin(psi)) - xp[:2]
+        H_polar = eye2
+        c, s = px / rho, pz / rho
+        vr, vc = sigma_d**2, (rho * sigma_psi) ** 2
+        R_polar = ca.vertcat(ca.horzcat(c * c * vr + s * s * vc, s * c * (vr - vc)),
+                             ca.horzcat(s * c * (vr - vc), s * s * vr + c * c * vc))
+    nu = ca.if_else(polar, nu_polar, centre - xp[:2])
+    Hp = ca.if_else(polar, H_polar, eye2)
+    R = ca.if_else(polar, R_polar, cov)
+    PHt = ca.mtimes(Pp[:, :2], Hp.T)
+    S = ca.mtimes(Hp, PHt[:2, :]) + R
+    det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+    Sinv = ca.vertcat(ca.horzcat(S[1, 1], -S[0, 1]), ca.horzcat(-S[1, 0], S[0, 0])) / det
+    K = ca.mtimes(PHt, Sinv)
+    IKH = ca.SX.eye(4) - ca.horzcat(ca.mtimes(K, Hp), ca.SX.zeros(4, 2))
+    P = ca.mtimes([IKH, Pp, IKH.T]) + ca.mtimes([K, R, K.T])
+    nis = ca.mtimes([nu.T, Sinv, nu])
+    return xp + ca.mtimes(K, nu), P, -0.5 * (nis + ca.log(det))
+
+
+def _step(measurement: str) -> ca.Function:
+    s, a = ca.SX.sym("s", STATE), ca.SX.sym("a", STEP_IN)
+    x = [s[4 * j: 4 * j + 4] for j in range(N_MODES)]
+    P = [_mat(s[12 + 16 * j: 28 + 16 * j], 4, 4) for j in range(N_MODES)]
+    mu = s[60:63]
+    Phi = [_mat(a[16 * j: 16 * j + 16], 4, 4) for j in range(N_MODES)]
+    Q = [_mat(a[48 + 16 * j: 64 + 16 * j], 4, 4) for j in range(N_MODES)]
+    Pi = _mat(a[96:105], 3, 3)
+    plot = a[105:116]
+    joint = Pi * ca.repmat(mu, 1, N_MODES)  # joint[i, j] = Pi_ij mu_i
+    c = ca.sum1(joint).T
+    W = ca.horzcat(*(ca.if_else(c[j] > 0, joint[:, j] / c[j], mu) for j in range(N_MODES)))
+    xn, Pn, XP, PP, loglik = [], [], [], [], []
+    for j in range(N_MODES):
+        xm = sum(W[i, j] * x[i] for i in range(N_MODES))
+        Pm = sum(W[i, j] * (P[i] + ca.mtimes(x[i] - xm, (x[i] - xm).T)) for i in range(N_MODES))
+        xp = ca.mtimes(Phi[j], xm)
+        Pp = ca.mtimes([Phi[j], Pm, Phi[j].T]) + Q[j]
+        xj, Pj, lj = _update(xp, Pp, plot, measurement)
+        xn.append(xj)
+        Pn.append(Pj)
+        XP.append(xp)
+        PP.append(_flat(Pp))
+        loglik.append(lj)
+    ll = ca.vertcat(*loglik)
+    post = c * ca.exp(ll - ca.mmax(ll))
+    total = ca.sum1(post)
+    ok = ca.logic_and(total > 0, total < ca.inf)
+    mun = ca.if_else(ok, post / total, c)
+    out = ca.vertcat(*xn, *(_flat(p) for p in Pn), mun)
+    extra = ca.vertcat(_flat(W), *XP, *PP)
+    return compiled.function(f"imm_forward_{measurement}", [s, a], [out, extra],
+                             ["s", "a"], ["s_next", "extra"], derivatives=False)
+
+
+@cache
+def forward_step(measurement: str) -> ca.Function:
+    """One forward step: ``(s_{k-1}, inputs_k) -> (s_k, extras_k)``."""
+    return _step(measurement)
+
+
+# ---- backward pass (imm_smoother.imm_backward), one step per call around numpy's eigh ----
+
+BACK_STATE = N_MODES * (4 + 16) + N_MODES  # xs, Ps, mus at k + 1
+EIGEN = N_MODES * (4 + 16)  # s (3, 4) ascending, V (3, 4, 4) of Ws = U^-1 Ps_{k+1} U^-T
+PAIR = N_MODES * N_MODES
+BACK_IN = 9 + 12 + 48 + PAIR * (4 + 16 + 4 + 16 + 16) + 48 + 1
+"""Per step: W (3, 3), xp (3, 4), white (3, 4, 4), xpair, Ppair, a, B, C (per pair (i, j)),
+white of step ``k - 1`` (3, 4, 4), the future-modes flag (0: Kim's weights ``W``)."""
+
+
+def _backward_step() -> ca.Function:
+    st, eig, a = ca.SX.sym("s", BACK_STATE), ca.SX.sym("e", EIGEN), ca.SX.sym("a", BACK_IN)
+    xs = [st[4 * j: 4 * j + 4] for j in range(N_MODES)]
+    Ps = [_mat(st[12 + 16 * j: 28 + 16 * j], 4, 4) for j in range(N_MODES)]
+    mus = st[60:63]
+    ev = [eig[4 * j: 4 * j + 4] for j in range(N_MODES)]
+    V = [_mat(eig[12 + 16 * j: 28 + 16 * j], 4, 4) for j in range(N_MODES)]
+    W = _mat(a[:9], 3, 3)
+    xp = [a[9 + 4 * j: 13 + 4 * j] for j in range(N_MODES)]
+    white = [_mat(a[21 + 16 * j: 37 + 16 * j], 4, 4) for j in range(N_MODES)]
+    o = 69
+
+    def pair(width: int, shape: tuple[int, ...]) -> list[list[ca.SX]]:
+        nonlocal o
+        out = [[a[o + width * (3 * i + j): o + width * (3 * i + j + 1)] for j in range(N_MODES)]
+               for i in range(N_MODES)]
+        o += PAIR * width
+        if len(shape) == 2:
+            out = [[_mat(v, *shape) for v in row] for row in out]
+        return out
+
+    xpair, Ppair = pair(4, (4,)), pair(16, (4, 4))
+    apair, Bpair, Cpair = pair(4, (4,)), pair(16, (4, 4)), pair(16, (4, 4))
+    white_prev = [_mat(a[o + 16 * j: o + 16 * j + 16], 4, 4) for j in range(N_MODES)]
+    future = a[o + 48]
+    # b_ij: Kim's W_ij times the later plots' likelihood of the pair (see backward_step)
+    cols = []
+    for j in range(N_MODES):
+        lam = 1.0 / ca.fmax(ev[j], 1e-300) - 1.0
+        keep = lam > 1e-9 * lam[0]
+        sq = ca.sqrt(ca.if_else(keep, lam, 0.0))
+        VtU = ca.mtimes(V[j].T, white[j])
+        y = ca.if_else(keep, ca.mtimes(VtU, xs[j] - xp[j]) / ca.if_else(keep, sq, 1.0), 0.0)
+        T = ca.repmat(sq, 1, 4) * VtU
+        logL = []
+        for i in range(N_MODES):
+            r = ca.mtimes(T, xpair[i][j] - xs[j]) - y
+            R = ca.chol(ca.mtimes([T, Ppair[i][j], T.T]) + ca.SX.eye(4))  # M = R^T R
+            z = ca.solve(R.T, r)  # lower triangular
+            logL.append(-ca.sum1(ca.log(ca.diag(R))) - 0.5 * ca.sumsqr(z))
+        ll = ca.vertcat(*logL)
+        b = W[:, j] * ca.exp(ll - ca.mmax(ll))
+        tot = ca.sum1(b)
+        good = ca.logic_and(future, ca.logic_and(tot > 0, tot < ca.inf))
+        cols.append(ca.if_else(good, b / tot, W[:, j]))
+    joint = ca.horzcat(*(cols[j] * mus[j] for j in range(N_MODES)))  # joint[i, j]
+    m = ca.sum2(joint)
+    mus_k = m / ca.sum1(m)
+    xn, Pn, Wn = [], [], []
+    for i in range(N_MODES):
+        wgt = [ca.if_else(m[i] > 0, joint[i, j] / m[i], 1.0 / N_MODES) for j in range(N_MODES)]
+        xij = [apair[i][j] + ca.mtimes(Cpair[i][j], xs[j]) for j in range(N_MODES)]
+        Pij = [Bpair[i][j] + ca.mtimes([Cpair[i][j], Ps[j], Cpair[i][j].T])
+               for j in range(N_MODES)]
+        x = sum(wgt[j] * xij[j] for j in range(N_MODES))
+        P = sum(wgt[j] * (Pij[j] + ca.mtimes(xij[j] - x, (xij[j] - x).T))
+                for j in range(N_MODES))
+        xn.append(x)
+        Pn.append(P)
+        Wn.append(_flat(ca.mtimes([white_prev[i], P, white_prev[i].T])))
+    out = ca.vertcat(*xn, *(_flat(p) for p in Pn), mus_k)
+    return compiled.function("imm_backward", [st, eig, a], [out, ca.vertcat(*Wn)],
+                             ["s", "eigen", "a"], ["s_prev", "Ws_prev"], derivatives=False)
+
+
+@cache
+def backward_step() -> ca.Function:
+    """One backward step: ``(s_{k+1}, eigen of Ws_k, inputs_k) -> (s_k, Ws_{k-1} (3, 4, 4))``,
+    ``Ws_{k-1} = white_{k-1} Ps_k white_{k-1}^T`` for the next step's ``eigh``.
+
+    The mode weights ``b_ij`` of :func:`.imm_smoother.imm_backward` are proportional over ``i``
+    to ``W_ij L_ij``; ``xs``, ``Ps`` smoothed at ``k + 1``, ``xp`` the forward mixed prediction
+    and ``white = U^-1`` with ``Pp = U U^T`` its covariance, ``x^{ij}``, ``P^{ij}`` the pair
+    predictions. The later plots' information about ``x_{k+1}`` is ``L = Ps^-1 - Pp^-1`` with
+    the vector ``e = Pp^-1 (xs - xp)``: a pseudo-measurement ``y = L^+ e`` of weight ``L``. In
+    whitened coordinates ``w = U^-1 x`` it is ``U^-1 Ps U^-T = V diag(s) V^T`` (the ``eigen``
+    input), information ``l = 1/s - 1`` along ``V``; directions with ``l <= 0`` (the mixture
+    approximations can make the smoothed spread exceed the prediction's) carry none and are
+    dropped: negative information would reward pair predictions for being far away. Whitening
+    makes the split independent of units (m against m/s). With ``T = diag(sqrt l) V^T U^-1``,
+    ``r = T (x^{ij} - xs) - diag(1/sqrt l) V^T U^-1 (xs - xp)`` and ``M = I + T P^{ij} T^T``
+    (positive definite): ``log L_ij = -(log det M + r^T M^-1 r) / 2`` up to a constant per
+    ``j``. Where a column's weights are not finite (absurd sigmas) or the ``future`` input is
+    0, Kim's ``W_ij`` are kept."""
+    return _backward_step()
+
+
+def build() -> None:
+    """Build (compile, or load from the cache) every step function: a warm-up's work."""
+    for measurement in ("ekf", "converted"):
+        forward_step(measurement)
+    backward_step()
