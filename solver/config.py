@@ -25,10 +25,16 @@ class RefineSettings:
     (chi-square) units (``w``: 5 -> 1.25 measured 1-2 % better on seed000 and ssr and 5 % with
     altitude, seed001 unchanged, on both dev seeds 100 and 101). ``level_penalty_u`` /
     ``level_penalty_w``: weight per (m/s^2 s) of ``|u|``, ``|w|`` (aircraft fly mostly straight at
-    constant speed), smoothed over ``level_smoothing`` m/s^2. ``level_relief_u`` (m/s^2): at each
-    node the ``|u|`` weight is divided by ``1 + (u0 / level_relief_u)^2``, ``u0`` the start's
-    lateral acceleration there (adaptive weights from a pilot estimate, after Zou 2006: a constant
-    weight flattens the turns it should only keep out of the straight legs); 0: a constant weight.
+    constant speed), smoothed over ``level_smoothing`` m/s^2 (``sqrt(u^2 + eps^2)``; a trade of
+    accuracy for iterations, dev seeds 100-103, 7 tracks: 0.02 gave RMS 356.6 m against 358.5 m
+    on seed000 for 80 % more iterations; 0.1 gave 360.8 / 319.2 / 73.21 / 49.28 m against
+    358.5 / 317.5 / 73.10 / 49.11 m (seed000 / seed001 / ssr / ssr with altitude) for 19-22 %
+    fewer; at 0.01-0.02 with both level weights 0.07-0.14 none beat the defaults by more than
+    0.7 %, seed000's 356.1 m at 0.01 and 0.1, for 2.2 times the iterations).
+    ``level_relief_u`` (m/s^2): at each node the ``|u|`` weight is divided by
+    ``1 + (u0 / level_relief_u)^2``, ``u0`` the start's lateral acceleration there (adaptive
+    weights from a pilot estimate, after Zou 2006: a constant weight flattens the turns it should
+    only keep out of the straight legs); 0: a constant weight.
     Chosen on dev seeds 100 and 101 (7 tracks; 1, 1.5, 2 and 3 m/s^2, exponents 1 and 2 tried):
     RMS position seed000 370.9 -> 363.0 m, seed001 326.1 -> 317.0 m, ssr 74.8 -> 75.0 m, ssr with
     altitude 47.6 -> 47.9 m, the same iterations (2 m/s^2: 363.7 / 318.0 / 74.9 / 47.8 m; 3:
