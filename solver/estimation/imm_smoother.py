@@ -177,7 +177,7 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
     A[:, :48] = Phi.reshape(m, -1)
     A[:, 48:96] = Q.reshape(m, -1)
     A[:, 96:105] = Pi.reshape(m, -1)
-    A[:, 105:116] = _plot_rows(meas)[1:]
+    A[:, 105:116] = imm_step.plot_rows(meas)[1:]
     S = np.empty((n, imm_step.STATE))  # row k: the state after plot k
     S[0] = np.concatenate([np.repeat(x0[None], N_MODES, 0).ravel(),
                            np.repeat(P0[None], N_MODES, 0).ravel(), mu0])
@@ -194,26 +194,6 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
     mu[1:] = S[1:, 60:]
     return ForwardPass(xf, Pf, mu, E[:, :9].reshape(m, N_MODES, N_MODES),
                        E[:, 9:21].reshape(m, N_MODES, 4), E[:, 21:].reshape(m, N_MODES, 4, 4))
-
-
-def _plot_rows(meas: PolarPlots | SensorPlots) -> FloatArray:
-    """``(n, 11)`` per plot ``(polar, d, psi, sigma_d, sigma_psi, centre, cov)`` for
-    :mod:`.imm_step`; the unused part of a row is finite (``d = 1``, unit covariance)."""
-    n = len(meas)
-    rows = np.zeros((n, 11))
-    rows[:, 7] = rows[:, 10] = 1.0
-    if isinstance(meas, SensorPlots):
-        polar = meas.polar.astype(bool)
-        rows[:, 0] = polar
-        for col, v in ((1, meas.d), (2, meas.psi), (3, meas.sigma_d), (4, meas.sigma_psi)):
-            rows[:, col] = np.where(polar, v, 1.0)
-        rows[~polar, 5:7] = meas.centre[~polar]
-        rows[~polar, 7:11] = meas.cov[~polar].reshape(-1, 4)
-    else:
-        rows[:, 0] = 1.0
-        rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4] = meas.d, meas.psi, meas.sigma_d, \
-            meas.sigma_psi
-    return rows
 
 
 def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: bool = True

@@ -29,13 +29,35 @@ from __future__ import annotations
 from functools import cache
 
 import casadi as ca
+import numpy as np
 
 from .. import compiled
+from .measurements import PolarPlots, SensorPlots
 
 N_MODES = 3
 STATE = N_MODES * (4 + 16) + N_MODES  # x, P, mu
 STEP_IN = 2 * N_MODES * 16 + 9 + 11  # Phi, Q, Pi, plot
 EXTRA = 9 + N_MODES * (4 + 16)  # W, xp, Pp
+
+
+def plot_rows(meas: PolarPlots | SensorPlots) -> np.ndarray:
+    """``(n, 11)`` per plot ``(polar, d, psi, sigma_d, sigma_psi, centre, cov)`` for the
+    steps; the unused part of a row is finite (``d = 1``, unit covariance)."""
+    n = len(meas)
+    rows = np.zeros((n, 11))
+    rows[:, 7] = rows[:, 10] = 1.0
+    if isinstance(meas, SensorPlots):
+        polar = meas.polar.astype(bool)
+        rows[:, 0] = polar
+        for col, v in ((1, meas.d), (2, meas.psi), (3, meas.sigma_d), (4, meas.sigma_psi)):
+            rows[:, col] = np.where(polar, v, 1.0)
+        rows[~polar, 5:7] = meas.centre[~polar]
+        rows[~polar, 7:11] = meas.cov[~polar].reshape(-1, 4)
+    else:
+        rows[:, 0] = 1.0
+        rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4] = meas.d, meas.psi, meas.sigma_d, \
+            meas.sigma_psi
+    return rows
 
 
 def _mat(v: ca.SX, rows: int, cols: int) -> ca.SX:
