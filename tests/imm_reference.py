@@ -5,7 +5,7 @@ CasADi functions (``solver.estimation.imm_step``): the reference the tests compa
 
 import numpy as np
 
-from solver.estimation.imm_smoother import N_MODES, ForwardPass, _prior
+from solver.estimation.imm_smoother import N_MODES, ForwardPass, _prior, pair_terms
 from solver.estimation.kalman import position_update
 
 _POS = (0, 1)
@@ -13,18 +13,7 @@ _EYE4 = np.eye(4)
 
 
 def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf") -> ForwardPass:
-    """The forward IMM (Blom and Bar-Shalom 1988). Per step ``k`` (``T = t_k - t_{k-1}``):
-
-    - predicted mode probabilities ``c_j = sum_i Pi_ij mu_i``, mixing weights
-      ``W_ij = P(m_{k-1} = i | m_k = j, Z^{k-1}) = Pi_ij mu_i / c_j``;
-    - mixed ``x0_j = sum_i W_ij x_i``, ``P0_j = sum_i W_ij (P_i + (x_i - x0_j)(x_i - x0_j)^T)``;
-    - model ``j``: ``x_j = Phi_j x0_j``, ``P_j = Phi_j P0_j Phi_j^T + Q_j``, then the position
-      update with plot ``k`` (``kalman.position_update``, Joseph form), likelihood
-      ``L_j = exp(-(nu^T S^-1 nu + log det S) / 2)``;
-    - ``mu_j = c_j L_j / sum_l c_l L_l``.
-
-    A mode with ``c_j = 0`` (absorbing chain) is mixed with ``mu`` and keeps probability 0.
-    """
+    """The forward IMM of ``imm_smoother.imm_forward``: one ``position_update`` per mode."""
     n = len(meas)
     x0, P0 = _prior(meas)
     xf = np.empty((n, N_MODES, 4))
@@ -64,53 +53,14 @@ def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf") -> ForwardPass:
 
 
 def imm_backward(fw: ForwardPass, Phi, Q, future_modes: bool = True):
-    """Backward pass per mode pair (Kim 1994), ``i`` the mode at ``k``, ``j`` at ``k + 1``. With the
-    forward mode-conditioned ``x_k^i``, ``P_k^i``:
-
-    - states: ``x^{ij} = Phi_j x_k^i``, ``P^{ij} = Phi_j P_k^i Phi_j^T + Q_j``,
-      ``C^{ij} = P_k^i Phi_j^T (P^{ij})^-1``; ``xs_k^{ij} = x_k^i + C^{ij} (xs_{k+1}^j - x^{ij})``,
-      ``Ps_k^{ij} = P_k^i + C^{ij} (Ps_{k+1}^j - P^{ij}) C^{ij T}`` (exact RTS steps: the models
-      are linear);
-    - modes: ``P(m_k = i, m_{k+1} = j | Z^N) = b_ij mus_{k+1}(j)``, ``mus_k(i) = sum_j`` of it,
-      ``b_ij = P(m_k = i | m_{k+1} = j, Z^N)``;
-    - ``xs_k^i = sum_j w_ij xs_k^{ij}``, ``Ps_k^i = sum_j w_ij (Ps_k^{ij} + dd^T)``,
-      ``w_ij = b_ij mus_{k+1}(j) / mus_k(i)``, ``d = xs_k^{ij} - xs_k^i``.
-
-    Kim's ``b_ij`` is the forward ``W_ij = P(m_k = i | m_{k+1} = j, Z^k)``: it ignores what the
-    plots after ``k`` say about ``m_k``, so a turn the filter noticed late starts late in the
-    smoothed modes too, and a stiff CV model then carries the turned heading backwards
-    (measured: on tracks drawn from the model itself with ``q_cv = 0.5``, twice the forward
-    filter's error). With ``future_modes`` (default) ``b_ij`` is ``W_ij L_ij`` normalised over
-    ``i``, ``L_ij`` the likelihood of the later plots given the pair:
-
-        L_ij = int N(x; xs_{k+1}^j, Ps_{k+1}^j) / N(x; xp_{k+1}^j, Pp_{k+1}^j)
-                   N(x; x^{ij}, P^{ij}) dx
-
-    (the later plots' information about ``x_{k+1}``: the smoothed over the forward mixed
-    prediction ``xp``, ``Pp``, kept where it is positive; closed form in
-    :func:`_future_weights`).
-
-    The pair gains depend on the forward pass only and are computed for all steps at once.
-    Returns the smoothed mode-conditioned states, covariances and mode probabilities.
-    """
+    """The backward pass of ``imm_smoother.imm_backward``, one step of numpy calls at a time."""
     xf, Pf, mu, W = fw.x, fw.P, fw.mu, fw.W
     n = xf.shape[0]
     xs, Ps, mus = xf.copy(), Pf.copy(), mu.copy()
     if n < 2:
         return xs, Ps, mus
-    # pairs (k, i, j): model j applied to the filtered x_k^i
-    Phj = Phi[:, None]  # (n-1, 1, j, 4, 4)
-    Pk = Pf[:-1, :, None]  # (n-1, i, 1, 4, 4)
-    PhiP = Phj @ Pk  # Phi_j P_k^i
-    xpair = (Phj @ xf[:-1, :, None, :, None])[..., 0]  # (n-1, i, j, 4)
-    Ppair = PhiP @ np.swapaxes(Phj, -1, -2) + Q[:, None]
-    Ppair = 0.5 * (Ppair + np.swapaxes(Ppair, -1, -2))
-    C = np.swapaxes(np.linalg.solve(Ppair, PhiP), -1, -2)  # P_k^i Phi_j^T (P^{ij})^-1
+    xpair, Ppair, C, a, B = pair_terms(fw, Phi, Q)  # unchanged numpy, shared
     CT = np.swapaxes(C, -1, -2)
-    # the parts of the pair recursion known before the backward pass:
-    # xs^{ij} = a^{ij} + C^{ij} xs_{k+1}^j, Ps^{ij} = B^{ij} + C^{ij} Ps_{k+1}^j C^{ij T}
-    a = xf[:-1, :, None, :] - (C @ xpair[..., None])[..., 0]
-    B = Pk - C @ Ppair @ CT
     if future_modes:
         # whitening by the forward prediction: Pp = U U^T, so the later plots' information is
         # compared with the prediction's in a metric that does not depend on units
@@ -140,21 +90,7 @@ def imm_backward(fw: ForwardPass, Phi, Q, future_modes: bool = True):
 
 
 def future_weights(W, xs, Ps, xp, white, xpair, Ppair):
-    """``b_ij`` proportional to ``W_ij L_ij`` over ``i`` (see :func:`imm_backward`) for one step:
-    ``xs (j, 4)``, ``Ps (j, 4, 4)`` smoothed at ``k + 1``; ``xp`` the forward mixed prediction
-    and ``white = U^-1`` with ``Pp = U U^T`` its covariance; ``xpair (i, j, 4)``,
-    ``Ppair (i, j, 4, 4)`` the pair predictions.
-
-    The later plots' information about ``x_{k+1}`` is ``L = Ps^-1 - Pp^-1`` with the vector
-    ``e = Pp^-1 (xs - xp)``: a pseudo-measurement ``y = L^+ e`` of weight ``L``. In whitened
-    coordinates ``w = U^-1 x`` it is ``U^-1 Ps U^-T = V diag(s) V^T``, information
-    ``l = 1/s - 1`` along ``V``; directions with ``l <= 0`` (the mixture approximations can make
-    the smoothed spread exceed the prediction's) carry none and are dropped: negative
-    information would reward pair predictions for being far away. Whitening makes the split
-    independent of units (m against m/s). With ``T = diag(sqrt l) V^T U^-1``,
-    ``r = T (x^{ij} - xs) - diag(1/sqrt l) V^T U^-1 (xs - xp)`` and
-    ``M = I + T P^{ij} T^T`` (positive definite):
-    ``log L_ij = -(log det M + r^T M^-1 r) / 2`` up to a constant per ``j``."""
+    """``b_ij`` proportional to ``W_ij L_ij`` over ``i``, one step (``imm_step.backward_step``)."""
     Ws = white @ Ps @ np.swapaxes(white, -1, -2)
     if not np.isfinite(Ws).all():  # absurd sigmas: no usable information, keep Kim's weights
         return W

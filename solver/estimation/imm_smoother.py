@@ -196,6 +196,27 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
                        E[:, 9:21].reshape(m, N_MODES, 4), E[:, 21:].reshape(m, N_MODES, 4, 4))
 
 
+def pair_terms(fw: ForwardPass, Phi: FloatArray, Q: FloatArray
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The backward pass's mode-pair terms known from the forward pass, for all steps at once
+    (pairs ``(k, i, j)``: model ``j`` applied to the filtered ``x_k^i``): the predictions
+    ``x^{ij}`` ``(n-1, i, j, 4)`` and ``P^{ij}``, the gains ``C^{ij}``, and ``a^{ij}``, ``B^{ij}``
+    with ``xs^{ij} = a^{ij} + C^{ij} xs_{k+1}^j``, ``Ps^{ij} = B^{ij} + C^{ij} Ps_{k+1}^j
+    C^{ij T}``."""
+    xf, Pf = fw.x, fw.P
+    Phj = Phi[:, None]  # (n-1, 1, j, 4, 4)
+    Pk = Pf[:-1, :, None]  # (n-1, i, 1, 4, 4)
+    PhiP = Phj @ Pk  # Phi_j P_k^i
+    xpair = (Phj @ xf[:-1, :, None, :, None])[..., 0]  # (n-1, i, j, 4)
+    Ppair = PhiP @ np.swapaxes(Phj, -1, -2) + Q[:, None]
+    Ppair = 0.5 * (Ppair + np.swapaxes(Ppair, -1, -2))
+    C = np.swapaxes(np.linalg.solve(Ppair, PhiP), -1, -2)  # P_k^i Phi_j^T (P^{ij})^-1
+    CT = np.swapaxes(C, -1, -2)
+    a = xf[:-1, :, None, :] - (C @ xpair[..., None])[..., 0]
+    B = Pk - C @ Ppair @ CT
+    return xpair, Ppair, C, a, B
+
+
 def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: bool = True
                  ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Backward pass per mode pair (Kim 1994), ``i`` the mode at ``k``, ``j`` at ``k + 1``. With the
@@ -232,19 +253,7 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
     xs, Ps, mus = xf.copy(), Pf.copy(), mu.copy()
     if n < 2:
         return xs, Ps, mus
-    # pairs (k, i, j): model j applied to the filtered x_k^i
-    Phj = Phi[:, None]  # (n-1, 1, j, 4, 4)
-    Pk = Pf[:-1, :, None]  # (n-1, i, 1, 4, 4)
-    PhiP = Phj @ Pk  # Phi_j P_k^i
-    xpair = (Phj @ xf[:-1, :, None, :, None])[..., 0]  # (n-1, i, j, 4)
-    Ppair = PhiP @ np.swapaxes(Phj, -1, -2) + Q[:, None]
-    Ppair = 0.5 * (Ppair + np.swapaxes(Ppair, -1, -2))
-    C = np.swapaxes(np.linalg.solve(Ppair, PhiP), -1, -2)  # P_k^i Phi_j^T (P^{ij})^-1
-    CT = np.swapaxes(C, -1, -2)
-    # the parts of the pair recursion known before the backward pass:
-    # xs^{ij} = a^{ij} + C^{ij} xs_{k+1}^j, Ps^{ij} = B^{ij} + C^{ij} Ps_{k+1}^j C^{ij T}
-    a = xf[:-1, :, None, :] - (C @ xpair[..., None])[..., 0]
-    B = Pk - C @ Ppair @ CT
+    xpair, Ppair, C, a, B = pair_terms(fw, Phi, Q)
     if future_modes:
         # whitening by the forward prediction: Pp = U U^T, so the later plots' information is
         # compared with the prediction's in a metric that does not depend on units
