@@ -354,3 +354,17 @@ def test_compiled_passes_equal_the_numpy_reference(case):
     for a, b in zip(got_s, want_s, strict=True):
         assert np.isfinite(a).all()
         np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-8 * max(1.0, np.abs(b).max()))
+
+
+def test_threads_share_the_compiled_steps_safely():
+    """The compiled steps are built once per process and called through a buffer per pass:
+    smoothing different tracks on four threads at once gives each track's sequential answer."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    tracks = [noisy_track(seed, scan_s=scan).plots for seed, scan in ((1, 4.0), (2, 5.0), (3, 8.0))]
+    alone = [run_filter("imm_smoother", p, RADAR).states.states for p in tracks]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda p: run_filter("imm_smoother", p, RADAR).states.states,
+                                 tracks * 4))
+    for a, b in zip(alone * 4, together, strict=True):
+        np.testing.assert_array_equal(a, b)
