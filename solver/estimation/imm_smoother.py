@@ -42,7 +42,7 @@ from .common import SIGMA_V0, estimate
 from .discretize import van_loan
 from .measurements import MEASUREMENT_MODES, PolarPlots, SensorPlots
 
-N_MODES = 3
+N_MODES = imm_step.N_MODES
 MODE_NAMES = ("cv", "right", "left")
 
 Q_CV, Q_CT, OMEGA_DEG, TAU_CV, TAU_CT = 3.0, 30.0, 1.0, 600.0, 60.0
@@ -173,15 +173,11 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
     if m == 0:
         return ForwardPass(xf, Pf, mu, np.empty((0, N_MODES, N_MODES)),
                            np.empty((0, N_MODES, 4)), np.empty((0, N_MODES, 4, 4)))
-    A = np.empty((m, imm_step.STEP_IN))
-    A[:, :48] = Phi.reshape(m, -1)
-    A[:, 48:96] = Q.reshape(m, -1)
-    A[:, 96:105] = Pi.reshape(m, -1)
-    A[:, 105:116] = imm_step.plot_rows(meas)[1:]
-    S = np.empty((n, imm_step.STATE))  # row k: the state after plot k
-    S[0] = np.concatenate([np.repeat(x0[None], N_MODES, 0).ravel(),
-                           np.repeat(P0[None], N_MODES, 0).ravel(), mu0])
-    E = np.empty((m, imm_step.EXTRA))
+    A = imm_step.pack(imm_step.STEP, m, Phi=Phi, Q=Q, Pi=Pi, plot=imm_step.plot_rows(meas)[1:])
+    S = np.empty((n, imm_step.size(imm_step.STATE)))  # row k: the state after plot k
+    S[:1] = imm_step.pack(imm_step.STATE, 1, x=np.repeat(x0[None], N_MODES, 0),
+                          P=np.repeat(P0[None], N_MODES, 0), mu=mu0)
+    E = np.empty((m, imm_step.size(imm_step.EXTRA)))
     buf, evaluate = imm_step.forward_step(measurement).buffer()
     for k in range(1, n):  # each step reads and writes the arrays' rows in place
         buf.set_arg(0, memoryview(S[k - 1]))
@@ -189,11 +185,19 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
         buf.set_res(0, memoryview(S[k]))
         buf.set_res(1, memoryview(E[k - 1]))
         evaluate()
-    xf[1:] = S[1:, :12].reshape(m, N_MODES, 4)
-    Pf[1:] = S[1:, 12:60].reshape(m, N_MODES, 4, 4)
-    mu[1:] = S[1:, 60:]
-    return ForwardPass(xf, Pf, mu, E[:, :9].reshape(m, N_MODES, N_MODES),
-                       E[:, 9:21].reshape(m, N_MODES, 4), E[:, 21:].reshape(m, N_MODES, 4, 4))
+    xf[1:], Pf[1:], mu[1:] = _states(S[1:])
+    ex = imm_step.EXTRA
+    return ForwardPass(xf, Pf, mu, E[:, ex["W"]].reshape(m, N_MODES, N_MODES),
+                       E[:, ex["xp"]].reshape(m, N_MODES, 4),
+                       E[:, ex["Pp"]].reshape(m, N_MODES, 4, 4))
+
+
+def _states(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rows laid out as :data:`.imm_step.STATE` as ``x (n, 3, 4)``, ``P (n, 3, 4, 4)``,
+    ``mu (n, 3)``."""
+    n, lay = S.shape[0], imm_step.STATE
+    return (S[:, lay["x"]].reshape(n, N_MODES, 4), S[:, lay["P"]].reshape(n, N_MODES, 4, 4),
+            S[:, lay["mu"]])
 
 
 def pair_terms(fw: ForwardPass, Phi: FloatArray, Q: FloatArray
@@ -250,35 +254,23 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
     """
     xf, Pf, mu, W = fw.x, fw.P, fw.mu, fw.W
     n = xf.shape[0]
-    xs, Ps, mus = xf.copy(), Pf.copy(), mu.copy()
     if n < 2:
-        return xs, Ps, mus
+        return xf.copy(), Pf.copy(), mu.copy()
     xpair, Ppair, C, a, B = pair_terms(fw, Phi, Q)
-    if future_modes:
-        # whitening by the forward prediction: Pp = U U^T, so the later plots' information is
-        # compared with the prediction's in a metric that does not depend on units
-        white = np.linalg.inv(np.linalg.cholesky(fw.Pp))
+    # whitening by the forward prediction: Pp = U U^T, so the later plots' information is
+    # compared with the prediction's in a metric that does not depend on units
+    white = np.linalg.inv(np.linalg.cholesky(fw.Pp)) if future_modes else np.zeros_like(fw.Pp)
     # the recursion proper runs in CasADi (imm_step.backward_step), one call per step around
     # numpy's eigh of the whitened smoothed covariances (the future-mode likelihoods' split)
     m = n - 1
-    A = np.empty((m, imm_step.BACK_IN))
-    A[:, :9] = W.reshape(m, -1)
-    A[:, 9:21] = fw.xp.reshape(m, -1)
-    A[:, 21:69] = white.reshape(m, -1) if future_modes else 0.0
-    o = 69
-    for arr in (xpair, Ppair, a, B, C):
-        width = arr[0].size
-        A[:, o: o + width] = arr.reshape(m, -1)
-        o += width
-    A[0, o: o + 48] = 0.0
-    A[1:, o: o + 48] = A[:-1, 21:69]  # white of step k - 1
-    A[:, o + 48] = float(future_modes)
-    S = np.empty((n, imm_step.BACK_STATE))  # row k: the smoothed state at plot k
-    S[-1] = np.concatenate([xs[-1].ravel(), Ps[-1].ravel(), mus[-1]])
-    eigen = np.zeros(imm_step.EIGEN)
-    Ws = np.empty((N_MODES, 4, 4))
-    if future_modes:
-        Ws[:] = white[-1] @ Ps[-1] @ np.swapaxes(white[-1], -1, -2)
+    white_prev = np.concatenate([np.zeros_like(white[:1]), white[:-1]])  # white of step k - 1
+    lay = imm_step.BACK
+    A = imm_step.pack(lay, m, W=W, xp=fw.xp, white=white, xpair=xpair, Ppair=Ppair, a=a, B=B,
+                      C=C, white_prev=white_prev, future=float(future_modes))
+    S = np.empty((n, imm_step.size(imm_step.STATE)))  # row k: the smoothed state at plot k
+    S[-1:] = imm_step.pack(imm_step.STATE, 1, x=xf[-1], P=Pf[-1], mu=mu[-1])
+    eigen = np.zeros(imm_step.size(imm_step.EIGEN))
+    Ws = white[-1] @ Pf[-1] @ np.swapaxes(white[-1], -1, -2)  # then written by each step
     buf, evaluate = imm_step.backward_step().buffer()
     buf.set_arg(1, memoryview(eigen))
     buf.set_res(1, memoryview(Ws.reshape(-1)))
@@ -286,16 +278,14 @@ def imm_backward(fw: ForwardPass, Phi: FloatArray, Q: FloatArray, future_modes: 
         if future_modes:
             if np.isfinite(Ws).all():
                 ev, V = np.linalg.eigh(Ws)  # ascending; reads one triangle
-                eigen[:12], eigen[12:] = ev.ravel(), V.ravel()
+                eigen[imm_step.EIGEN["s"]], eigen[imm_step.EIGEN["V"]] = ev.ravel(), V.ravel()
             else:  # absurd sigmas: no usable information, Kim's weights at this step
-                A[k, -1] = 0.0
+                A[k, lay["future"]] = 0.0
         buf.set_arg(0, memoryview(S[k + 1]))
         buf.set_arg(2, memoryview(A[k]))
         buf.set_res(0, memoryview(S[k]))
         evaluate()
-    xs[:] = S[:, :12].reshape(n, N_MODES, 4)
-    Ps[:] = S[:, 12:60].reshape(n, N_MODES, 4, 4)
-    mus[:] = S[:, 60:]
+    xs, Ps, mus = _states(S)
     Ps = 0.5 * (Ps + np.swapaxes(Ps, -1, -2))
     return xs, Ps, mus
 

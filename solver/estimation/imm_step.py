@@ -18,10 +18,9 @@ likelihoods, given the eigen-decomposition numpy's ``eigh`` computes between the
 numpy passes they replaced are the tests' reference (``tests/imm_reference.py``): the same
 results to 1e-10 m on the dev tracks.
 
-Flat layouts (numpy row-major order): the state ``s = (x (3, 4), P (3, 4, 4), mu (3))``; the
-forward step's inputs ``(Phi (3, 4, 4), Q (3, 4, 4), Pi (3, 3), plot)`` with ``plot = (polar,
-d, psi, sigma_d, sigma_psi, centre (2), cov (2, 2))``; its extra outputs ``(W (3, 3), xp (3,
-4), Pp (3, 4, 4))``.
+The functions take and give flat vectors; their layouts (:data:`STATE`, :data:`STEP`,
+:data:`EXTRA`, :data:`EIGEN`, :data:`BACK`: named slices, each part in numpy's row-major order)
+are the one source for both the functions and the passes that fill them (:func:`pack`).
 """
 
 from __future__ import annotations
@@ -35,9 +34,53 @@ from .. import compiled
 from .measurements import PolarPlots, SensorPlots
 
 N_MODES = 3
-STATE = N_MODES * (4 + 16) + N_MODES  # x, P, mu
-STEP_IN = 2 * N_MODES * 16 + 9 + 11  # Phi, Q, Pi, plot
-EXTRA = 9 + N_MODES * (4 + 16)  # W, xp, Pp
+"""CV, right turn, left turn."""
+
+
+def _blocks(**sizes: int) -> dict[str, slice]:
+    """Consecutive slices of a flat vector, in the order given."""
+    out, start = {}, 0
+    for name, size in sizes.items():
+        out[name] = slice(start, start + size)
+        start += size
+    return out
+
+
+_M, _PAIRS = N_MODES, N_MODES * N_MODES
+STATE = _blocks(x=_M * 4, P=_M * 16, mu=_M)
+"""A pass's state at one plot (forward: filtered; backward: smoothed)."""
+STEP = _blocks(Phi=_M * 16, Q=_M * 16, Pi=_M * _M, plot=11)
+"""The forward step's inputs; ``plot`` as :func:`plot_rows`."""
+EXTRA = _blocks(W=_M * _M, xp=_M * 4, Pp=_M * 16)
+"""The forward step's outputs for the backward pass."""
+EIGEN = _blocks(s=_M * 4, V=_M * 16)
+"""``eigh`` of the whitened smoothed covariances ``Ws = U^-1 Ps_{k+1} U^-T`` (ascending)."""
+BACK = _blocks(W=_M * _M, xp=_M * 4, white=_M * 16, xpair=_PAIRS * 4, Ppair=_PAIRS * 16,
+               a=_PAIRS * 4, B=_PAIRS * 16, C=_PAIRS * 16, white_prev=_M * 16, future=1)
+"""The backward step's inputs: the forward ``W``, ``xp``, the whitening ``U^-1`` of the
+forward prediction, the pair terms (:func:`.imm_smoother.pair_terms`, pairs ``(i, j)`` in
+row-major order), the previous step's whitening, the future-modes flag (0: Kim's weights)."""
+
+
+def size(layout: dict[str, slice]) -> int:
+    """Length of a flat vector laid out as ``layout``."""
+    return max(s.stop for s in layout.values())
+
+
+def pack(layout: dict[str, slice], rows: int, **parts: np.ndarray | float) -> np.ndarray:
+    """``(rows, size)`` array of ``layout``, each named part reshaped to ``(rows, -1)`` (row-major)
+    or broadcast (a number)."""
+    out = np.empty((rows, size(layout)))
+    for name, v in parts.items():
+        out[:, layout[name]] = np.reshape(v, (rows, -1)) if np.ndim(v) else v
+    return out
+
+
+def _modes(v: ca.SX, width: int) -> list[ca.SX]:
+    """A flat block of consecutive parts of ``width`` (one per mode or pair); 16 wide: 4x4
+    matrices."""
+    parts = [v[width * j: width * (j + 1)] for j in range(v.shape[0] // width)]
+    return [_mat(p, 4, 4) for p in parts] if width == 16 else parts
 
 
 def plot_rows(meas: PolarPlots | SensorPlots) -> np.ndarray:
@@ -108,14 +151,11 @@ def _update(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
 
 
 def _step(measurement: str) -> ca.Function:
-    s, a = ca.SX.sym("s", STATE), ca.SX.sym("a", STEP_IN)
-    x = [s[4 * j: 4 * j + 4] for j in range(N_MODES)]
-    P = [_mat(s[12 + 16 * j: 28 + 16 * j], 4, 4) for j in range(N_MODES)]
-    mu = s[60:63]
-    Phi = [_mat(a[16 * j: 16 * j + 16], 4, 4) for j in range(N_MODES)]
-    Q = [_mat(a[48 + 16 * j: 64 + 16 * j], 4, 4) for j in range(N_MODES)]
-    Pi = _mat(a[96:105], 3, 3)
-    plot = a[105:116]
+    s, a = ca.SX.sym("s", size(STATE)), ca.SX.sym("a", size(STEP))
+    x, P, mu = _modes(s[STATE["x"]], 4), _modes(s[STATE["P"]], 16), s[STATE["mu"]]
+    Phi, Q = _modes(a[STEP["Phi"]], 16), _modes(a[STEP["Q"]], 16)
+    Pi = _mat(a[STEP["Pi"]], N_MODES, N_MODES)
+    plot = a[STEP["plot"]]
     joint = Pi * ca.repmat(mu, 1, N_MODES)  # joint[i, j] = Pi_ij mu_i
     c = ca.sum1(joint).T
     W = ca.horzcat(*(ca.if_else(c[j] > 0, joint[:, j] / c[j], mu) for j in range(N_MODES)))
@@ -150,39 +190,22 @@ def forward_step(measurement: str) -> ca.Function:
 
 # ---- backward pass (imm_smoother.imm_backward), one step per call around numpy's eigh ----
 
-BACK_STATE = N_MODES * (4 + 16) + N_MODES  # xs, Ps, mus at k + 1
-EIGEN = N_MODES * (4 + 16)  # s (3, 4) ascending, V (3, 4, 4) of Ws = U^-1 Ps_{k+1} U^-T
-PAIR = N_MODES * N_MODES
-BACK_IN = 9 + 12 + 48 + PAIR * (4 + 16 + 4 + 16 + 16) + 48 + 1
-"""Per step: W (3, 3), xp (3, 4), white (3, 4, 4), xpair, Ppair, a, B, C (per pair (i, j)),
-white of step ``k - 1`` (3, 4, 4), the future-modes flag (0: Kim's weights ``W``)."""
-
-
 def _backward_step() -> ca.Function:
-    st, eig, a = ca.SX.sym("s", BACK_STATE), ca.SX.sym("e", EIGEN), ca.SX.sym("a", BACK_IN)
-    xs = [st[4 * j: 4 * j + 4] for j in range(N_MODES)]
-    Ps = [_mat(st[12 + 16 * j: 28 + 16 * j], 4, 4) for j in range(N_MODES)]
-    mus = st[60:63]
-    ev = [eig[4 * j: 4 * j + 4] for j in range(N_MODES)]
-    V = [_mat(eig[12 + 16 * j: 28 + 16 * j], 4, 4) for j in range(N_MODES)]
-    W = _mat(a[:9], 3, 3)
-    xp = [a[9 + 4 * j: 13 + 4 * j] for j in range(N_MODES)]
-    white = [_mat(a[21 + 16 * j: 37 + 16 * j], 4, 4) for j in range(N_MODES)]
-    o = 69
+    st = ca.SX.sym("s", size(STATE))
+    eig, a = ca.SX.sym("e", size(EIGEN)), ca.SX.sym("a", size(BACK))
+    xs, Ps, mus = _modes(st[STATE["x"]], 4), _modes(st[STATE["P"]], 16), st[STATE["mu"]]
+    ev, V = _modes(eig[EIGEN["s"]], 4), _modes(eig[EIGEN["V"]], 16)
+    W = _mat(a[BACK["W"]], N_MODES, N_MODES)
+    xp, white = _modes(a[BACK["xp"]], 4), _modes(a[BACK["white"]], 16)
 
-    def pair(width: int, shape: tuple[int, ...]) -> list[list[ca.SX]]:
-        nonlocal o
-        out = [[a[o + width * (3 * i + j): o + width * (3 * i + j + 1)] for j in range(N_MODES)]
-               for i in range(N_MODES)]
-        o += PAIR * width
-        if len(shape) == 2:
-            out = [[_mat(v, *shape) for v in row] for row in out]
-        return out
+    def pair(name: str, width: int) -> list[list[ca.SX]]:  # [i][j]
+        flat = _modes(a[BACK[name]], width)
+        return [flat[N_MODES * i: N_MODES * (i + 1)] for i in range(N_MODES)]
 
-    xpair, Ppair = pair(4, (4,)), pair(16, (4, 4))
-    apair, Bpair, Cpair = pair(4, (4,)), pair(16, (4, 4)), pair(16, (4, 4))
-    white_prev = [_mat(a[o + 16 * j: o + 16 * j + 16], 4, 4) for j in range(N_MODES)]
-    future = a[o + 48]
+    xpair, Ppair, apair = pair("xpair", 4), pair("Ppair", 16), pair("a", 4)
+    Bpair, Cpair = pair("B", 16), pair("C", 16)
+    white_prev = _modes(a[BACK["white_prev"]], 16)
+    future = a[BACK["future"]]
     # b_ij: Kim's W_ij times the later plots' likelihood of the pair (see backward_step)
     cols = []
     for j in range(N_MODES):
