@@ -183,8 +183,8 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     to ``read_ahead`` complete tracks ahead of their consumer (so the decoding overlaps the
     reconstruction); with ``executor`` (a Dask client) ASTERIX units are decoded on it
     (:func:`solver.io.asterix.iter_recording`). What makes the whole input unusable (a
-    sensor file or table header it cannot use, a pcapng file) raises here, before any track
-    is taken."""
+    sensor file or table header it cannot use, a capture of a link type not read) raises
+    here, before any track is taken."""
     sensors = load_sensors(sensors_path)
     out = Streamed(sensors, Problems(), iter(()))
     parts = _row_parts(recording, out, executor)

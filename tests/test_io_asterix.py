@@ -1,7 +1,8 @@
 """ASTERIX ingest (solver.io.asterix): recordings ENCODED here with libasterix (CAT048 of two
 radars, CAT021 ADS-B, CAT034), decoded back to the same plots at the encoding resolution; pcap
-captures written here with struct; midnight wrap; damaged recordings (truncated blocks,
-unknown categories and SAC/SIC) reported with their byte offsets while the rest is read."""
+captures written here with struct, pcapng captures with dpkt; midnight wrap; damaged
+recordings (truncated blocks, unknown categories and SAC/SIC) reported with their byte offsets
+while the rest is read."""
 
 from __future__ import annotations
 
@@ -246,9 +247,92 @@ def test_pcap_damage_reported_and_the_rest_read(tmp_path):
     assert len(rec.rows) > len(enc.plots) - 6
 
 
-def test_pcapng_is_refused_with_a_clear_error():
-    with pytest.raises(InputError, match="pcapng"):
-        read_recording(b"\x0a\x0d\x0d\x0a" + bytes(40), SENSORS)
+def dpkt_frame(payload: bytes, linktype: int) -> bytes:
+    """One UDP datagram to port 8600 as a frame of ``linktype``, encoded by dpkt (independent
+    of the struct-built frames above)."""
+    import dpkt
+
+    datagram = dpkt.ip.IP(src=bytes([10, 0, 0, 1]), dst=bytes([239, 1, 1, 1]), p=17,
+                          data=dpkt.udp.UDP(sport=40000, dport=8600, ulen=8 + len(payload),
+                                            data=payload))
+    if linktype == 1:
+        return bytes(dpkt.ethernet.Ethernet(type=dpkt.ethernet.ETH_TYPE_IP, data=datagram))
+    if linktype == 113:
+        return bytes(dpkt.sll.SLL(ethtype=dpkt.ethernet.ETH_TYPE_IP, data=datagram))
+    return bytes(datagram)  # raw IP
+
+
+def pcapng_section(little: bool, linktypes: list[int], packets: list[tuple[int, bytes]], *,
+             obsolete: int = 0) -> bytes:
+    """A pcapng section written with dpkt's block classes: its interfaces, then one packet
+    block per ``(interface, frame)``, the last ``obsolete`` of them obsolete packet blocks."""
+    from dpkt import pcapng as ng
+
+    shb, idb, epb, pb = ((ng.SectionHeaderBlockLE, ng.InterfaceDescriptionBlockLE,
+                          ng.EnhancedPacketBlockLE, ng.PacketBlockLE) if little
+                         else (ng.SectionHeaderBlock, ng.InterfaceDescriptionBlock,
+                               ng.EnhancedPacketBlock, ng.PacketBlock))
+    out = [bytes(shb()), *(bytes(idb(linktype=lt, snaplen=65535)) for lt in linktypes)]
+    out += [bytes((pb if j >= len(packets) - obsolete else epb)(iface_id=i, pkt_data=frame))
+            for j, (i, frame) in enumerate(packets)]
+    return b"".join(out)
+
+
+def test_pcapng_round_trip_sections_interfaces_and_byte_orders():
+    """pcapng (Wireshark's format) is read: a little-endian section with an Ethernet and a
+    Linux cooked interface, then a big-endian section with a raw IP interface and enhanced and
+    obsolete packet blocks; the same plots as the blocks decoded as a file, byte offsets in
+    the capture, and the same rows as a classic pcap of the same datagrams."""
+    enc = encode_recording()
+    b = enc.blocks
+    k = len(b) // 2
+    first = [(j % 2, dpkt_frame(x, (1, 113)[j % 2])) for j, x in enumerate(b[:k])]
+    second = [(0, dpkt_frame(x, 101)) for x in b[k:]]
+    data = pcapng_section(True, [1, 113], first) + pcapng_section(False, [101], second, obsolete=3)
+    rec = read_recording(data, SENSORS)
+    assert not rec.problems, rec.problems.summary()
+    assert rec.packets == len(b)
+    assert_same_plots(rec.rows, enc.plots)
+    assert rec.rows.origin[0] == data.index(b[0]) + 3
+    classic = read_recording(pcap(b), SENSORS)
+    np.testing.assert_array_equal(rec.rows.range_m, classic.rows.range_m)
+    np.testing.assert_array_equal(rec.rows.t, classic.rows.t)
+
+
+def test_pcapng_damage_reported_and_the_rest_read(tmp_path):
+    """A packet on an undescribed interface, a packet cut by the snap length and a capture cut
+    inside its last block: each reported with its block's byte offset, every other packet
+    read (a simple packet block too: interface 0's)."""
+    from dpkt import pcapng as ng
+
+    enc = encode_recording()
+    b = enc.blocks
+    frames = [dpkt_frame(x, 1) for x in b]
+    spb = struct.pack("<III", 3, 16 + 4 * ((len(frames[1]) + 3) // 4), len(frames[1]))
+    spb += frames[1] + bytes(-len(frames[1]) % 4) + spb[4:8]
+    cut = ng.EnhancedPacketBlockLE(iface_id=0, pkt_data=frames[3])
+    cut_bytes = bytearray(bytes(cut))
+    struct.pack_into("<I", cut_bytes, 24, len(frames[3]) + 10)  # pkt_len > caplen
+    head = pcapng_section(True, [1], [(0, frames[0])])
+    blocks = [spb, bytes(ng.EnhancedPacketBlockLE(iface_id=5, pkt_data=frames[2])),
+              bytes(cut_bytes), *(bytes(ng.EnhancedPacketBlockLE(iface_id=0, pkt_data=f))
+                                   for f in frames[4:])]
+    data = head + b"".join(blocks)
+    path = tmp_path / "rec.pcapng"
+    path.write_bytes(data[:-6])
+    rec = read_recording(path, SENSORS)
+    assert rec.problems.counts == {"not_asterix_packet": 1, "truncated_packet": 2}
+    where = {p.message.split(":")[0].split(" was")[0].split(" declares")[0]: p.where
+             for p in rec.problems.entries}
+    starts = np.cumsum([len(head)] + [len(x) for x in blocks])
+    assert where == {"pcapng packet 3": f"byte {starts[1]}",
+                     "pcapng packet 4": f"byte {starts[2]}",
+                     "pcapng block of type 6": f"byte {starts[-2]}"}, rec.problems.summary()
+    whole = decode_blocks(b"".join([b[0], b[1], *b[4:-1]]), SENSORS)
+    np.testing.assert_array_equal(rec.rows.range_m, whole.rows.range_m)
+    assert rec.packets == 2 + len(b[4:-1])
+    with pytest.raises(InputError, match="pcapng section header at byte 0 has no byte-order"):
+        read_recording(head[:8] + bytes(40), SENSORS)
 
 
 def test_midnight_wrap():
@@ -507,8 +591,8 @@ def test_pcap_link_layers_and_packets_that_are_not_asterix():
 
 def test_a_file_is_read_memory_mapped_with_its_pages_released_behind(tmp_path, monkeypatch):
     """iter_recording of a file (memory-mapped) gives the parts it gives from the file's bytes
-    (raw and pcap), and gives the mapping's pages back behind the reading: page-aligned, never
-    past what was read, one stretch after the other (release step 4 KiB here, 1 MiB by
+    (raw, pcap and pcapng), and gives the mapping's pages back behind the reading: page-aligned,
+    never past what was read, one stretch after the other (release step 4 KiB here, 1 MiB by
     default; units of 1 KiB)."""
     import mmap
 
@@ -527,7 +611,8 @@ def test_a_file_is_read_memory_mapped_with_its_pages_released_behind(tmp_path, m
     monkeypatch.setattr(asterix, "_Release", Spy)
     monkeypatch.setattr(asterix, "RELEASE_STEP", mmap.PAGESIZE)
     enc = encode_recording(duration=400.0)
-    for data in (enc.data, pcap(enc.blocks)):
+    pcapng = pcapng_section(True, [1], [(0, dpkt_frame(x, 1)) for x in enc.blocks])
+    for data in (enc.data, pcap(enc.blocks), pcapng):
         path = tmp_path / "recording"
         path.write_bytes(data)
         whole = list(iter_recording(data, SENSORS, chunk_bytes=1024))

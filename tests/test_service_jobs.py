@@ -15,7 +15,14 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
-from test_io_asterix import FLIGHTS, SENSOR_FILE, Flight, encode_recording
+from test_io_asterix import (
+    FLIGHTS,
+    SENSOR_FILE,
+    Flight,
+    dpkt_frame,
+    encode_recording,
+    pcapng_section,
+)
 
 from service.app import create_app
 from service.settings import Settings
@@ -49,6 +56,25 @@ def wait(client: TestClient, location: str, states=("done", "failed", "cancelled
             return status
         assert time.monotonic() < end, status
         time.sleep(0.2)
+
+
+def test_pcapng_capture_job_runs_to_done(client):
+    """A pcapng capture (Wireshark's format; the file name says nothing) is a recording: every
+    track done once; a packet cut by the snap length is counted, the rest read."""
+    from dpkt.pcapng import EnhancedPacketBlockLE
+
+    enc = encode_recording(duration=60.0)
+    blocks = [bytearray(bytes(EnhancedPacketBlockLE(pkt_data=dpkt_frame(x, 1))))
+              for x in enc.blocks]
+    blocks[2][24:28] = (len(dpkt_frame(enc.blocks[2], 1)) + 10).to_bytes(4, "little")  # pkt_len
+    data = pcapng_section(True, [1], []) + b"".join(blocks)
+    r = upload(client, bytes(data), name="capture")
+    assert r.status_code == 202, r.text
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "done", status
+    assert status["tracks_total"] == status["tracks_done"] == len(FLIGHTS)
+    assert status["problems"]["counts"] == {"truncated_packet": 1}
+    assert status["plots"] == status["plots_done"] == status["rows"] > 0.95 * len(enc.plots)
 
 
 def test_asterix_recording_job_runs_to_done_with_every_track_once(client):

@@ -1,19 +1,18 @@
-"""ASTERIX recordings (raw files and pcap captures) -> plot rows.
+"""ASTERIX recordings (raw files and pcap / pcapng captures) -> plot rows.
 
 Records are parsed by libasterix (pure Python, MIT, EUROCONTROL specifications generated from
 the asterix-specs definitions; it also encodes, so the tests write their recordings with it).
 Nothing of the ASTERIX record structure is decoded by hand here: this module walks the
-data blocks (to know byte offsets and to resynchronise after damage), reads the pcap container,
-and maps the decoded items to plot rows (:class:`solver.io.tables.PlotRows`).
+data blocks (to know byte offsets and to resynchronise after damage) and maps the decoded
+items to plot rows (:class:`solver.io.tables.PlotRows`).
 
 Containers (:func:`read_recording` tells them apart by the first bytes):
 
 - raw: data blocks ``CAT (1 byte) | LEN (2 bytes, big-endian, including these 3) | records``
   one after the other, as recorders write them;
-- pcap (classic libpcap, micro- or nanosecond, either byte order; link types Ethernet with
-  802.1Q tags, raw IP, Linux cooked v1/v2, BSD loopback): every UDP payload over IPv4/IPv6 is
-  a datagram of data blocks. pcapng is refused with a clear error (convert it with
-  ``editcap -F pcap``); IP fragments are reported, not reassembled.
+- captures (classic pcap and pcapng; :mod:`solver.io.pcap`, decoded by dpkt): every UDP
+  payload over IPv4/IPv6 is a datagram of data blocks; IP fragments are reported, not
+  reassembled.
 
 Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=`` picks others):
 
@@ -56,7 +55,6 @@ from __future__ import annotations
 
 import mmap
 import os
-import struct
 from collections import deque
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
@@ -67,8 +65,8 @@ import asterix.generated as ast
 import numpy as np
 from asterix.base import Bits, ParsingMode, Unsigned
 
-from ..inputs import InputError
 from ..sensors import PositionSensor, RadarSensor
+from .pcap import is_capture, iter_udp_payloads
 from .problems import Problems
 from .sensors_file import SensorSet
 from .tables import FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
@@ -78,11 +76,6 @@ DEFAULT_EDITIONS: dict[int, Any] = {48: ast.Cat_048_1_32, 21: ast.Cat_021_2_7,
                                     34: ast.Cat_034_1_29}
 KNOWN_CATEGORIES = frozenset(ast.manifest["CATS"])
 """Categories libasterix knows (used only to recognise block headers when resynchronising)."""
-
-_PCAP_MAGIC = {b"\xd4\xc3\xb2\xa1": ("<", 1e-6), b"\xa1\xb2\xc3\xd4": (">", 1e-6),
-               b"\x4d\x3c\xb2\xa1": ("<", 1e-9), b"\xa1\xb2\x3c\x4d": (">", 1e-9)}
-_PCAPNG_MAGIC = b"\x0a\x0d\x0d\x0a"
-
 
 @dataclass
 class ServiceStats:
@@ -99,7 +92,7 @@ class ServiceStats:
 class Recording:
     """A decoded recording: the plot rows (``origin``: byte offset of each row's record in the
     file), the problems, CAT034 statistics per sensor id, and counts (data blocks per
-    category, records, bytes, pcap packets)."""
+    category, records, bytes, captured packets)."""
 
     rows: PlotRows
     problems: Problems
@@ -117,7 +110,7 @@ CHUNK_BYTES = 1 << 20
 def read_recording(source: str | Path | bytes, sensors: SensorSet, *,
                    editions: Mapping[int, Any] | None = None, executor: Any = None,
                    chunk_bytes: int = CHUNK_BYTES) -> Recording:
-    """Decode a raw ASTERIX file or a pcap capture of it (see the module docstring).
+    """Decode a raw ASTERIX file or a capture of it (see the module docstring).
 
     The recording is cut into units of about ``chunk_bytes`` at data block (or packet)
     boundaries; with ``executor`` (a Dask ``Client`` or any ``concurrent.futures``-style
@@ -153,9 +146,6 @@ def _iter_data(data: bytes | mmap.mmap, sensors: SensorSet, editions: Mapping[in
                executor: Any, chunk_bytes: int, ahead: int) -> Iterator[Recording]:
     """:func:`iter_recording` of the recording's bytes, or of the file memory-mapped (its
     pages released behind the reading: the memory does not grow with the file)."""
-    if data[:4] == _PCAPNG_MAGIC:
-        raise InputError(("recording",), "is a pcapng capture; only classic pcap is read "
-                         "(convert it: editcap -F pcap in.pcapng out.pcap)")
     eds = dict(editions or DEFAULT_EDITIONS)
     previous = np.nan
 
@@ -172,12 +162,12 @@ def _iter_data(data: bytes | mmap.mmap, sensors: SensorSet, editions: Mapping[in
     if executor is None:
         for unit, walk in units:
             yield finish(decode_datagrams(unit, sensors, editions=eds), walk, len(unit)
-                         if data[:4] in _PCAP_MAGIC else 0)
+                         if is_capture(data) else 0)
         return
     pending: deque[tuple[Any, Problems, int]] = deque()
     for unit, walk in units:
         pending.append((executor.submit(decode_datagrams, unit, sensors, editions=eds), walk,
-                        len(unit) if data[:4] in _PCAP_MAGIC else 0))
+                        len(unit) if is_capture(data) else 0))
         if len(pending) >= ahead:
             fut, w, k = pending.popleft()
             yield finish(fut.result(), w, k)
@@ -191,16 +181,16 @@ def _units(data: bytes | mmap.mmap, chunk_bytes: int
     """The decoding units of a recording (copies of its bytes) with the container's problems
     met on the way; a memory-mapped file's pages are released behind the units."""
     release = _Release(data)
-    if data[:4] not in _PCAP_MAGIC:
+    if not is_capture(data):
         for a, b in _block_cuts(data, chunk_bytes):
             unit = data[a:b]
             release.upto(b)
             yield [(a, unit)], Problems()
         return
-    walk = Problems()  # filled by the pcap walk, drained into each unit
+    walk = Problems()  # filled by the capture's walk, drained into each unit
     units: list[tuple[int, bytes]] = []
     size = 0
-    for offset, payload in iter_pcap_payloads(data, walk):
+    for offset, payload in iter_udp_payloads(data, walk):
         units.append((offset, payload))
         size += len(payload)
         if size >= chunk_bytes:
@@ -303,102 +293,6 @@ def _merge(parts: list[Recording], problems: Problems, size: int, packets: int) 
                 acc.rotation_period_s = st.rotation_period_s
     return Recording(rows, problems, service, blocks, sum(p.records for p in parts), size,
                      packets)
-
-
-# ---------------------------------------------------------------------------------- pcap
-
-
-def iter_pcap_payloads(data: bytes, problems: Problems) -> Iterator[tuple[int, bytes]]:
-    """``(byte offset in the file, payload)`` of every UDP datagram of a classic pcap capture;
-    other packets, fragments and packets cut by the capture's snap length are reported."""
-    if len(data) < 24 or data[:4] not in _PCAP_MAGIC:
-        raise InputError(("recording",), "is not a pcap capture (no pcap magic number)")
-    endian, _ = _PCAP_MAGIC[data[:4]]
-    linktype = struct.unpack_from(endian + "I", data, 20)[0] & 0x0FFFFFFF
-    if linktype not in (0, 1, 101, 113, 228, 229, 276):
-        raise InputError(("recording",), f"pcap link type {linktype} is not read (Ethernet, "
-                         "raw IP, Linux cooked capture and loopback are)")
-    pos, number = 24, 0
-    while pos < len(data):
-        number += 1
-        if len(data) - pos < 16:
-            problems.add("truncated_packet", f"byte {pos}", f"pcap packet {number}: "
-                         f"{len(data) - pos} bytes left, a packet header has 16")
-            return
-        _, _, incl, orig = struct.unpack_from(endian + "IIII", data, pos)
-        start = pos + 16
-        if start + incl > len(data):
-            problems.add("truncated_packet", f"byte {pos}", f"pcap packet {number} declares "
-                         f"{incl} bytes, only {len(data) - start} remain")
-            return
-        packet = data[start:start + incl]
-        pos = start + incl
-        if incl < orig:
-            problems.add("truncated_packet", f"byte {start - 16}", f"pcap packet {number} was "
-                         f"captured with {incl} of its {orig} bytes (snap length); skipped",
-                         key="snaplen")
-            continue
-        found = _udp_payload(packet, linktype)
-        if isinstance(found, str):
-            problems.add("not_asterix_packet", f"byte {start - 16}",
-                         f"pcap packet {number}: {found}", key=found)
-            continue
-        offset, payload = found
-        yield start + offset, payload
-
-
-def _udp_payload(p: bytes, linktype: int) -> tuple[int, bytes] | str:
-    """(offset, UDP payload) of one link-layer frame, or why there is none."""
-    off = 0
-    if linktype == 1:  # Ethernet, with 802.1Q / QinQ tags
-        if len(p) < 14:
-            return "short Ethernet frame"
-        etype, off = struct.unpack_from(">H", p, 12)[0], 14
-        while etype in (0x8100, 0x88A8) and len(p) >= off + 4:
-            etype, off = struct.unpack_from(">H", p, off + 2)[0], off + 4
-    elif linktype == 113:  # Linux cooked v1
-        if len(p) < 16:
-            return "short Linux cooked header"
-        etype, off = struct.unpack_from(">H", p, 14)[0], 16
-    elif linktype == 276:  # Linux cooked v2
-        if len(p) < 20:
-            return "short Linux cooked v2 header"
-        etype, off = struct.unpack_from(">H", p, 0)[0], 20
-    elif linktype == 0:  # BSD loopback: host-order address family
-        if len(p) < 4:
-            return "short loopback header"
-        fam = struct.unpack_from("<I", p, 0)[0]
-        fam = fam if fam < 65536 else struct.unpack_from(">I", p, 0)[0]
-        etype, off = (0x0800 if fam == 2 else 0x86DD), 4
-    else:  # raw IP (101, 228 IPv4, 229 IPv6)
-        etype = 0x0800 if p[:1] and p[0] >> 4 == 4 else 0x86DD
-    if etype == 0x0800:
-        if len(p) < off + 20:
-            return "short IPv4 header"
-        ihl = (p[off] & 0x0F) * 4
-        proto = p[off + 9]
-        frag = struct.unpack_from(">H", p, off + 6)[0]
-        total = struct.unpack_from(">H", p, off + 2)[0]
-        if proto != 17:
-            return f"IP protocol {proto}, not UDP"
-        if frag & 0x3FFF:
-            return "IPv4 fragment (not reassembled)"
-        end = min(len(p), off + total) if total else len(p)
-        off += ihl
-    elif etype == 0x86DD:
-        if len(p) < off + 40:
-            return "short IPv6 header"
-        if p[off + 6] != 17:
-            return f"IPv6 next header {p[off + 6]}, not UDP (extension headers are not read)"
-        end = min(len(p), off + 40 + struct.unpack_from(">H", p, off + 4)[0])
-        off += 40
-    else:
-        return f"ethertype 0x{etype:04x}, not IP"
-    if end < off + 8:
-        return "short UDP header"
-    udp_len = struct.unpack_from(">H", p, off + 4)[0]
-    stop = min(end, off + udp_len) if udp_len >= 8 else end
-    return off + 8, p[off + 8:stop]
 
 
 # ---------------------------------------------------------------------------------- blocks
