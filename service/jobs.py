@@ -318,11 +318,13 @@ def _set(f: cf.Future[Any], result: Any = None, exc: BaseException | None = None
 
 
 def job_track(key: str, table: Any, config: ReconstructionConfig | None,
-              time_limit_s: float | None, figures_root: str | None = None) -> AssessedTrack:
+              time_limit_s: float | None, figures_root: str | None = None,
+              times_of_day: bool = False) -> AssessedTrack:
     """The per-track task of a job (on a worker): :func:`solver.cli.assess_track`, with the
     figure in a directory of its own per key (:func:`figure_dir`)."""
     figures = None if figures_root is None else str(figure_dir(Path(figures_root), key))
-    return assess_track(key, table, config, time_limit_s, figures_dir=figures)
+    return assess_track(key, table, config, time_limit_s, figures_dir=figures,
+                        times_of_day=times_of_day)
 
 
 def figure_dir(root: Path, key: str) -> Path:
@@ -579,7 +581,8 @@ class JobRunner:
             reconstruct_many(tracks, out, config=config, executor=pool,
                              time_limit_s=s.jobs_track_time_limit_s or None, flush_tracks=8,
                              flush_s=1.0, on_outcome=on_outcome,
-                             task=partial(job_track, figures_root=figures))
+                             task=partial(job_track, figures_root=figures,
+                                          times_of_day=loaded.times_of_day))
         except Aborted:
             LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
             return

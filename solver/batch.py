@@ -15,6 +15,7 @@ Memory is bounded however long the recording: the problems are consumed lazily w
 
     OUT/tracks.parquet/part-000001.parquet    states at every plot (see TRACK_COLUMNS)
     OUT/segments.parquet/part-000001.parquet  constant-control segments
+    OUT/filters.parquet/part-000001.parquet   the recursive filters asked for (FILTER_COLUMNS)
     OUT/progress.jsonl                        one line per finished track (the commit log)
 
 A part is written to a temporary name and renamed, then its tracks' lines are appended to
@@ -34,7 +35,7 @@ import json
 import os
 import re
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -45,15 +46,23 @@ import pyarrow.parquet as pq
 
 from .config import ReconstructionConfig
 from .plots import PlotTable
+from .results import StateSeries
 
-TRACK_COLUMNS = ("aircraft", "plot", "sensor", "t", "x", "z", "lat_deg", "lon_deg", "vx", "vz",
-                 "speed", "heading_deg", "cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz",
-                 "cov_z_z", "cov_z_vx", "cov_z_vz", "cov_vx_vx", "cov_vx_vz", "cov_vz_vz",
-                 "h_m", "h_sigma_m")
+COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
+               "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
+TRACK_COLUMNS = ("aircraft", "plot", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
+                 "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m")
 """Columns of ``tracks.parquet``: one row per plot (``plot``: its index in the track's table,
-time order), positions in the recording's plane (m; ``x`` north, ``z`` east) and on WGS-84,
-velocity (m/s), heading (deg clockwise from north), the covariance over ``(x, z, vx, vz)``
-(upper triangle) and the estimated height with its sigma where it was estimated (else null)."""
+time order), ``t`` (s; from the UTC midnight before the recording's first plot when the
+recording is timed by time of day, as ASTERIX is) and ``time_of_day_s`` (``t`` modulo a day
+then, else null), positions in the recording's plane (m; ``x`` north, ``z`` east) and on
+WGS-84, velocity (m/s), heading (deg clockwise from north), the covariance over
+``(x, z, vx, vz)`` (upper triangle) and the estimated height with its sigma where it was
+estimated (else null)."""
+FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
+                  "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS)
+"""Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
+:data:`solver.estimation.FILTER_NAMES`), as ``tracks.parquet``."""
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
 PROGRESS = "progress.jsonl"
 _PART = re.compile(r"part-(\d{6})\.parquet|\.part-\d{6}\.parquet\.tmp")
@@ -80,6 +89,7 @@ class TrackOutcome:
     states: pa.Table | None = None
     segments: pa.Table | None = None
     extras: dict[str, Any] = field(default_factory=dict)
+    filters: pa.Table | None = None
     cpu_s: float | None = None  # the task thread's CPU time (elapsed_s - cpu_s: waiting)
 
     def ledger(self, part: str | None) -> dict[str, Any]:
@@ -115,51 +125,93 @@ class BatchSummary:
 
 def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None = None,
                 time_limit_s: float | None = None,
-                extras: Callable[[Any], dict[str, Any]] | None = None) -> TrackOutcome:
+                extras: Callable[[Any], dict[str, Any]] | None = None, *,
+                filters: Sequence[str] = (), times_of_day: bool = False) -> TrackOutcome:
     """Reconstruct one track (runs on a worker). Any ``Exception`` of the track (bad input,
     solver failure, the deadline ``time_limit_s`` after the start) is returned as a failed
     outcome naming it; the result's rows come back as Arrow tables. ``extras(reconstruction)``
-    (e.g. per-sensor statistics, a figure) fills ``TrackOutcome.extras``, on the worker."""
+    (e.g. per-sensor statistics, a figure) fills ``TrackOutcome.extras``, on the worker.
+    ``filters``: recursive filters run beside (:data:`FILTER_COLUMNS`); one that cannot run on
+    this track (e.g. a two-sensor fusion on one sensor) is a warning, not a failure.
+    ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled)."""
     from .reconstruct import reconstruct
 
     start, cpu = time.perf_counter(), time.thread_time()
     deadline = None if time_limit_s is None else time.monotonic() + time_limit_s
     try:
         rec = reconstruct(table, config=config or ReconstructionConfig(), deadline=deadline)
-        states = _states_table(key, table, rec)
+        states = _states_table(key, table, rec.at_plots, times_of_day)
         segments = _segments_table(key, rec)
         more = extras(rec) if extras is not None else {}
+        warnings = list(rec.diagnostics.warnings)
+        filtered = _filters_table(key, table, filters, times_of_day, warnings)
     except Exception as e:  # isolated: one track's failure is its own
         return TrackOutcome(key, "failed", len(table), time.perf_counter() - start,
                             f"{type(e).__name__}: {e}", cpu_s=time.thread_time() - cpu)
     return TrackOutcome(key, "done", len(table), time.perf_counter() - start, None,
-                        list(rec.diagnostics.warnings), states, segments, more,
+                        warnings, states, segments, more, filtered,
                         cpu_s=time.thread_time() - cpu)
 
 
-def _states_table(key: str, table: PlotTable, rec: Any) -> pa.Table:
-    s = rec.at_plots
+def _state_columns(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
+                   ) -> dict[str, Any]:
+    """The columns shared by ``tracks.parquet`` and ``filters.parquet``."""
     n = len(s)
     cov = s.cov if s.cov is not None else np.full((n, 4, 4), np.nan)
-    names = ("x", "z", "vx", "vz")
+    lat, lon = s.lat_deg, s.lon_deg
+    if lat is None and table.frame is not None:
+        lat, lon = table.frame.to_geodetic(s.x, s.z)
     cols: dict[str, Any] = {
         "aircraft": pa.array([key] * n, pa.string()),
         "plot": pa.array(np.arange(n), pa.int32()),
         "sensor": pa.array([table.sensors[k].id for k in table.sensor.tolist()], pa.string()),
-        "t": s.t, "x": s.x, "z": s.z,
-        "lat_deg": _nullable(s.lat_deg, n), "lon_deg": _nullable(s.lon_deg, n),
-        "vx": s.vx, "vz": s.vz, "speed": s.speed, "heading_deg": np.rad2deg(s.heading)}
-    for i in range(4):
-        for j in range(i, 4):
-            cols[f"cov_{names[i]}_{names[j]}"] = cov[:, i, j]
-    cols["h_m"] = _nullable(s.h, n)
-    cols["h_sigma_m"] = _nullable(s.h_sigma, n)
-    return pa.table({k: cols[k] if isinstance(cols[k], pa.Array)
-                     else pa.array(np.asarray(cols[k], float), pa.float64())
-                     for k in TRACK_COLUMNS})
+        "t": s.t, "time_of_day_s": np.mod(s.t, 86_400.0) if times_of_day else None,
+        "x": s.x, "z": s.z, "lat_deg": lat, "lon_deg": lon, "vx": s.vx, "vz": s.vz}
+    iu = np.triu_indices(4)
+    cols.update(zip(COV_COLUMNS, cov[:, iu[0], iu[1]].T, strict=True))
+    return cols
 
 
-def _nullable(a: np.ndarray | None, n: int) -> pa.Array:
+_NULLABLE = frozenset({"time_of_day_s", "lat_deg", "lon_deg", "h_m", "h_sigma_m"})
+"""Columns whose NaN means "not known" (null in Parquet); elsewhere a NaN stays a NaN."""
+
+
+def _arrow(cols: dict[str, Any], names: Sequence[str], n: int) -> pa.Table:
+    return pa.table({k: cols[k] if isinstance(cols[k], pa.Array) else
+                     _nullable(cols[k], n) if k in _NULLABLE else
+                     pa.array(np.asarray(cols[k], float), pa.float64()) for k in names})
+
+
+def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool) -> pa.Table:
+    cols = _state_columns(key, table, s, times_of_day)
+    cols.update(speed=s.speed, heading_deg=np.rad2deg(s.heading), h_m=s.h, h_sigma_m=s.h_sigma)
+    return _arrow(cols, TRACK_COLUMNS, len(s))
+
+
+def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_day: bool,
+                   warnings: list[str]) -> pa.Table | None:
+    """Every named filter's states (:data:`FILTER_COLUMNS`); a filter that raises or falls
+    back adds its reason to ``warnings``."""
+    if not names:
+        return None
+    from .estimation import run_filter
+
+    parts = []
+    for name in names:
+        try:
+            est = run_filter(name, table)
+        except (ValueError, TypeError) as e:
+            warnings.append(f"filters.{name}: {e}")
+            continue
+        if "warning" in est.info:
+            warnings.append(f"filters.{name}: {est.info['warning']}")
+        cols = _state_columns(key, table, est.states, times_of_day)
+        cols["filter"] = pa.array([name] * len(table), pa.string())
+        parts.append(_arrow(cols, FILTER_COLUMNS, len(table)))
+    return pa.concat_tables(parts) if parts else None
+
+
+def _nullable(a: Any, n: int) -> pa.Array:
     if a is None:
         return pa.nulls(n, pa.float64())
     return pa.array(np.asarray(a, float), pa.float64(), from_pandas=True)
@@ -204,6 +256,7 @@ class _Store:
         self.out = out
         self.tracks_dir = out / "tracks.parquet"
         self.segments_dir = out / "segments.parquet"
+        self.filters_dir = out / "filters.parquet"  # made when a track has filters
         for d in (self.tracks_dir, self.segments_dir):
             d.mkdir(parents=True, exist_ok=True)
         self.ledger_path = out / PROGRESS
@@ -219,7 +272,9 @@ class _Store:
             if len(entries) != len(lines):  # the torn line dropped (written as commit() does)
                 self._rewrite([json.dumps(e).encode() for e in entries])
         numbers = [0]
-        for d in (self.tracks_dir, self.segments_dir):
+        for d in (self.tracks_dir, self.segments_dir, self.filters_dir):
+            if not d.is_dir():
+                continue
             for f in d.iterdir():
                 ours = _PART.fullmatch(f.name)
                 if ours is None:
@@ -242,8 +297,13 @@ class _Store:
         if done:
             part = f"part-{self.next_part:06d}.parquet"
             self.next_part += 1
+            filtered = [o.filters for o in done if o.filters is not None]
             for d, tables in ((self.tracks_dir, [o.states for o in done]),
-                              (self.segments_dir, [o.segments for o in done])):
+                              (self.segments_dir, [o.segments for o in done]),
+                              (self.filters_dir, filtered)):
+                if not tables:
+                    continue
+                d.mkdir(exist_ok=True)
                 tmp = d / f".{part}.tmp"
                 pq.write_table(pa.concat_tables(tables), tmp)  # type: ignore[arg-type]
                 os.replace(tmp, d / part)

@@ -1,19 +1,29 @@
-"""The command line: ``trajrecon RECORDING --sensors SENSORS.json --out DIR``.
+"""The command line (spec recordings.md):
 
-Reads a recording (raw ASTERIX or a pcap capture of it: CAT048, CAT021, CAT034; or a plot
-table in CSV or Parquet, see ``solver/io/README.md``) and the sensor file, splits it into
-aircraft, reconstructs every track on Dask (an embedded ``LocalCluster`` sized to the cores, or
-the cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
+    trajrecon reconstruct RECORDING --sensors SENSORS.json --out DIR [--scheduler ADDRESS]
+        [--workers N] [--method refined|sliding] [--filters NAME ...] [--figures] ...
+    trajrecon plot RECORDING --sensors SENSORS.json --out DIR [--aircraft KEY ...] [--map]
 
-- ``tracks.parquet/``, ``segments.parquet/`` (streamed as tracks finish; a rerun resumes),
-  ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
-  ``tracks.geojsonl`` (one GeoJSON LineString feature per aircraft, for maps);
-- ``sensors.csv``: per sensor, against the reconstruction (SASS-C/TRES-style assessment):
-  plots, detection rate (plots over expected scans at the estimated scan period), wild plots,
-  bias and sigma of the range and azimuth residuals, estimated offsets where asked;
+(``trajrecon RECORDING ...`` is ``trajrecon reconstruct RECORDING ...``.) ``reconstruct`` reads a
+recording (raw ASTERIX or a pcap/pcapng capture of it: CAT048, CAT021, CAT034; or a plot table
+in CSV or Parquet, see ``solver/io/README.md``) and the sensor file, splits it into aircraft,
+reconstructs every track on Dask (an embedded ``LocalCluster`` sized to the cores, or the
+cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
+
+- ``tracks.parquet/``, ``segments.parquet/`` and with ``--filters`` ``filters.parquet/``
+  (streamed as tracks finish; a rerun resumes), ``progress.jsonl`` (:mod:`solver.batch`), and
+  at the end ``tracks.csv`` and ``tracks.geojsonl`` (one GeoJSON LineString feature per
+  aircraft, for maps);
+- ``sensors.json`` and ``sensors.csv``: per sensor, against the reconstruction
+  (SASS-C/TRES-style assessment): plots, detection rate (plots over expected scans at the
+  estimated scan period), wild plots, bias and sigma of the range and azimuth residuals,
+  estimated offsets where asked;
 - ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
   (every track with the radar sites), ``figures/<track>.png`` with ``--figures``,
   ``summary.json``; a summary is printed at the end (tracks, plots, failures, plots/s).
+
+``plot`` draws ``figures/<aircraft>.png`` for the named aircraft and, with ``--map``,
+``map.png`` again.
 """
 
 from __future__ import annotations
@@ -55,7 +65,7 @@ from .io.asterix import iter_recording, read_recording
 from .io.problems import Problems
 from .io.sensors_file import SensorSet, load_sensors
 from .io.split import AircraftTrack, recording_frame, split_aircraft, split_stream
-from .io.tables import PlotRows, iter_table, read_table
+from .io.tables import PlotRows, counts_from_midnight, iter_table, read_table
 from .plots import PlotTable
 from .results import Reconstruction
 from .sensors import RadarSensor
@@ -91,9 +101,11 @@ class AssessedTrack(TrackOutcome):
 
 
 def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None,
-                 time_limit_s: float | None, figures_dir: str | None = None) -> AssessedTrack:
-    """:func:`solver.batch.solve_track` plus the per-sensor statistics and, with
-    ``figures_dir``, the track's figure (drawn on the worker)."""
+                 time_limit_s: float | None, figures_dir: str | None = None,
+                 filters: Sequence[str] = (), times_of_day: bool = False) -> AssessedTrack:
+    """:func:`solver.batch.solve_track` (with ``filters`` and ``times_of_day``) plus the
+    per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the
+    worker)."""
     spans = _sensor_spans(table)
 
     def extras(rec: Reconstruction) -> dict[str, Any]:
@@ -103,7 +115,8 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
             save(track_figure(table, rec, title=key), Path(figures_dir) / f"{_safe(key)}.png")
         return {"sensors": [{**asdict(r), **spans.get(r.id, {})} for r in rec.sensors]}
 
-    out = solve_track(key, table, config, time_limit_s, extras=extras)
+    out = solve_track(key, table, config, time_limit_s, extras=extras, filters=filters,
+                      times_of_day=times_of_day)
     return AssessedTrack(**{k: v for k, v in vars(out).items() if k != "extras"},
                          sensors=out.extras.get("sensors", []))
 
@@ -134,6 +147,7 @@ class Loaded:
     problems: Problems
     tracks: Iterator[AircraftTrack]
     scan_periods: dict[str, float]
+    times_of_day: bool = False  # t counts from a UTC midnight (counts_from_midnight)
 
 
 def load(recording: Path, sensors_path: Path) -> Loaded:
@@ -150,7 +164,7 @@ def load(recording: Path, sensors_path: Path) -> Loaded:
                    if st.rotation_period_s}
     frame = recording_frame(sensors, rows)
     tracks = split_aircraft(rows, sensors, reference=frame, problems=problems)
-    return Loaded(sensors, rows, problems, tracks, periods)
+    return Loaded(sensors, rows, problems, tracks, periods, counts_from_midnight(rows))
 
 
 @dataclass
@@ -159,7 +173,8 @@ class Streamed:
     once no later plot can change it (:func:`solver.io.split.split_stream`); the other
     fields fill as the reading goes and are complete once ``tracks`` is exhausted: the
     problems, the rows read, the radars' rotation periods (CAT034 I041) and the recording's
-    plane."""
+    plane. ``times_of_day``: whether ``t`` counts from a UTC midnight (ASTERIX; a table by
+    :func:`solver.io.tables.counts_from_midnight` of its first rows)."""
 
     sensors: SensorSet
     problems: Problems
@@ -167,9 +182,12 @@ class Streamed:
     scan_periods: dict[str, float] = field(default_factory=dict)
     rows_read: int = 0
     frame: LocalFrame | None = None
+    times_of_day: bool | None = None
 
     def _note(self, rows: PlotRows) -> PlotRows:
         self.rows_read += len(rows)
+        if self.times_of_day is None and len(rows):
+            self.times_of_day = counts_from_midnight(rows)
         if self.frame is None:  # as split_stream: the first part that gives one
             self.frame = recording_frame(self.sensors, rows)
         return rows
@@ -204,6 +222,7 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
         for rows in iter_table(recording, batch_rows=STREAM_BATCH_ROWS, problems=out.problems):
             yield out._note(rows)
         return
+    out.times_of_day = True  # ASTERIX: times of day, t from the midnight before the first
     for part in iter_recording(recording, out.sensors, chunk_bytes=STREAM_CHUNK_BYTES,
                                executor=executor):
         out.problems.extend(part.problems)
@@ -470,6 +489,7 @@ def _young_collections(threshold: int) -> Iterator[None]:
 
 def _run(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
+    _check_out(out, Path(args.sensors))
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     load_sensors(Path(args.sensors))  # a bad sensor file is refused before a cluster starts
@@ -480,6 +500,14 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
                         executor=client if on_cluster else None)
         summary, first_result_s = _reconstruct(args, out, loaded, client, started)
     return _finish(args, out, loaded, summary, first_result_s, started)
+
+
+def _check_out(out: Path, sensors: Path) -> None:
+    """The statistics' ``sensors.json`` must not overwrite the sensor file given."""
+    target = out / "sensors.json"
+    if target.exists() and sensors.exists() and target.samefile(sensors):
+        raise InputError(("out",), f"{out} holds the sensor file {sensors}, which the run "
+                         "would overwrite with the sensors' statistics: choose another --out")
 
 
 @contextmanager
@@ -521,7 +549,8 @@ def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: 
     figures = str(out / "figures") if args.figures else None
     from functools import partial
 
-    task = partial(assess_track, figures_dir=figures)
+    task = partial(assess_track, figures_dir=figures, filters=tuple(args.filters),
+                   times_of_day=bool(loaded.times_of_day))
     summary: BatchSummary = reconstruct_many(
         loaded.tracks, out, config=config, executor=client,
         time_limit_s=args.time_limit or None, retry_failed=args.retry_failed,
@@ -540,6 +569,8 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
         stats.add(reports)
     sensor_rows = stats.rows()
     _write_sensor_csv(out, sensor_rows)
+    (out / "sensors.json").write_text(json.dumps(sensor_rows, indent=1) + "\n",
+                                      encoding="utf-8")
     csv_rows, geo_tracks = write_csv_and_geojson(out)
     write_map(out, loaded.sensors, frame=loaded.frame)
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
@@ -612,30 +643,107 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
               f"{f(r['azimuth_residual_sigma_deg'], '.3f'):>8}", file=file)
 
 
+COMMANDS = ("reconstruct", "plot")
+
+
 def parser() -> argparse.ArgumentParser:
+    """``trajrecon reconstruct ...`` and ``trajrecon plot ...`` (spec recordings.md)."""
+    from .estimation import FILTER_NAMES
+
     ap = argparse.ArgumentParser(
         prog="trajrecon", description="Reconstruct every aircraft of a recording (ASTERIX "
-        "CAT048/021/034, pcap, or a CSV/Parquet plot table) with its sensors' statistics.")
-    ap.add_argument("recording", help="raw ASTERIX file, pcap capture, or .csv/.parquet table")
-    ap.add_argument("--sensors", required=True, help="sensor file (JSON, solver/io/README.md)")
-    ap.add_argument("--out", required=True, help="output directory (a rerun resumes it)")
-    ap.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler "
-                    "(default: an embedded LocalCluster)")
-    ap.add_argument("--workers", type=int, default=None, help="embedded cluster's worker "
-                    "processes (default: the usable cores)")
-    ap.add_argument("--time-limit", type=float, default=300.0, help="per-track limit (s; 0: "
-                    "none)")
-    ap.add_argument("--decode", choices=("local", "cluster", "auto"), default="local",
-                    help="where ASTERIX is decoded: in this process, a reading thread "
-                    "overlapping the reconstruction (default; the faster on one machine, "
-                    "benchmarks/results/recording.md), on the cluster's workers, or auto: on "
-                    "the cluster when it has more than one worker")
-    ap.add_argument("--method", choices=("refined",), default="refined")
-    ap.add_argument("--figures", action="store_true", help="also draw every track's figure")
-    ap.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
-                    "an earlier run")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+        "CAT048/021/034, pcap, pcapng, or a CSV/Parquet plot table) with its sensors' "
+        "statistics, and draw its figures. `trajrecon RECORDING ...` is `trajrecon "
+        "reconstruct RECORDING ...`.")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="{reconstruct,plot}")
+    rec = sub.add_parser("reconstruct", help="reconstruct every aircraft into --out",
+                         description="Reconstruct every aircraft of RECORDING into --out "
+                         "(Parquet, CSV, GeoJSON lines, sensor statistics, map, summary); "
+                         "a rerun resumes.")
+    _inputs(rec)
+    rec.add_argument("--scheduler", default=None, help="address of an existing Dask "
+                     "scheduler (default: an embedded LocalCluster)")
+    rec.add_argument("--workers", type=int, default=None, help="embedded cluster's worker "
+                     "processes (default: the usable cores)")
+    rec.add_argument("--time-limit", type=float, default=300.0, help="per-track limit (s; 0: "
+                     "none)")
+    rec.add_argument("--decode", choices=("local", "cluster", "auto"), default="local",
+                     help="where ASTERIX is decoded: in this process, a reading thread "
+                     "overlapping the reconstruction (default; the faster on one machine, "
+                     "benchmarks/results/recording.md), on the cluster's workers, or auto: "
+                     "on the cluster when it has more than one worker")
+    _method(rec)
+    rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
+                     metavar="FILTER", help="recursive filters run beside the reconstruction "
+                     f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")
+    rec.add_argument("--figures", action="store_true", help="also draw every track's figure")
+    rec.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
+                     "an earlier run")
+    rec.add_argument("--no-progress", action="store_true", help="no progress bar")
+    plot = sub.add_parser("plot", help="draw figures of named aircraft and the map",
+                          description="Draw --out/figures/<aircraft>.png for each named "
+                          "aircraft of RECORDING (its plots with their ellipses, the "
+                          "reconstruction, the controls over time; reconstructed again here as "
+                          "`reconstruct` does) and, with --map, --out/map.png from the tracks "
+                          "`reconstruct` wrote there. The reading stops once every named "
+                          "aircraft is complete.")
+    _inputs(plot)
+    plot.add_argument("--aircraft", nargs="+", default=[], metavar="KEY",
+                      help="aircraft keys as in tracks.parquet (e.g. a Mode S address 3C6DD4)")
+    plot.add_argument("--map", action="store_true", help="redraw map.png from --out's tracks")
+    _method(plot)
     return ap
+
+
+def _inputs(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("recording", help="raw ASTERIX file, pcap/pcapng capture, or "
+                    ".csv/.parquet table")
+    ap.add_argument("--sensors", required=True, help="sensor file (JSON, solver/io/README.md)")
+    ap.add_argument("--out", required=True, help="output directory")
+
+
+def _method(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--method", choices=("refined", "sliding"), default="refined",
+                    help="refined (the full-track NLP, default) or sliding (the seed's windows "
+                    "alone: one radar at the recording's reference point)")
+
+
+def plot(args: argparse.Namespace) -> list[Path]:
+    """The figures of ``trajrecon plot``; raises :class:`InputError` for an aircraft not in
+    the recording or a map without tracks."""
+    from .figures import save, track_figure
+    from .reconstruct import reconstruct
+
+    out = Path(args.out)
+    if not args.aircraft and not args.map:
+        raise InputError(("aircraft",), "name at least one aircraft, or --map")
+    written: list[Path] = []
+    wanted = set(args.aircraft)
+    if wanted:
+        loaded = stream(Path(args.recording), Path(args.sensors))
+        config = ReconstructionConfig(method=args.method)
+        for track in loaded.tracks:
+            if track.key not in wanted:
+                continue
+            rec = reconstruct(track.table, config=config)
+            written.append(save(track_figure(track.table, rec, title=track.key),
+                                out / "figures" / f"{_safe(track.key)}.png"))
+            wanted.discard(track.key)
+            if not wanted:
+                break
+        if wanted:
+            raise InputError(("aircraft",), f"{', '.join(sorted(wanted))} not in the "
+                             f"recording (or too short to reconstruct: {out}/problems.txt "
+                             "of a reconstruct run names them)")
+    if args.map:
+        sensors = load_sensors(Path(args.sensors))
+        frame = stream(Path(args.recording), Path(args.sensors)).frame
+        path = write_map(out, sensors, frame=frame)
+        if path is None:
+            raise InputError(("out",), f"{out} holds no reconstructed track: run "
+                             "`trajrecon reconstruct` first")
+        written.append(path)
+    return written
 
 
 class Stopped(KeyboardInterrupt):
@@ -647,9 +755,21 @@ def _stop_on_sigterm(signum: int, frame: Any) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Exit status: 0 all tracks done, 1 some failed, 2 bad input, 130 / 143 stopped by
-    SIGINT / SIGTERM (the cluster closed, the finished tracks kept: the same command resumes)."""
+    """Exit status: 0 all tracks done (or figures drawn), 1 some failed, 2 bad input, 130 /
+    143 stopped by SIGINT / SIGTERM (the cluster closed, the finished tracks kept: the same
+    command resumes)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] not in (*COMMANDS, "-h", "--help"):
+        argv.insert(0, "reconstruct")  # the form before the subcommands
     args = parser().parse_args(argv)
+    if args.command == "plot":
+        try:
+            for path in plot(args):
+                print(path)
+        except (InputError, FileNotFoundError) as e:
+            print(f"trajrecon: {e}", file=sys.stderr)
+            return 2
+        return 0
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _stop_on_sigterm) if main_thread else None
     try:

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 from test_io_asterix import FLIGHTS, SENSOR_FILE, encode_recording
@@ -34,15 +35,16 @@ def recording(tmp_path_factory):
 def test_recording_to_tables_statistics_and_map(recording, capsys):
     d, enc = recording
     out = d / "out"
-    code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
-                 "--workers", "2", "--no-progress", "--figures"])
+    code = main(["reconstruct", str(d / "day.ast"), "--sensors", str(d / "sensors.json"),
+                 "--out", str(out), "--workers", "2", "--no-progress", "--figures",
+                 "--filters", "imm_smoother", "cv_rts", "fusion_a"])
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tracks"] == summary["done"] == len(FLIGHTS) and summary["failed"] == 0
     assert summary["problems"].get("truncated_block") == 1
     table = pq.read_table(out / "tracks.parquet")
     tracks = {name: table.column(name).to_numpy(zero_copy_only=False)
-              for name in ("aircraft", "t", "lat_deg", "lon_deg")}
+              for name in ("aircraft", "t", "time_of_day_s", "lat_deg", "lon_deg")}
     keys = tracks["aircraft"].astype(str)
     assert set(keys) == {f"{f.address:06X}" for f in FLIGHTS}
     assert table.num_rows == summary["plots"] and summary["plots"] > 0.95 * len(enc.plots)
@@ -50,6 +52,11 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
         sel = keys == f"{f.address:06X}"
         t = tracks["t"][sel]
         assert np.diff(np.sort(t)).max() < 10.0  # through midnight without a jump
+        # t from the midnight before the first plot; the recorded time of day beside it
+        tods = np.array([p["tod"] for p in enc.plots if p["flight"] == k])
+        np.testing.assert_allclose(np.sort(tracks["time_of_day_s"][sel]),
+                                   np.sort(tods[np.isin(tods, tracks["time_of_day_s"][sel])]))
+        assert (tracks["time_of_day_s"][sel] < 100).any() and t.max() > 86_400
         # exact plots: every reconstructed position within 60 m of the flight
         lat, lon, _ = f.at(t - t.min() + _first_t(enc, k))
         dy = (tracks["lat_deg"][sel] - lat) * 111_000
@@ -68,12 +75,25 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     assert sensors["R1"]["detection_rate"] > 0.95
     assert abs(sensors["R1"]["range_residual_mean_m"]) < 10  # exact plots: no bias
     assert (out / "sensors.csv").read_text().startswith('"sensor","kind"')
+    assert json.loads((out / "sensors.json").read_text()) == summary["sensors"]
+    # the filters asked for, beside: every plot of every track once per filter; the
+    # two-sensor fusion cannot run on three sensors, which each track's warnings say
+    filters = pq.read_table(out / "filters.parquet")
+    assert set(filters.column("filter").to_pylist()) == {"imm_smoother", "cv_rts"}
+    assert filters.num_rows == 2 * table.num_rows
+    smoothed = filters.filter(pc.equal(filters.column("filter"), "imm_smoother"))
+    assert np.hypot(np.asarray(smoothed.column("x")) - np.asarray(table.column("x")),
+                    np.asarray(smoothed.column("z")) - np.asarray(table.column("z"))
+                    ).max() < 100.0  # the same aircraft, exact plots
+    ledger = [json.loads(x) for x in (out / "progress.jsonl").read_text().splitlines()]
+    assert all(any(w.startswith("filters.fusion_a: fusion_a fuses exactly two")
+                   for w in e["warnings"]) for e in ledger)
     assert (out / "map.png").stat().st_size > 10_000
     assert len(list((out / "figures").glob("*.png"))) == len(FLIGHTS)
     printed = capsys.readouterr().out
     assert "tracks: 2 (2 reconstructed, 0 failed" in printed and "R1" in printed
 
-    # a rerun resumes: nothing redone, outputs the same
+    # a rerun resumes: nothing redone, outputs the same (the form without the subcommand)
     code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
                  "--workers", "2", "--no-progress"])
     again = json.loads((out / "summary.json").read_text())
@@ -81,6 +101,26 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     assert pq.read_table(out / "tracks.parquet").num_rows == table.num_rows
     assert {r["sensor"]: r["plots"] for r in again["sensors"]} == {
         k: v["plots"] for k, v in sensors.items()}
+
+
+def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys):
+    """`trajrecon plot`: the named aircraft's figures and the map of a finished run's tracks;
+    an aircraft not in the recording, or a map without tracks, is a clear error (exit 2)."""
+    d, _ = recording
+    key = f"{FLIGHTS[1].address:06X}"
+    out = tmp_path / "out"
+    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out)]
+    assert main(["plot", *args, "--aircraft", key]) == 0
+    assert (out / "figures" / f"{key}.png").stat().st_size > 20_000
+    assert capsys.readouterr().out.split() == [str(out / "figures" / f"{key}.png")]
+    assert main(["plot", *args, "--aircraft", key, "ABC123"]) == 2
+    assert "ABC123 not in the recording" in capsys.readouterr().err
+    assert main(["plot", *args, "--map"]) == 2
+    assert "holds no reconstructed track" in capsys.readouterr().err
+    assert main(["reconstruct", *args, "--workers", "1", "--no-progress"]) == 0
+    (out / "map.png").unlink()
+    assert main(["plot", *args, "--map"]) == 0
+    assert (out / "map.png").stat().st_size > 10_000
 
 
 def _first_t(enc, k: int) -> float:
@@ -106,6 +146,14 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
                  str(tmp_path / "out2"), "--no-progress"])
     assert code == 2
     assert "sensors[0].lat_deg" in capsys.readouterr().err
+    # the statistics' sensors.json would overwrite the sensor file: refused, file kept
+    (tmp_path / "here").mkdir()
+    own = tmp_path / "here" / "sensors.json"
+    own.write_text((d / "sensors.json").read_text())
+    code = main(["reconstruct", str(tmp_path / "plots.csv"), "--sensors", str(own), "--out",
+                 str(tmp_path / "here"), "--no-progress"])
+    assert code == 2 and own.read_text() == (d / "sensors.json").read_text()
+    assert "would overwrite" in capsys.readouterr().err
 
 
 def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):

@@ -100,7 +100,8 @@ def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monke
     assert peak_l < 1.5 * peak_s, (peak_s, peak_l, long.stat().st_size)
 
 
-def _stub_task(key, table, config, time_limit_s, figures_dir=None):
+def _stub_task(key, table, config, time_limit_s, figures_dir=None, filters=(),
+               times_of_day=False):
     """What :func:`solver.cli.assess_track` returns, without the reconstruction: the
     track's rows and its sensor's statistics."""
     import pyarrow as pa
@@ -140,7 +141,7 @@ def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
     loaded = cli.Streamed(SENSORS, cli.Problems(), (TrackProblem(f"A{k:05d}", table)
                                                     for k in range(tracks)))
     args = argparse.Namespace(method="refined", no_progress=True, figures=False,
-                              time_limit=None, retry_failed=False)
+                              time_limit=None, retry_failed=False, filters=[])
     out = tmp_path / f"out{tracks}"
     gc.collect()
     tracemalloc.start()

@@ -15,7 +15,14 @@ from test_io_asterix import SENSORS, encode_recording
 from solver.inputs import InputError
 from solver.io.asterix import read_recording
 from solver.io.problems import Problems
-from solver.io.tables import PlotRows, read_csv, read_table, unwrap_time_of_day, write_table
+from solver.io.tables import (
+    PlotRows,
+    counts_from_midnight,
+    read_csv,
+    read_table,
+    unwrap_time_of_day,
+    write_table,
+)
 
 COLUMNS = ("t", "time_of_day_s", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
            "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number")
@@ -128,6 +135,25 @@ def test_unwrap_time_of_day():
         unwrap_time_of_day(tod),
         [86398.0, 86399.5, 86400.5, 86399.9, 86401.0, 86400 + 43000.0, 86400 + 86000.0,
          2 * 86400 + 100.0])
+
+
+def test_counts_from_midnight():
+    """ASTERIX rows and a table timed by its time of day count ``t`` from a UTC midnight
+    (across midnight, a late report before it too); a table with its own ``t`` does not,
+    nor one whose times of day are partly missing; an empty table does not."""
+    assert counts_from_midnight(decoded())
+    by_tod, _ = read_csv(b"time_of_day_s,sensor,range_m,azimuth_deg\n86399.5,R1,5000,6\n"
+                         b"0.5,R1,5000,6\n86399.9,R1,5000,6\n")
+    np.testing.assert_array_equal(by_tod.t, [86399.5, 86400.5, 86399.9])
+    assert counts_from_midnight(by_tod)
+    own_t, _ = read_csv(b"t,time_of_day_s,sensor,range_m,azimuth_deg\n"
+                        b"10,36000,R1,5000,6\n14,36004,R1,5000,6\n")
+    assert not counts_from_midnight(own_t)
+    no_tod, _ = read_csv(b"t,sensor,range_m,azimuth_deg\n36000,R1,5000,6\n")
+    assert not counts_from_midnight(no_tod)
+    assert not counts_from_midnight(dataclasses.replace(by_tod, time_of_day_s=np.array(
+        [86399.5, np.nan, 86399.9])))
+    assert not counts_from_midnight(by_tod.take(np.array([], dtype=int)))
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".parquet"])

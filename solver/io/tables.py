@@ -212,6 +212,17 @@ def unwrap_time_of_day(tod: FloatArray, previous: float = np.nan) -> FloatArray:
     return out
 
 
+def counts_from_midnight(rows: PlotRows) -> bool:
+    """Whether the rows' ``t`` is seconds from a UTC midnight: every row has a time of day and
+    it is ``t`` modulo a day (a recording timed by time of day: ASTERIX, a table with
+    ``time_of_day_s`` and no ``t``). A table's own ``t`` (any epoch) is not, unless it agrees."""
+    tod = rows.time_of_day_s
+    if len(rows) == 0 or not np.isfinite(tod).all():
+        return False
+    d = np.abs(np.mod(rows.t, DAY_S) - tod)
+    return bool(np.all(np.minimum(d, DAY_S - d) < 1e-6))
+
+
 def _unwrap_loop(tod: FloatArray, previous: float) -> FloatArray:
     """:func:`unwrap_time_of_day` value by value."""
     out = np.empty_like(tod)
