@@ -705,7 +705,8 @@ def _inputs(ap: argparse.ArgumentParser) -> None:
 def _method(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--method", choices=("refined", "sliding"), default="refined",
                     help="refined (the full-track NLP, default) or sliding (the seed's windows "
-                    "alone: one radar at the recording's reference point)")
+                    "alone: one radar without a site, at the origin of a flat plane; other "
+                    "tracks fail with that reason)")
 
 
 def plot(args: argparse.Namespace) -> list[Path]:
