@@ -575,7 +575,8 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
     write_map(out, loaded.sensors, frame=loaded.frame)
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
     result = {
-        "recording": str(args.recording), "tracks": summary.tracks, "done": summary.done,
+        "recording": str(args.recording), "method": args.method,
+        "filters": list(args.filters), "tracks": summary.tracks, "done": summary.done,
         "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
         "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,

@@ -41,6 +41,8 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tracks"] == summary["done"] == len(FLIGHTS) and summary["failed"] == 0
+    assert summary["method"] == "refined"
+    assert summary["filters"] == ["imm_smoother", "cv_rts", "fusion_a"]
     assert summary["problems"].get("truncated_block") == 1
     table = pq.read_table(out / "tracks.parquet")
     tracks = {name: table.column(name).to_numpy(zero_copy_only=False)
