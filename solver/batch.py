@@ -452,15 +452,24 @@ def embedded_cluster(workers: int | None = None) -> Any:
 
 
 def dask_setup(worker: Any) -> None:
-    """Dask's preload hook, run in each embedded worker process as it starts: ignore SIGINT.
-    Ctrl-C in a terminal reaches every process of the foreground group; the command line
-    closes its cluster itself, and a worker left to the signal printed a KeyboardInterrupt
-    traceback of its own (as the service's workers, which ignore it too)."""
+    """Dask's preload hook, run in each embedded worker process as it starts: ignore SIGINT
+    and drop the warning of a track cancelled by the stop. Ctrl-C in a terminal reaches every
+    process of the foreground group; the command line closes its cluster itself, and a worker
+    left to the signal printed a KeyboardInterrupt traceback of its own (as the service's
+    workers, which ignore it too). Closing the cluster cancels the running tracks, and each
+    worker then logged "Async instruction ... ended with CancelledError" (a line per track)."""
+    import logging
     import signal
     import threading
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.getLogger("distributed.worker.state_machine").addFilter(_cancelled_by_the_stop)
+
+
+def _cancelled_by_the_stop(record: Any) -> bool:
+    """False for the worker's warning that a running task ended cancelled (the stop's own)."""
+    return "ended with CancelledError" not in record.getMessage()
 
 
 class _engine:

@@ -234,3 +234,30 @@ def test_outcomes_are_reported_once_committed_and_never_twice(tmp_path, tracks):
         reconstruct_many(tracks, tmp_path, executor=ex, on_outcome=lambda o: reported.append(
             o.key))
     assert sorted(reported) == sorted(p.key for p in tracks)
+
+
+def test_closing_the_embedded_cluster_mid_track_is_quiet(capfd):
+    """A stop (Ctrl-C, SIGTERM) closes the embedded cluster while tracks run: the workers no
+    longer log "Async instruction ... ended with CancelledError", one line per running track
+    on the operator's terminal (their other warnings stay)."""
+    import time
+
+    import dask
+    from distributed import Client
+
+    from solver.batch import dask_settings, embedded_cluster
+
+    with dask.config.set(dask_settings()):
+        cluster = embedded_cluster(1)
+        client = Client(cluster)
+        fut = client.submit(time.sleep, 30, pure=False)
+        deadline = time.monotonic() + 60
+        while not client.processing() or not any(client.processing().values()):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        time.sleep(0.5)  # the task running in the worker's thread
+        client.close()
+        cluster.close()
+    del fut
+    err = capfd.readouterr().err
+    assert "CancelledError" not in err, err

@@ -242,6 +242,7 @@ def test_sigterm_closes_the_cluster_and_the_same_command_resumes(tmp_path):
     assert 1 <= len(kept) <= len(flights)  # committed every 5 s): then it stopped the outputs
     assert f"stopped by SIGTERM; {len(kept)} finished tracks are kept in {out}" in err
     assert "leaked" not in err and "Traceback" not in err, err
+    assert "CancelledError" not in err, err  # the workers' line per cancelled track
     assert children, "the embedded cluster's processes"
     _, alive = psutil.wait_procs(children, timeout=10)
     assert not alive, alive
