@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
+import logging
 import os
 import re
 import time
@@ -458,7 +459,6 @@ def dask_setup(worker: Any) -> None:
     left to the signal printed a KeyboardInterrupt traceback of its own (as the service's
     workers, which ignore it too). Closing the cluster cancels the running tracks, and each
     worker then logged "Async instruction ... ended with CancelledError" (a line per track)."""
-    import logging
     import signal
     import threading
 
@@ -470,6 +470,30 @@ def dask_setup(worker: Any) -> None:
 def _cancelled_by_the_stop(record: Any) -> bool:
     """False for the worker's warning that a running task ended cancelled (the stop's own)."""
     return "ended with CancelledError" not in record.getMessage()
+
+
+def quiet_interrupted_sync() -> None:
+    """In a process whose Dask client a stop interrupts (Ctrl-C, or SIGTERM raised as
+    ``KeyboardInterrupt``): drop the traceback Dask's ``distributed.utils.sync`` logs when the
+    interrupt lands before its coroutine has made its future. Its ``cancel`` callback then
+    reads the unassigned ``future`` (distributed 2026.8: ``NameError: cannot access free
+    variable 'future'``, logged by tornado); there is nothing to cancel yet, the interrupt
+    itself goes on as it should. Seen once in the test suite's SIGTERM test."""
+    logging.getLogger("tornado.application").addFilter(_sync_cancel_before_start)
+
+
+def _sync_cancel_before_start(record: logging.LogRecord) -> bool:
+    exc = record.exc_info[1] if record.exc_info else None
+    return not (isinstance(exc, NameError) and "'future'" in str(exc)
+                and exc.__traceback__ is not None
+                and _innermost(exc.__traceback__).tb_frame.f_code.co_name == "cancel"
+                and "distributed" in _innermost(exc.__traceback__).tb_frame.f_code.co_filename)
+
+
+def _innermost(tb: Any) -> Any:
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb
 
 
 class _engine:
@@ -502,6 +526,7 @@ class _engine:
         from distributed import wait as dask_wait
 
         if isinstance(ex, Client):
+            quiet_interrupted_sync()
             n_workers = max(len(ex.scheduler_info()["workers"]), 1)
             self.client = ex
             self.warming = warm_workers(ex, self.config)

@@ -55,6 +55,7 @@ from .batch import (
     dask_settings,
     embedded_cluster,
     ledger_entries,
+    quiet_interrupted_sync,
     reconstruct_many,
     solve_track,
 )
@@ -774,6 +775,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _stop_on_sigterm) if main_thread else None
+    quiet_interrupted_sync()
     try:
         result = run(args)
     except (InputError, FileNotFoundError) as e:

@@ -261,3 +261,40 @@ def test_closing_the_embedded_cluster_mid_track_is_quiet(capfd):
     del fut
     err = capfd.readouterr().err
     assert "CancelledError" not in err, err
+
+
+def test_an_interrupt_before_a_dask_call_starts_logs_no_traceback(caplog):
+    """A stop landing in Dask's ``sync`` before its coroutine made its future: Dask's cancel
+    callback reads the unassigned future and tornado logged that NameError's traceback (seen
+    once in the command line's SIGTERM test). Made deterministic here: the loop is kept busy
+    so the coroutine cannot start, and an alarm interrupts the wait. The interrupt still goes
+    through; with :func:`solver.batch.quiet_interrupted_sync` nothing is logged."""
+    import asyncio
+    import logging
+    import signal
+    import time
+
+    from distributed.utils import LoopRunner, sync
+
+    from solver.batch import quiet_interrupted_sync
+
+    quiet_interrupted_sync()
+    runner = LoopRunner(asynchronous=False)
+    runner.start()
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        with caplog.at_level(logging.ERROR):
+            runner.loop.add_callback(time.sleep, 1.0)  # the coroutine cannot start yet
+            signal.setitimer(signal.ITIMER_REAL, 0.1)
+            with pytest.raises(KeyboardInterrupt):
+                sync(runner.loop, asyncio.sleep, 0.01)
+            time.sleep(1.5)  # the loop runs the cancel callback, then the coroutine
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+        runner.stop()
+    assert not [r for r in caplog.records if r.exc_info], caplog.text
