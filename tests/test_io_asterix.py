@@ -302,9 +302,11 @@ def test_pcapng_round_trip_sections_interfaces_and_byte_orders():
 
 
 def test_pcapng_damage_reported_and_the_rest_read(tmp_path):
-    """A packet on an undescribed interface, a packet cut by the snap length and a capture cut
+    """A packet on an undescribed interface, a packet cut by the snap length, one declaring more
+    captured bytes than its block holds (not read into the next block) and a capture cut
     inside its last block: each reported with its block's byte offset, every other packet
-    read (a simple packet block too: interface 0's)."""
+    read (a simple packet block too: interface 0's). A damaged section header after the first
+    ends the reading with a problem; the first one makes the file no capture."""
     from dpkt import pcapng as ng
 
     enc = encode_recording()
@@ -315,26 +317,36 @@ def test_pcapng_damage_reported_and_the_rest_read(tmp_path):
     cut = ng.EnhancedPacketBlockLE(iface_id=0, pkt_data=frames[3])
     cut_bytes = bytearray(bytes(cut))
     struct.pack_into("<I", cut_bytes, 24, len(frames[3]) + 10)  # pkt_len > caplen
+    over = bytearray(bytes(ng.EnhancedPacketBlockLE(iface_id=0, pkt_data=frames[4])))
+    struct.pack_into("<I", over, 20, len(frames[4]) + 40)  # caplen beyond the block
+    struct.pack_into("<I", over, 24, len(frames[4]) + 40)
     head = pcapng_section(True, [1], [(0, frames[0])])
     blocks = [spb, bytes(ng.EnhancedPacketBlockLE(iface_id=5, pkt_data=frames[2])),
-              bytes(cut_bytes), *(bytes(ng.EnhancedPacketBlockLE(iface_id=0, pkt_data=f))
-                                   for f in frames[4:])]
+              bytes(cut_bytes), bytes(over),
+              *(bytes(ng.EnhancedPacketBlockLE(iface_id=0, pkt_data=f)) for f in frames[5:])]
     data = head + b"".join(blocks)
     path = tmp_path / "rec.pcapng"
     path.write_bytes(data[:-6])
     rec = read_recording(path, SENSORS)
-    assert rec.problems.counts == {"not_asterix_packet": 1, "truncated_packet": 2}
+    assert rec.problems.counts == {"not_asterix_packet": 1, "truncated_packet": 3}
     where = {p.message.split(":")[0].split(" was")[0].split(" declares")[0]: p.where
              for p in rec.problems.entries}
     starts = np.cumsum([len(head)] + [len(x) for x in blocks])
     assert where == {"pcapng packet 3": f"byte {starts[1]}",
                      "pcapng packet 4": f"byte {starts[2]}",
+                     "pcapng packet 5": f"byte {starts[3]}",
                      "pcapng block of type 6": f"byte {starts[-2]}"}, rec.problems.summary()
-    whole = decode_blocks(b"".join([b[0], b[1], *b[4:-1]]), SENSORS)
+    whole = decode_blocks(b"".join([b[0], b[1], *b[5:-1]]), SENSORS)
     np.testing.assert_array_equal(rec.rows.range_m, whole.rows.range_m)
-    assert rec.packets == 2 + len(b[4:-1])
+    assert rec.packets == 2 + len(b[5:-1])
     with pytest.raises(InputError, match="pcapng section header at byte 0 has no byte-order"):
         read_recording(head[:8] + bytes(40), SENSORS)
+    later = head + head[:8] + bytes(40) + head
+    rec = read_recording(later, SENSORS)
+    assert [(p.where, p.message) for p in rec.problems.entries] == [
+        (f"byte {len(head)}", "pcapng section header without byte-order magic; the rest of the "
+         f"capture ({len(later) - len(head)} bytes) is not read")]
+    np.testing.assert_array_equal(rec.rows.range_m, decode_blocks(b[0], SENSORS).rows.range_m)
 
 
 def test_midnight_wrap():

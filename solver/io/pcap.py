@@ -110,9 +110,14 @@ def _pcapng(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
             return
         if bytes(data[pos:pos + 4]) == _PCAPNG:  # a section header: its own byte order
             found = _PCAPNG_ORDER.get(bytes(data[pos + 8:pos + 12]))
+            if found is None and pos == 0:
+                raise InputError(("recording",), "pcapng section header at byte 0 has no "
+                                 "byte-order magic")
             if found is None:
-                raise InputError(("recording",), f"pcapng section header at byte {pos} has "
-                                 "no byte-order magic")
+                problems.add("truncated_packet", f"byte {pos}", "pcapng section header "
+                             "without byte-order magic; the rest of the capture "
+                             f"({len(data) - pos} bytes) is not read")
+                return
             order, links = found, []
         btype, length = struct.unpack_from(order + "II", data, pos)
         if length < 12 or length % 4:
@@ -140,6 +145,11 @@ def _pcapng(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
                 if pkt.iface_id >= len(links):
                     problems.add("not_asterix_packet", f"byte {at}", f"{where}: interface "
                                  f"{pkt.iface_id} is not described", key="no interface")
+                    continue
+                if pkt.caplen > length - blocks[btype].__hdr_len__:
+                    problems.add("truncated_packet", f"byte {at}", f"{where} declares "
+                                 f"{pkt.caplen} captured bytes, more than its block holds; "
+                                 "skipped", key="bad block")
                     continue
                 # the packet data follow the block's fixed header (dpkt's pkt_data)
                 found = _packet(data, at, at + blocks[btype].__hdr_len__ - 4, pkt.caplen,
