@@ -191,8 +191,8 @@ def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
 
 def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_day: bool,
                    warnings: list[str]) -> pa.Table | None:
-    """Every named filter's states (:data:`FILTER_COLUMNS`); a filter that raises or falls
-    back adds its reason to ``warnings``."""
+    """Every named filter's states (:data:`FILTER_COLUMNS`); a filter that raises (its rows
+    left out, the track kept) or falls back adds its reason to ``warnings``."""
     if not names:
         return None
     from .estimation import run_filter
@@ -201,8 +201,9 @@ def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_da
     for name in names:
         try:
             est = run_filter(name, table)
-        except (ValueError, TypeError) as e:
-            warnings.append(f"filters.{name}: {e}")
+        except Exception as e:  # the reconstruction stands without this filter's rows
+            warnings.append(f"filters.{name}: {e}" if isinstance(e, ValueError)
+                            else f"filters.{name}: {type(e).__name__}: {e}")
             continue
         if "warning" in est.info:
             warnings.append(f"filters.{name}: {est.info['warning']}")

@@ -19,6 +19,7 @@ from solver.batch import (
     TRACK_COLUMNS,
     TrackProblem,
     reconstruct_many,
+    solve_track,
 )
 from solver.io.asterix import read_recording
 from solver.io.split import split_aircraft
@@ -298,3 +299,27 @@ def test_an_interrupt_before_a_dask_call_starts_logs_no_traceback(caplog):
         signal.signal(signal.SIGALRM, previous)
         runner.stop()
     assert not [r for r in caplog.records if r.exc_info], caplog.text
+
+
+def test_a_filter_that_fails_leaves_the_track_and_says_why(tracks, monkeypatch):
+    """--filters: a filter raising anything (here a bug stand-in) keeps the track done with
+    the reconstruction's rows and the other filters' rows, its reason among the warnings."""
+    import solver.estimation as estimation
+
+    real = estimation.run_filter
+
+    def broken(name, table, *args, **kwargs):
+        if name == "singer":
+            raise RuntimeError("a bug")
+        return real(name, table, *args, **kwargs)
+
+    monkeypatch.setattr(estimation, "run_filter", broken)
+    out = solve_track(tracks[0].key, tracks[0].table, filters=("singer", "cv_rts"),
+                      times_of_day=True)
+    assert out.status == "done" and out.states is not None
+    assert "filters.singer: RuntimeError: a bug" in out.warnings
+    assert out.filters is not None and set(out.filters.column("filter").to_pylist()) == {
+        "cv_rts"}
+    assert out.filters.num_rows == len(tracks[0].table)
+    tod = np.asarray(out.states.column("time_of_day_s"))
+    np.testing.assert_allclose(tod, np.mod(tracks[0].table.t, 86_400.0))
