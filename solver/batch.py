@@ -485,16 +485,13 @@ def quiet_interrupted_sync() -> None:
 
 def _sync_cancel_before_start(record: logging.LogRecord) -> bool:
     exc = record.exc_info[1] if record.exc_info else None
-    return not (isinstance(exc, NameError) and "'future'" in str(exc)
-                and exc.__traceback__ is not None
-                and _innermost(exc.__traceback__).tb_frame.f_code.co_name == "cancel"
-                and "distributed" in _innermost(exc.__traceback__).tb_frame.f_code.co_filename)
-
-
-def _innermost(tb: Any) -> Any:
-    while tb.tb_next is not None:
+    if not isinstance(exc, NameError) or "'future'" not in str(exc) or exc.__traceback__ is None:
+        return True
+    tb = exc.__traceback__
+    while tb.tb_next is not None:  # the frame that raised
         tb = tb.tb_next
-    return tb
+    code = tb.tb_frame.f_code
+    return not (code.co_name == "cancel" and "distributed" in code.co_filename)
 
 
 class _engine:

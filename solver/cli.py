@@ -722,8 +722,8 @@ def plot(args: argparse.Namespace) -> list[Path]:
         raise InputError(("aircraft",), "name at least one aircraft, or --map")
     written: list[Path] = []
     wanted = set(args.aircraft)
+    loaded = stream(Path(args.recording), Path(args.sensors))  # its plane: after the first part
     if wanted:
-        loaded = stream(Path(args.recording), Path(args.sensors))
         config = ReconstructionConfig(method=args.method)
         for track in loaded.tracks:
             if track.key not in wanted:
@@ -739,9 +739,7 @@ def plot(args: argparse.Namespace) -> list[Path]:
                              f"recording (or too short to reconstruct: {out}/problems.txt "
                              "of a reconstruct run names them)")
     if args.map:
-        sensors = load_sensors(Path(args.sensors))
-        frame = stream(Path(args.recording), Path(args.sensors)).frame
-        path = write_map(out, sensors, frame=frame)
+        path = write_map(out, loaded.sensors, frame=loaded.frame)
         if path is None:
             raise InputError(("out",), f"{out} holds no reconstructed track: run "
                              "`trajrecon reconstruct` first")
