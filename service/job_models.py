@@ -9,6 +9,8 @@ from pydantic import ConfigDict, Field
 
 from .models import (
     BoundsIn,
+    FilterName,
+    FilterOut,
     PlotIn,
     ReferenceIn,
     SegmentOut,
@@ -31,6 +33,25 @@ _EXAMPLE_TRACKS = {
 }
 
 
+_BOUNDS_DOC = "Control and speed bounds, for every track."
+_FILTERS_DOC = ("Recursive estimators run beside the reconstruction of every track, each "
+                "answered under the track's `filters.<name>` and in `filters.parquet` (a "
+                "filter that cannot run on a track is a warning of that track). Default: none.")
+
+
+class JobOptions(_In):
+    """How every track of a job is reconstructed: the optional `options` part of an upload (a
+    JSON text), the same fields in a JSON body of tracks."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
+         "filters": ["imm_smoother"]}]})
+
+    bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
+    filters: list[FilterName] = Field(  # type: ignore[valid-type]
+        default_factory=list, description=_FILTERS_DOC)
+
+
 class JobTracksRequest(_In):
     """Many aircraft's plots as JSON: the sensors (as in the sensor file, without ASTERIX
     codes) and, per aircraft key, its plots (each naming its sensor)."""
@@ -47,8 +68,9 @@ class JobTracksRequest(_In):
         min_length=1, description="Plots per aircraft key (the key is the track's name in "
         "every result). Plots of one sensor in time order; at least 3 plots per track (shorter "
         "tracks are reported in the job's problems).")
-    bounds: BoundsIn = Field(default_factory=BoundsIn,
-                             description="Control and speed bounds, for every track.")
+    bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
+    filters: list[FilterName] = Field(  # type: ignore[valid-type]
+        default_factory=list, description=_FILTERS_DOC)
 
 
 class ProblemsOut(_Out):
@@ -131,6 +153,10 @@ class JobTrackResult(_Out):
     trajectory: JobTrajectoryOut
     sensors: list[SensorOut] = Field(default_factory=list, description="Each sensor's plots "
                                      "of this track against its reconstruction.")
+    filters: dict[str, FilterOut] = Field(
+        default_factory=dict, description="The job's `filters` on this track: one state per "
+        "plot, in the order of `trajectory.at_plots` (a filter that could not run on the track "
+        "is absent, the reason in `diagnostics.warnings`).")
     diagnostics: JobTrackDiagnostics
 
 

@@ -61,8 +61,10 @@ from .settings import Settings
 State = Literal["queued", "running", "done", "failed", "cancelled"]
 FINISHED: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 ACTIVE: frozenset[str] = frozenset({"queued", "running"})
-RESULT_FILES = ("tracks.parquet", "segments.parquet", "tracks.csv", "tracks.geojsonl",
-                "sensors.json", "problems.txt", "summary.json", "map.png", "results.zip")
+PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet")
+"""Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
+RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "sensors.json",
+                "problems.txt", "summary.json", "map.png", "results.zip")
 PROBLEM_EXAMPLES = 20  # problems listed in a job's status (every kind is counted)
 
 _SCHEMA = """
@@ -319,12 +321,12 @@ def _set(f: cf.Future[Any], result: Any = None, exc: BaseException | None = None
 
 def job_track(key: str, table: Any, config: ReconstructionConfig | None,
               time_limit_s: float | None, figures_root: str | None = None,
-              times_of_day: bool = False) -> AssessedTrack:
-    """The per-track task of a job (on a worker): :func:`solver.cli.assess_track`, with the
-    figure in a directory of its own per key (:func:`figure_dir`)."""
+              times_of_day: bool = False, filters: tuple[str, ...] = ()) -> AssessedTrack:
+    """The per-track task of a job (on a worker): :func:`solver.cli.assess_track` (with the
+    job's ``filters``), the figure in a directory of its own per key (:func:`figure_dir`)."""
     figures = None if figures_root is None else str(figure_dir(Path(figures_root), key))
     return assess_track(key, table, config, time_limit_s, figures_dir=figures,
-                        times_of_day=times_of_day)
+                        filters=filters, times_of_day=times_of_day)
 
 
 def figure_dir(root: Path, key: str) -> Path:
@@ -582,7 +584,8 @@ class JobRunner:
                              time_limit_s=s.jobs_track_time_limit_s or None, flush_tracks=8,
                              flush_s=1.0, on_outcome=on_outcome,
                              task=partial(job_track, figures_root=figures,
-                                          times_of_day=loaded.times_of_day))
+                                          times_of_day=loaded.times_of_day,
+                                          filters=tuple(params.get("filters") or ())))
         except Aborted:
             LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
             return
@@ -613,7 +616,7 @@ class JobRunner:
         export = out / "export"
         export.mkdir(exist_ok=True)
         progress = self.progress(job_id)
-        for name in ("tracks.parquet", "segments.parquet"):
+        for name in PARQUET_RESULTS:
             _combine(out / name, _committed_parts(progress), export / name)
         record = self._db().get(job_id)
         summary = {"tracks": len(progress.entries), "done": progress.done,
@@ -622,7 +625,9 @@ class JobRunner:
                    "problems": dict(loaded.problems.counts),
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
-                   "runs": record.runs if record else None}
+                   "runs": record.runs if record else None,
+                   "filters": (_read_json(self.job_dir(job_id) / "inputs" / "params.json")
+                               or {}).get("filters") or []}
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")
 
@@ -693,8 +698,10 @@ class JobRunner:
     def track_plots(self, job_id: str, aircraft: str) -> int | None:
         return self._db().track(job_id, aircraft)
 
-    def track_rows(self, job_id: str, aircraft: str) -> tuple[pa.Table, pa.Table] | None:
-        """A finished track's states and segments (from its committed part), or None."""
+    def track_rows(self, job_id: str, aircraft: str
+                   ) -> tuple[pa.Table, pa.Table, pa.Table | None] | None:
+        """A finished track's states, segments and filters' states (None without filters),
+        from its committed part; None when it is not done."""
         entry = self.progress(job_id).entries.get(aircraft)
         if entry is None or entry["status"] != "done" or not entry.get("part"):
             return None
@@ -702,7 +709,9 @@ class JobRunner:
         flt = pa.compute.field("aircraft") == aircraft
         states = pq.read_table(out / "tracks.parquet" / entry["part"], filters=flt)
         segments = pq.read_table(out / "segments.parquet" / entry["part"], filters=flt)
-        return states, segments
+        filtered = out / "filters.parquet" / entry["part"]
+        return states, segments, (pq.read_table(filtered, filters=flt) if filtered.is_file()
+                                  else None)
 
     def track_sensors(self, job_id: str, aircraft: str) -> list[dict[str, Any]]:
         return _sensor_reports(self.job_dir(job_id) / "out").get(aircraft, [])
@@ -714,7 +723,7 @@ class JobRunner:
     def result_file(self, job_id: str, name: str) -> Path | None:
         """A finished job's download (``RESULT_FILES``); the zip is built on first use."""
         out = self.job_dir(job_id) / "out"
-        if name in ("tracks.parquet", "segments.parquet"):
+        if name in PARQUET_RESULTS:
             path = out / "export" / name
         elif name == "results.zip":
             path = out / "export" / "results.zip"
@@ -754,10 +763,14 @@ def _committed_parts(progress: Progress) -> list[str]:
 
 
 def _combine(parts_dir: Path, parts: list[str], target: Path) -> None:
-    """One Parquet file of the committed parts, written part by part (memory bounded)."""
+    """One Parquet file of the committed parts, written part by part (memory bounded); a
+    part without rows here (``filters.parquet`` of tracks whose filters all failed) is
+    skipped, and nothing is written when no part has any."""
     tmp = target.with_suffix(".tmp")
     writer: pq.ParquetWriter | None = None
     for name in parts:
+        if not (parts_dir / name).is_file():
+            continue
         table = pq.read_table(parts_dir / name)
         if writer is None:
             writer = pq.ParquetWriter(tmp, table.schema)

@@ -28,6 +28,7 @@ from solver.io.tables import PlotRows, write_table
 from solver.sensors import RadarSensor
 
 from .job_models import (
+    JobOptions,
     JobStatus,
     JobTrack,
     JobTrackResult,
@@ -35,7 +36,7 @@ from .job_models import (
     SensorSummaryOut,
 )
 from .jobs import FINISHED, RESULT_FILES, Full, JobRecord, JobRunner
-from .models import ErrorResponse
+from .models import BoundsIn, ErrorResponse
 from .settings import Settings
 
 JOBS_PATH = "/v1/jobs"
@@ -122,7 +123,11 @@ _CREATE_BODY = {
                               "name's suffix or the content tells which)."},
                 "sensors": {"type": "string", "format": "binary", "description":
                             "The sensor file (JSON, recordings.md): a file part or a text "
-                            "field."}}}},
+                            "field."},
+                "options": {"type": "string", "description":
+                            "Optional `JobOptions` as JSON (a text field or a file part): "
+                            "the bounds and the recursive filters for every track, e.g. "
+                            "`{\"filters\": [\"imm_smoother\"]}`."}}}},
         "application/json": {"schema": {k: v for k, v in JobTracksRequest.model_json_schema(
             ref_template="#/components/schemas/{model}").items() if k != "$defs"}},
     },
@@ -206,10 +211,10 @@ async def _save_upload(request: Request, inputs: Path, limit: int) -> None:
         raise InputError(("body",), f"is not a valid multipart/form-data body: {e.message}"
                          ) from None
     try:
-        unknown = sorted(set(form.keys()) - {"recording", "sensors"})
+        unknown = sorted(set(form.keys()) - {"recording", "sensors", "options"})
         if unknown:
             raise InputError((unknown[0],), "is not a part of a job upload (parts: recording, "
-                             "sensors)")
+                             "sensors, options)")
         recording, sensors = form.get("recording"), form.get("sensors")
         if not isinstance(recording, UploadFile):
             raise InputError(("recording",), "is required: a file part with the recording "
@@ -217,15 +222,52 @@ async def _save_upload(request: Request, inputs: Path, limit: int) -> None:
         if sensors is None:
             raise InputError(("sensors",), "is required: the sensor file (JSON) as a file "
                              "part or a text field")
-        text = (await sensors.read()).decode("utf-8", "replace") if isinstance(
-            sensors, UploadFile) else str(sensors)
-        await run_in_threadpool(_store_upload, recording, text, inputs)
+        text = await _text(sensors)
+        options = _options(await _text(form.get("options")))
+        await run_in_threadpool(_store_upload, recording, text, options, inputs)
     finally:
         await form.close()
 
 
-def _store_upload(recording: UploadFile, sensors_text: str, inputs: Path) -> None:
+async def _text(part: UploadFile | str | None) -> str | None:
+    if part is None:
+        return None
+    return (await part.read()).decode("utf-8", "replace") if isinstance(part, UploadFile) \
+        else str(part)
+
+
+def _options(text: str | None) -> JobOptions:
+    """The upload's ``options`` part (none: the defaults); 422 located under ``options``."""
+    if text is None:
+        return JobOptions()
+    try:
+        return JobOptions.model_validate_json(text)
+    except ValidationError as e:
+        errors = e.errors(include_url=False)
+        syntax = next((err for err in errors if err["type"] == "json_invalid"), None)
+        if syntax is not None:  # pydantic's message says where (line and column)
+            raise InputError(("options",), "is not valid JSON: "
+                             f"{(syntax.get('ctx') or {}).get('error', syntax['msg'])}"
+                             ) from None
+        raise RequestValidationError([{**err, "loc": ("body", "options", *err["loc"])}
+                                      for err in errors]) from None
+
+
+def _params(bounds: BoundsIn, filters: list[str]) -> str:
+    """``params.json``: what the job's run reads (:meth:`service.jobs.JobRunner`); the bounds
+    are checked here as the reconstruction would (422 at ``bounds.<name>``)."""
+    ReconstructionConfig(bounds=Bounds(u=tuple(bounds.u), w=tuple(bounds.w),  # type: ignore[arg-type]
+                                       v=tuple(bounds.v))).validate()
+    return json.dumps({"bounds": bounds.model_dump(), "filters": list(dict.fromkeys(filters))})
+
+
+def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
+                  inputs: Path) -> None:
     parse_sensors(sensors_text)  # 422 at sensors[j].field for a bad sensor file
+    try:
+        params = _params(options.bounds, options.filters)
+    except InputError as e:
+        raise InputError(("options", *e.loc), e.message) from None
     src = recording.file
     src.seek(0)
     head = src.read(4096)
@@ -239,7 +281,7 @@ def _store_upload(recording: UploadFile, sensors_text: str, inputs: Path) -> Non
     with open(inputs / f"recording{suffix}", "wb") as f:
         shutil.copyfileobj(src, f, 1 << 20)
     (inputs / "sensors.json").write_text(sensors_text, encoding="utf-8")
-    (inputs / "params.json").write_text("{}\n", encoding="utf-8")
+    (inputs / "params.json").write_text(params + "\n", encoding="utf-8")
 
 
 def _looks_like_csv(head: bytes) -> bool:
@@ -261,8 +303,7 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
     if req.reference is not None:
         doc["reference"] = req.reference.model_dump()
     sensors = parse_sensors(doc)
-    b = req.bounds
-    ReconstructionConfig(bounds=Bounds(u=tuple(b.u), w=tuple(b.w), v=tuple(b.v))).validate()  # type: ignore[arg-type]
+    params = _params(req.bounds, req.filters)
     radar = {s.id: isinstance(s, RadarSensor) for s in sensors.sensors}
     cols: dict[str, list[Any]] = {k: [] for k in ("t", "sensor", "range_m", "azimuth_deg",
                                                   "lat_deg", "lon_deg", "altitude_m",
@@ -289,8 +330,7 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
         "sensor", "aircraft") else float) for k, v in cols.items()})
     write_table(rows, inputs / "recording.parquet")
     (inputs / "sensors.json").write_text(json.dumps(doc), encoding="utf-8")
-    (inputs / "params.json").write_text(json.dumps({"bounds": b.model_dump()}),
-                                        encoding="utf-8")
+    (inputs / "params.json").write_text(params + "\n", encoding="utf-8")
 
 
 # ------------------------------------------------------------------------------------- read
@@ -402,11 +442,12 @@ def get_job_track(job_id: str, aircraft: str, request: Request) -> JobTrackResul
     got = runner.track_rows(job_id, aircraft)
     if got is None:  # pragma: no cover - a done entry always names its part
         raise HTTPException(409, f"track {aircraft!r} has no stored rows")
-    states, segments = got
+    states, segments, filtered = got
     return JobTrackResult.model_validate({
         "aircraft": aircraft,
         "trajectory": {"segments": _segment_rows(segments), "at_plots": _state_rows(states)},
         "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, aircraft)],
+        "filters": _filter_rows(filtered),
         "diagnostics": {"elapsed_ms": 1e3 * float(entry.get("elapsed_s") or 0.0),
                         "warnings": entry.get("warnings") or []}})
 
@@ -415,21 +456,41 @@ def _state_rows(t: Any) -> list[dict[str, Any]]:
     cols = t.to_pydict()
     out = []
     for i in range(t.num_rows):
-        cov = [[0.0] * 4 for _ in range(4)]
-        finite = True
-        for a in range(4):
-            for b in range(a, 4):
-                v = cols[f"cov_{_COV_NAMES[a]}_{_COV_NAMES[b]}"][i]
-                finite &= v is not None and bool(np.isfinite(v))
-                cov[a][b] = cov[b][a] = v
         row = {k: cols[k][i] for k in ("plot", "sensor", "t", "x", "z", "vx", "vz", "speed",
                                        "heading_deg", "lat_deg", "lon_deg")}
         row["heading_deg"] = row["heading_deg"] % 360.0
-        row["cov"] = cov if finite else None
+        row["cov"] = _cov(cols, i)
         if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:
             row["altitude_m"], row["altitude_sigma_m"] = cols["h_m"][i], cols["h_sigma_m"][i]
         out.append(row)
     return out
+
+
+def _cov(cols: dict[str, list[Any]], i: int) -> list[list[Any]] | None:
+    """Row ``i``'s covariance over ``(x, z, vx, vz)`` from its upper triangle; None when a
+    term is not finite."""
+    cov = [[0.0] * 4 for _ in range(4)]
+    for a in range(4):
+        for b in range(a, 4):
+            v = cols[f"cov_{_COV_NAMES[a]}_{_COV_NAMES[b]}"][i]
+            if v is None or not np.isfinite(v):
+                return None
+            cov[a][b] = cov[b][a] = v
+    return cov
+
+
+def _filter_rows(t: Any) -> dict[str, dict[str, list[dict[str, Any]]]]:
+    """``filters.parquet`` rows of one track -> ``{name: {"states": [...]}}`` in plot order."""
+    if t is None:
+        return {}
+    cols = t.to_pydict()
+    out: dict[str, list[tuple[int, dict[str, Any]]]] = {}
+    for i in range(t.num_rows):
+        row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg")}
+        row["cov"] = _cov(cols, i)
+        out.setdefault(cols["filter"][i], []).append((cols["plot"][i], row))
+    return {name: {"states": [r for _, r in sorted(rows, key=lambda p: p[0])]}
+            for name, rows in out.items()}
 
 
 def _segment_rows(t: Any) -> list[dict[str, Any]]:
@@ -493,7 +554,8 @@ _MEDIA = {".parquet": "application/vnd.apache.parquet", ".csv": "text/csv",
                               "description": "The file (media type by its suffix)."},
                        **_NOT_FOUND, **_NOT_YET}, summary="A done job's result file")
 def get_job_result(job_id: str, name: str, request: Request) -> Response:
-    """`tracks.parquet` (states at every plot), `segments.parquet`, `tracks.csv`,
+    """`tracks.parquet` (states at every plot), `segments.parquet`, `filters.parquet` (the
+    job's `filters`' states at every plot, when it asked for any), `tracks.csv`,
     `tracks.geojsonl` (one LineString per aircraft), `sensors.json`, `problems.txt`,
     `summary.json`, `map.png`, or all of them as `results.zip`."""
     runner = _runner(request)
@@ -502,7 +564,9 @@ def get_job_result(job_id: str, name: str, request: Request) -> Response:
     _finished(runner, job_id)
     path = runner.result_file(job_id, name)
     if path is None:
-        raise HTTPException(404, f"job {job_id} has no {name} (no track was reconstructed)")
+        why = ("it asked for no filters, or none could run on its tracks"
+               if name == "filters.parquet" else "no track was reconstructed")
+        raise HTTPException(404, f"job {job_id} has no {name} ({why})")
     return FileResponse(path, media_type=_MEDIA.get(Path(name).suffix,
                                                     "application/octet-stream"),
                         filename=name)

@@ -135,6 +135,9 @@ def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
     assert sorted(json.loads(x)["properties"]["aircraft"] for x in lines) == sorted(keys)
     assert client.get(f"{loc}/tracks/NOPE").status_code == 404
     assert client.get(loc + "/results/nope.txt").status_code == 404
+    assert client.get(f"{loc}/tracks/{next(iter(keys))}").json()["filters"] == {}
+    nofilters = client.get(loc + "/results/filters.parquet")
+    assert nofilters.status_code == 404 and "asked for no filters" in nofilters.json()["message"]
 
     # a finished job is removed with its data
     assert client.delete(loc).status_code == 204
@@ -174,6 +177,66 @@ def test_json_tracks_job(client):
         assert len(one.json()["trajectory"]["at_plots"]) == len(tracks["B/2#x"])
     figure = client.get(f"{r.headers['location']}/tracks/B/2%23x/figure.png")
     assert figure.status_code == 200 and figure.content[:4] == b"\x89PNG"
+
+
+def test_job_options_run_the_filters_on_every_track(client):
+    """`filters` (JSON body; `options` part of an upload): each track's answer carries every
+    filter's state at its plots, the same as the single-track endpoint's for those plots (an
+    independent path: one request, no job, no Parquet); `filters.parquet` holds them all; the
+    bounds reach the reconstruction (a speed cap the flight is held under)."""
+    enc = encode_recording(duration=40.0)
+    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
+    tracks: dict[str, list[dict]] = {"A": [], "B": []}
+    for p in enc.plots:
+        plot = {"t": p["tod"], "sensor": p["sensor"]}
+        plot |= ({"range_m": p["range_m"], "azimuth_deg": p["azimuth_deg"]} if "range_m" in p
+                 else {"lat_deg": p["lat"], "lon_deg": p["lon"]})
+        tracks["AB"[p["flight"]]].append(plot)
+    names = ["imm_smoother", "cv_rts"]
+    bounds = {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 150.0]}  # the flights fly 206 and 234
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks, "bounds": bounds,
+                                      "filters": [*names, "cv_rts"]})  # asked twice: run once
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    status = wait(client, loc)
+    assert status["state"] == "done" and status["tracks_done"] == 2, status
+    for key, plots in tracks.items():
+        body = client.get(f"{loc}/tracks/{key}").json()
+        assert set(body["filters"]) == set(names)
+        assert max(s["speed"] for s in body["trajectory"]["at_plots"]) <= 150.0 + 1e-3
+        single = client.post("/v1/reconstructions", json={
+            "sensors": sensors, "plots": plots, "filters": names, "omit": ["samples"]})
+        assert single.status_code == 200, single.text
+        for name in names:
+            got, want = body["filters"][name]["states"], single.json()["filters"][name]["states"]
+            assert len(got) == len(want) == len(plots)
+            for field in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg"):
+                np.testing.assert_allclose([s[field] for s in got], [s[field] for s in want],
+                                           rtol=0, atol=1e-6, err_msg=f"{key} {name} {field}")
+            np.testing.assert_allclose(np.array([s["cov"] for s in got]),
+                                       np.array([s["cov"] for s in want]), rtol=1e-9)
+    table = pq.read_table(io.BytesIO(client.get(loc + "/results/filters.parquet").content))
+    assert table.num_rows == len(names) * sum(len(p) for p in tracks.values())
+    assert sorted(set(table.column("filter").to_pylist())) == sorted(names)
+    summary = json.loads(client.get(loc + "/results/summary.json").content)
+    assert summary["filters"] == names
+    archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
+    assert "filters.parquet" in archive.namelist()
+
+    # an upload's `options` part: the recording's tracks carry the filter too
+    options = json.dumps({"filters": ["imm_smoother"]})
+    r = client.post("/v1/jobs", files={"recording": ("day.ast", enc.data),
+                                       "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                    data={"options": options})
+    assert r.status_code == 202, r.text
+    up = r.headers["location"]
+    assert wait(client, up)["state"] == "done"
+    for t in client.get(up + "/tracks").json():
+        body = client.get(f"{up}/tracks/{t['aircraft']}").json()
+        assert list(body["filters"]) == ["imm_smoother"]
+        assert len(body["filters"]["imm_smoother"]["states"]) == t["plots"]
+    for job in (loc, up):
+        assert client.delete(job).status_code == 204
 
 
 def test_cancel_and_the_concurrent_job_limit(client):
@@ -232,6 +295,12 @@ def test_upload_over_the_limit_is_413(client):
      "recording"),
     ({"recording": ("r.ast", b"\x30"), "sensors": ("s.json", json.dumps(SENSOR_FILE)),
       "extra": ("e", b"1")}, "extra"),
+    *(({"recording": ("r.ast", b"\x30\x00\x03"), "sensors": ("s.json", json.dumps(SENSOR_FILE)),
+        "options": ("o.json", text)}, field) for text, field in (
+        ('{"filters": ["singer", "nope"]}', "options.filters[1]"),
+        ('{"bounds": {"v": [300.0, 30.0]}}', "options.bounds.v"),
+        ('{"filters": ["singer"], "colour": 1}', "options.colour"),
+        ('{"filters": [', "options is not valid JSON"))),
 ])
 def test_bad_upload_is_422_naming_the_part(client, files, field):
     r = client.post("/v1/jobs", files=files)
@@ -254,6 +323,8 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
          "tracks.A[0].range_m"),
         ({"sensors": sensors, "tracks": {"A": [plot]}, "bounds": {"v": [300.0, 30.0]}},
          "bounds.v"),
+        ({"sensors": sensors, "tracks": {"A": [plot]}, "filters": ["kalman"]},
+         "filters[0]"),
     ]
     for body, field in cases:
         r = client.post("/v1/jobs", json=body)
