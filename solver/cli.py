@@ -1,7 +1,8 @@
 """The command line (spec recordings.md):
 
     trajrecon reconstruct RECORDING --sensors SENSORS.json --out DIR [--scheduler ADDRESS]
-        [--workers N] [--method refined|sliding] [--filters NAME ...] [--figures] ...
+        [--workers N] [--method refined|sliding] [--bounds NAME=MIN,MAX ...]
+        [--filters NAME ...] [--figures] ...
     trajrecon plot RECORDING --sensors SENSORS.json --out DIR [--aircraft KEY ...] [--map]
 
 (``trajrecon RECORDING ...`` is ``trajrecon reconstruct RECORDING ...``.) ``reconstruct`` reads a
@@ -18,6 +19,8 @@ cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
   (SASS-C/TRES-style assessment): plots, detection rate (plots over expected scans at the
   estimated scan period), wild plots, bias and sigma of the range and azimuth residuals,
   estimated offsets where asked;
+- ``run.json``: the method, bounds and filters; a rerun resumes only a run with the same
+  (:mod:`solver.run_settings`);
 - ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
   (every track with the radar sites), ``figures/<track>.png`` with ``--figures``,
   ``summary.json``; a summary is printed at the end (tracks, plots, failures, plots/s).
@@ -61,7 +64,7 @@ from .batch import (
 )
 from .config import ReconstructionConfig
 from .frames import LocalFrame
-from .inputs import InputError
+from .inputs import Bounds, InputError
 from .io.asterix import iter_recording, read_recording
 from .io.problems import Problems
 from .io.sensors_file import SensorSet, load_sensors
@@ -69,6 +72,9 @@ from .io.split import AircraftTrack, recording_frame, split_aircraft, split_stre
 from .io.tables import PlotRows, counts_from_midnight, iter_table, read_table
 from .plots import PlotTable
 from .results import Reconstruction
+from .run_settings import RunSettings, parse_bounds
+from .run_settings import keep as keep_settings
+from .run_settings import stored as stored_settings
 from .sensors import RadarSensor
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
@@ -491,9 +497,10 @@ def _young_collections(threshold: int) -> Iterator[None]:
 def _run(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     _check_out(out, Path(args.sensors))
-    out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     load_sensors(Path(args.sensors))  # a bad sensor file is refused before a cluster starts
+    args.settings = RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters))
+    keep_settings(out, args.settings)  # a rerun resumes only the same run
     with _cluster(args.scheduler, args.workers) as client:
         workers = max(len(client.scheduler_info()["workers"]), 1)
         on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)
@@ -532,7 +539,7 @@ def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: 
                  started: float) -> tuple[BatchSummary, float | None]:
     """Every track of ``loaded`` on ``client``, with the sensors' statistics recorded as
     they come; the summary and the time to the first result."""
-    config = ReconstructionConfig(method=args.method)
+    config = args.settings.config()
     stats_path = out / "sensor_stats.jsonl"
     first_result: list[float] = []
     bar = _progress(args.no_progress)
@@ -576,8 +583,8 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
     write_map(out, loaded.sensors, frame=loaded.frame)
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
     result = {
-        "recording": str(args.recording), "method": args.method,
-        "filters": list(args.filters), "tracks": summary.tracks, "done": summary.done,
+        "recording": str(args.recording), **args.settings.as_json(),
+        "tracks": summary.tracks, "done": summary.done,
         "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
         "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
@@ -674,7 +681,8 @@ def parser() -> argparse.ArgumentParser:
                      "overlapping the reconstruction (default; the faster on one machine, "
                      "benchmarks/results/recording.md), on the cluster's workers, or auto: "
                      "on the cluster when it has more than one worker")
-    _method(rec)
+    _method(rec, "refined")
+    _bounds(rec, [])
     rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
                      metavar="FILTER", help="recursive filters run beside the reconstruction "
                      f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")
@@ -685,15 +693,16 @@ def parser() -> argparse.ArgumentParser:
     plot = sub.add_parser("plot", help="draw figures of named aircraft and the map",
                           description="Draw --out/figures/<aircraft>.png for each named "
                           "aircraft of RECORDING (its plots with their ellipses, the "
-                          "reconstruction, the controls over time; reconstructed again here as "
-                          "`reconstruct` does) and, with --map, --out/map.png from the tracks "
-                          "`reconstruct` wrote there. The reading stops once every named "
-                          "aircraft is complete.")
+                          "reconstruction, the controls over time; reconstructed again here "
+                          "with the method and bounds of the run in --out, if there is one) "
+                          "and, with --map, --out/map.png from the tracks `reconstruct` wrote "
+                          "there. The reading stops once every named aircraft is complete.")
     _inputs(plot)
     plot.add_argument("--aircraft", nargs="+", default=[], metavar="KEY",
                       help="aircraft keys as in tracks.parquet (e.g. a Mode S address 3C6DD4)")
     plot.add_argument("--map", action="store_true", help="redraw map.png from --out's tracks")
-    _method(plot)
+    _method(plot, None)
+    _bounds(plot, None)
     return ap
 
 
@@ -704,11 +713,23 @@ def _inputs(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", required=True, help="output directory")
 
 
-def _method(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--method", choices=("refined", "sliding"), default="refined",
+def _method(ap: argparse.ArgumentParser, default: str | None) -> None:
+    ap.add_argument("--method", choices=("refined", "sliding"), default=default,
                     help="refined (the full-track NLP, default) or sliding (the seed's windows "
                     "alone: one radar without a site, at the origin of a flat plane; other "
-                    "tracks fail with that reason)")
+                    "tracks fail with that reason)" + ("" if default else "; default: the "
+                                                       "run's in --out"))
+
+
+def _bounds(ap: argparse.ArgumentParser, default: list[str] | None) -> None:
+    d = Bounds()
+    ap.add_argument("--bounds", nargs="+", default=default, metavar="NAME=MIN,MAX",
+                    help="the aircraft model's bounds for every track: u (lateral "
+                    "acceleration, m/s^2), w (longitudinal, m/s^2), v (ground speed, m/s); "
+                    f"unnamed ones keep their defaults u={d.u[0]:g},{d.u[1]:g} "
+                    f"w={d.w[0]:g},{d.w[1]:g} v={d.v[0]:g},{d.v[1]:g} (e.g. --bounds v=15,250 "
+                    "for slower aircraft)" + ("" if default is not None else "; default: the "
+                                              "run's in --out"))
 
 
 def plot(args: argparse.Namespace) -> list[Path]:
@@ -724,7 +745,10 @@ def plot(args: argparse.Namespace) -> list[Path]:
     wanted = set(args.aircraft)
     loaded = stream(Path(args.recording), Path(args.sensors))  # its plane: after the first part
     if wanted:
-        config = ReconstructionConfig(method=args.method)
+        run = stored_settings(out) or RunSettings()
+        config = RunSettings(args.method or run.method,
+                             run.bounds if args.bounds is None else parse_bounds(args.bounds)
+                             ).config()
         for track in loaded.tracks:
             if track.key not in wanted:
                 continue

@@ -95,9 +95,17 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     printed = capsys.readouterr().out
     assert "tracks: 2 (2 reconstructed, 0 failed" in printed and "R1" in printed
 
-    # a rerun resumes: nothing redone, outputs the same (the form without the subcommand)
+    # a rerun with other settings would mix two runs' tracks: refused, nothing touched
     code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
-                 "--workers", "2", "--no-progress"])
+                 "--workers", "2", "--no-progress", "--filters", "cv_rts"])
+    assert code == 2 and json.loads((out / "summary.json").read_text()) == summary
+    err = capsys.readouterr().err
+    assert "holds a run made with filters ['imm_smoother', 'cv_rts', 'fusion_a']" in err
+    # a rerun resumes: nothing redone, outputs the same (the form without the subcommand; the
+    # filters in another order are the same run)
+    code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
+                 "--workers", "2", "--no-progress", "--filters", "fusion_a", "imm_smoother",
+                 "cv_rts"])
     again = json.loads((out / "summary.json").read_text())
     assert code == 0 and again["skipped"] == len(FLIGHTS) and again["done"] == 0
     assert pq.read_table(out / "tracks.parquet").num_rows == table.num_rows
@@ -138,10 +146,17 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
     write_table(rec.rows, tmp_path / "plots.csv")
     thresholds = gc.get_threshold()
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
-                 str(tmp_path / "out"), "--workers", "1", "--no-progress"])
+                 str(tmp_path / "out"), "--workers", "1", "--no-progress", "--bounds",
+                 "v=30,200"])  # the flights fly 206 and 234 m/s: held under 200
     assert code == 0
     assert gc.get_threshold() == thresholds  # the run's collector setting is undone
-    assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["done"] == len(FLIGHTS) and summary["bounds"]["v"] == [30.0, 200.0]
+    speed = pq.read_table(tmp_path / "out" / "tracks.parquet").column("speed").to_numpy()
+    assert speed.max() <= 200.0 + 1e-3 and speed.max() > 199.0
+    code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
+                 str(tmp_path / "out3"), "--no-progress", "--bounds", "v=200,30"])
+    assert code == 2 and "bounds.v is inverted" in capsys.readouterr().err
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps([{**SENSOR_FILE[0], "lat_deg": 95.0}]))
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(bad), "--out",

@@ -1,0 +1,101 @@
+"""What a command-line run reconstructs with, kept beside its outputs (``DIR/run.json``).
+
+A rerun on the same ``--out`` resumes: the tracks already finished are not redone. So a rerun
+with another method, other bounds or other filters would mix two runs' tracks in one output
+without a word; it is refused instead, naming what differs. ``trajrecon plot`` reads the file to
+draw with the settings the stored tracks were made with.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .config import ReconstructionConfig
+from .inputs import Bounds, InputError
+
+RUN_FILE = "run.json"
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """The settings every track of a run shares (``filters`` as a set: their order changes
+    no output)."""
+
+    method: str = "refined"
+    bounds: Bounds = field(default_factory=Bounds)
+    filters: tuple[str, ...] = ()
+
+    def config(self) -> ReconstructionConfig:
+        return ReconstructionConfig(method=self.method, bounds=self.bounds)  # type: ignore[arg-type]
+
+    def as_json(self) -> dict[str, Any]:
+        return {"method": self.method, "filters": list(dict.fromkeys(self.filters)),
+                "bounds": {k: list(getattr(self.bounds, k)) for k in ("u", "w", "v")}}
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any]) -> RunSettings:
+        b = doc.get("bounds") or {}
+        defaults = Bounds()
+        return cls(str(doc.get("method", "refined")),
+                   Bounds(**{k: tuple(float(x) for x in b.get(k, getattr(defaults, k)))
+                             for k in ("u", "w", "v")}),
+                   tuple(doc.get("filters") or ()))
+
+
+def parse_bounds(items: Sequence[str]) -> Bounds:
+    """``["v=15,250", "u=-10,10"]`` -> :class:`Bounds` (the others at their defaults),
+    validated; :class:`InputError` at ``bounds`` / ``bounds.<name>``."""
+    values: dict[str, tuple[float, float]] = {}
+    for item in items:
+        name, _, pair = item.partition("=")
+        name = name.strip()
+        if name not in ("u", "w", "v"):
+            raise InputError(("bounds",), f"{item!r}: name u, w or v (e.g. v=15,250)")
+        try:
+            lo, hi = (float(x) for x in pair.split(","))
+        except ValueError:
+            raise InputError(("bounds", name), f"{item!r}: give MIN,MAX (e.g. {name}="
+                             f"{','.join(f'{x:g}' for x in getattr(Bounds(), name))})"
+                             ) from None
+        values[name] = (lo, hi)
+    bounds = Bounds(**values)
+    bounds.validate()
+    return bounds
+
+
+def stored(out: Path) -> RunSettings | None:
+    """The settings of the run in ``out``, or None (no run there, or one written before this
+    file was kept)."""
+    path = out / RUN_FILE
+    if not path.is_file():
+        return None
+    try:
+        return RunSettings.from_json(json.loads(path.read_text(encoding="utf-8")))
+    except (ValueError, TypeError, AttributeError) as e:
+        raise InputError(("out",), f"{path} is not a run's settings ({e}); remove it or "
+                         "choose another --out") from None
+
+
+def keep(out: Path, settings: RunSettings) -> None:
+    """Record ``settings`` in ``out`` (before any track is solved); :class:`InputError` when
+    ``out`` holds a run with other settings."""
+    earlier = stored(out)
+    if earlier is not None:
+        old, new = earlier.as_json(), settings.as_json()
+        same = {"filters": lambda a, b: sorted(a) == sorted(b)}
+        differ = [f"{k} {old[k]} (asked: {new[k]})" for k in old
+                  if not same.get(k, lambda a, b: a == b)(old[k], new[k])]
+        if differ:
+            raise InputError(("out",), f"{out} holds a run made with {'; '.join(differ)}. A "
+                             "rerun resumes that run, so it takes the same settings: give "
+                             "them, or choose another --out")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f".{RUN_FILE}.tmp"
+    tmp.write_text(json.dumps(settings.as_json(), indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, out / RUN_FILE)

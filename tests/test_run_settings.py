@@ -1,0 +1,43 @@
+"""A command-line run's settings beside its outputs (``run.json``): parsed from ``--bounds``,
+kept on the first run, the same settings resume, others are refused naming what differs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from solver.inputs import Bounds, InputError
+from solver.run_settings import RUN_FILE, RunSettings, keep, parse_bounds, stored
+
+
+def test_bounds_parse_to_the_model_bounds_and_bad_ones_name_the_field():
+    assert parse_bounds([]) == Bounds()
+    got = parse_bounds(["v=15,250", "u=-10,10"])
+    assert got == Bounds(u=(-10.0, 10.0), v=(15.0, 250.0))
+    for items, where in ((["x=1,2"], "bounds "), (["v=15"], "bounds.v "),
+                         (["v=a,b"], "bounds.v "), (["w=1,3"], "bounds.w must contain 0"),
+                         (["v=250,15"], "bounds.v is inverted"),
+                         (["v=nan,300"], "bounds.v must be finite")):
+        with pytest.raises(InputError) as e:
+            parse_bounds(items)
+        assert str(e.value).startswith(where), (items, str(e.value))
+
+
+def test_a_run_keeps_its_settings_and_resumes_only_the_same(tmp_path):
+    first = RunSettings("refined", Bounds(v=(15.0, 250.0)), ("cv_rts", "singer"))
+    assert stored(tmp_path) is None
+    keep(tmp_path, first)
+    assert stored(tmp_path) == first
+    assert json.loads((tmp_path / RUN_FILE).read_text())["bounds"]["v"] == [15.0, 250.0]
+    keep(tmp_path, RunSettings("refined", Bounds(v=(15.0, 250.0)), ("singer", "cv_rts")))
+    for other, named in ((RunSettings("sliding", first.bounds, first.filters), "method"),
+                         (RunSettings("refined", Bounds(), first.filters), "bounds"),
+                         (RunSettings("refined", first.bounds, ("cv_rts",)), "filters")):
+        with pytest.raises(InputError) as e:
+            keep(tmp_path, other)
+        assert f"holds a run made with {named} " in str(e.value)
+    assert stored(tmp_path) == first  # the refused run changed nothing
+    (tmp_path / RUN_FILE).write_text("[1, 2]")
+    with pytest.raises(InputError, match="is not a run's settings"):
+        stored(tmp_path)
