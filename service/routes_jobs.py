@@ -16,7 +16,7 @@ from fastapi import APIRouter, FastAPI, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -111,6 +111,12 @@ def _busy(runner: JobRunner, why: str) -> JSONResponse:
 # ----------------------------------------------------------------------------------- create
 
 
+def _schema(model: type[BaseModel]) -> dict[str, Any]:
+    """``model``'s JSON schema inline, its parts referring to the document's components."""
+    return {k: v for k, v in model.model_json_schema(
+        ref_template="#/components/schemas/{model}").items() if k != "$defs"}
+
+
 _CREATE_BODY = {
     "required": True,
     "content": {
@@ -124,12 +130,12 @@ _CREATE_BODY = {
                 "sensors": {"type": "string", "format": "binary", "description":
                             "The sensor file (JSON, recordings.md): a file part or a text "
                             "field."},
-                "options": {"type": "string", "description":
-                            "Optional `JobOptions` as JSON (a text field or a file part): "
-                            "the bounds and the recursive filters for every track, e.g. "
-                            "`{\"filters\": [\"imm_smoother\"]}`."}}}},
-        "application/json": {"schema": {k: v for k, v in JobTracksRequest.model_json_schema(
-            ref_template="#/components/schemas/{model}").items() if k != "$defs"}},
+                "options": {**_schema(JobOptions), "description":
+                            "Optional, as JSON (a text field or a file part): the bounds "
+                            "and the recursive filters for every track, e.g. "
+                            "`{\"filters\": [\"imm_smoother\"]}`."}}},
+            "encoding": {"options": {"contentType": "application/json"}}},
+        "application/json": {"schema": _schema(JobTracksRequest)},
     },
 }
 

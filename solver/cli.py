@@ -499,8 +499,7 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
     _check_out(out, Path(args.sensors))
     started = time.perf_counter()
     load_sensors(Path(args.sensors))  # a bad sensor file is refused before a cluster starts
-    args.settings = RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters))
-    keep_settings(out, args.settings)  # a rerun resumes only the same run
+    keep_settings(out, _settings(args))  # a rerun resumes only the same run
     with _cluster(args.scheduler, args.workers) as client:
         workers = max(len(client.scheduler_info()["workers"]), 1)
         on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)
@@ -508,6 +507,10 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
                         executor=client if on_cluster else None)
         summary, first_result_s = _reconstruct(args, out, loaded, client, started)
     return _finish(args, out, loaded, summary, first_result_s, started)
+
+
+def _settings(args: argparse.Namespace) -> RunSettings:
+    return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters))
 
 
 def _check_out(out: Path, sensors: Path) -> None:
@@ -539,7 +542,7 @@ def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: 
                  started: float) -> tuple[BatchSummary, float | None]:
     """Every track of ``loaded`` on ``client``, with the sensors' statistics recorded as
     they come; the summary and the time to the first result."""
-    config = args.settings.config()
+    config = _settings(args).config()
     stats_path = out / "sensor_stats.jsonl"
     first_result: list[float] = []
     bar = _progress(args.no_progress)
@@ -583,7 +586,7 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
     write_map(out, loaded.sensors, frame=loaded.frame)
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
     result = {
-        "recording": str(args.recording), **args.settings.as_json(),
+        "recording": str(args.recording), **_settings(args).as_json(),
         "tracks": summary.tracks, "done": summary.done,
         "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
         "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,

@@ -141,7 +141,7 @@ def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
     loaded = cli.Streamed(SENSORS, cli.Problems(), (TrackProblem(f"A{k:05d}", table)
                                                     for k in range(tracks)))
     args = argparse.Namespace(method="refined", no_progress=True, figures=False,
-                              time_limit=None, retry_failed=False, filters=[])
+                              time_limit=None, retry_failed=False, filters=[], bounds=[])
     out = tmp_path / f"out{tracks}"
     gc.collect()
     tracemalloc.start()
