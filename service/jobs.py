@@ -43,6 +43,7 @@ from typing import IO, Any, Literal
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from solver.assessment import write_sensors_figure
 from solver.batch import TrackOutcome, reconstruct_many
 from solver.cli import (
     AssessedTrack,
@@ -64,7 +65,7 @@ ACTIVE: frozenset[str] = frozenset({"queued", "running"})
 PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet")
 """Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
 RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "sensors.json",
-                "problems.txt", "summary.json", "map.png", "results.zip")
+                "problems.txt", "summary.json", "map.png", "sensors.png", "results.zip")
 PROBLEM_EXAMPLES = 20  # problems listed in a job's status (every kind is counted)
 
 _SCHEMA = """
@@ -612,6 +613,7 @@ class JobRunner:
                                           encoding="utf-8")
         write_csv_and_geojson(out)
         write_map(out, loaded.sensors, loaded.rows)
+        write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
         (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
         export = out / "export"
         export.mkdir(exist_ok=True)

@@ -537,6 +537,22 @@ def get_job_map(job_id: str, request: Request) -> Response:
     return FileResponse(path, media_type="image/png")
 
 
+@router.get(JOBS_PATH + "/{job_id}/sensors.png", response_class=Response,
+            responses={**_PNG, **_NOT_FOUND, **_NOT_YET},
+            summary="A job's radar residuals by range and azimuth")
+def get_job_sensors_figure(job_id: str, request: Request) -> Response:
+    """Each radar's plots of a done job against the reconstruction: the range and azimuth
+    residuals over slant range and azimuth, binned mean and sigma over a sample of the plots
+    (wild ones marked)."""
+    runner = _runner(request)
+    _finished(runner, job_id)
+    path = runner.result_file(job_id, "sensors.png")
+    if path is None:
+        raise HTTPException(404, f"job {job_id} has no radar plot against a reconstructed "
+                            "track")
+    return FileResponse(path, media_type="image/png")
+
+
 @router.get(JOBS_PATH + "/{job_id}/sensors", response_model=list[SensorSummaryOut],
             responses={**_NOT_FOUND, **_NOT_YET}, summary="Per-sensor statistics of a job")
 def get_job_sensors(job_id: str, request: Request) -> list[SensorSummaryOut]:
@@ -562,8 +578,8 @@ _MEDIA = {".parquet": "application/vnd.apache.parquet", ".csv": "text/csv",
 def get_job_result(job_id: str, name: str, request: Request) -> Response:
     """`tracks.parquet` (states at every plot), `segments.parquet`, `filters.parquet` (the
     job's `filters`' states at every plot, when it asked for any), `tracks.csv`,
-    `tracks.geojsonl` (one LineString per aircraft), `sensors.json`, `problems.txt`,
-    `summary.json`, `map.png`, or all of them as `results.zip`."""
+    `tracks.geojsonl` (one LineString per aircraft), `sensors.json`, `sensors.png`,
+    `problems.txt`, `summary.json`, `map.png`, or all of them as `results.zip`."""
     runner = _runner(request)
     if name not in RESULT_FILES:
         raise HTTPException(404, f"no result file {name!r} (files: {', '.join(RESULT_FILES)})")

@@ -47,19 +47,28 @@ import pyarrow.parquet as pq
 
 from .config import ReconstructionConfig
 from .plots import PlotTable
-from .results import StateSeries
+from .results import PlotResiduals, StateSeries
+from .sensors import RadarSensor
 
 COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
+RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "range_residual_m",
+                    "azimuth_residual_deg", "position_residual_m", "gated")
 TRACK_COLUMNS = ("aircraft", "plot", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
-                 "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m")
+                 "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m",
+                 *RESIDUAL_COLUMNS)
 """Columns of ``tracks.parquet``: one row per plot (``plot``: its index in the track's table,
 time order), ``t`` (s; from the UTC midnight before the recording's first plot when the
 recording is timed by time of day, as ASTERIX is) and ``time_of_day_s`` (``t`` modulo a day
 then, else null), positions in the recording's plane (m; ``x`` north, ``z`` east) and on
 WGS-84, velocity (m/s), heading (deg clockwise from north), the covariance over
-``(x, z, vx, vz)`` (upper triangle) and the estimated height with its sigma where it was
-estimated (else null)."""
+``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where it was
+estimated (else null), and the plot against the state, as the sensors' statistics take it
+(:func:`solver.refine.output.plot_residuals`): a radar plot's measured slant range and azimuth
+(``plot_range_m``, ``plot_azimuth_deg``) and its residuals after the sensor's estimated
+offsets (``range_residual_m``, ``azimuth_residual_deg``), a position plot's horizontal distance
+(``position_residual_m``); null where they do not apply or the method gives none; ``gated``:
+given no weight as wild."""
 FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
                   "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS)
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
@@ -141,7 +150,7 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
     deadline = None if time_limit_s is None else time.monotonic() + time_limit_s
     try:
         rec = reconstruct(table, config=config or ReconstructionConfig(), deadline=deadline)
-        states = _states_table(key, table, rec.at_plots, times_of_day)
+        states = _states_table(key, table, rec.at_plots, times_of_day, rec.residuals)
         segments = _segments_table(key, rec)
         more = extras(rec) if extras is not None else {}
         warnings = list(rec.diagnostics.warnings)
@@ -173,7 +182,8 @@ def _state_columns(key: str, table: PlotTable, s: StateSeries, times_of_day: boo
     return cols
 
 
-_NULLABLE = frozenset({"time_of_day_s", "lat_deg", "lon_deg", "h_m", "h_sigma_m"})
+_NULLABLE = frozenset({"time_of_day_s", "lat_deg", "lon_deg", "h_m", "h_sigma_m",
+                       *RESIDUAL_COLUMNS[:-1]})
 """Columns whose NaN means "not known" (null in Parquet); elsewhere a NaN stays a NaN."""
 
 
@@ -183,10 +193,21 @@ def _arrow(cols: dict[str, Any], names: Sequence[str], n: int) -> pa.Table:
                      pa.array(np.asarray(cols[k], float), pa.float64()) for k in names})
 
 
-def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool) -> pa.Table:
+def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool,
+                  residuals: PlotResiduals | None = None) -> pa.Table:
     cols = _state_columns(key, table, s, times_of_day)
     cols.update(speed=s.speed, heading_deg=np.rad2deg(s.heading), h_m=s.h, h_sigma_m=s.h_sigma)
-    return _arrow(cols, TRACK_COLUMNS, len(s))
+    n, res = len(s), residuals
+    radar = np.array([isinstance(x, RadarSensor) for x in table.sensors], bool)[table.sensor] \
+        if len(table.sensors) else np.zeros(n, bool)
+    cols.update(
+        plot_range_m=np.where(radar, table.range_m, np.nan),
+        plot_azimuth_deg=np.where(radar, np.rad2deg(table.azimuth_rad), np.nan),
+        range_residual_m=None if res is None else res.range_m,
+        azimuth_residual_deg=None if res is None else np.rad2deg(res.azimuth_rad),
+        position_residual_m=None if res is None else res.position_m,
+        gated=pa.array(np.zeros(n, bool) if res is None else res.gated, pa.bool_()))
+    return _arrow(cols, TRACK_COLUMNS, n)
 
 
 def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_day: bool,

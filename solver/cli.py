@@ -21,6 +21,8 @@ cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
   estimated offsets where asked;
 - ``run.json``: the method, bounds and filters; a rerun resumes only a run with the same
   (:mod:`solver.run_settings`);
+- ``sensors.png``: each radar's range and azimuth residuals over range and azimuth
+  (:mod:`solver.assessment`);
 - ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
   (every track with the radar sites), ``figures/<track>.png`` with ``--figures``,
   ``summary.json``; a summary is printed at the end (tracks, plots, failures, plots/s).
@@ -52,6 +54,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from .assessment import write_sensors_figure
 from .batch import (
     BatchSummary,
     TrackOutcome,
@@ -584,6 +587,7 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
                                       encoding="utf-8")
     csv_rows, geo_tracks = write_csv_and_geojson(out)
     write_map(out, loaded.sensors, frame=loaded.frame)
+    write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
     result = {
         "recording": str(args.recording), **_settings(args).as_json(),

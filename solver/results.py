@@ -115,6 +115,19 @@ class SensorReport:
 
 
 @dataclass
+class PlotResiduals:
+    """Each plot (input order) against the reconstruction, measured minus predicted after its
+    sensor's estimated offsets: ``range_m`` and ``azimuth_rad`` for radar plots,
+    ``position_m`` (horizontal distance) for position plots, NaN where a kind does not apply;
+    ``gated``: given no weight as wild."""
+
+    range_m: FloatArray
+    azimuth_rad: FloatArray
+    position_m: FloatArray
+    gated: np.ndarray
+
+
+@dataclass
 class Reconstruction:
     """Piecewise-constant-control trajectory: its segments, the state at every plot time (input
     order), samples on a regular time step, and diagnostics; with several sensors or a frame on
@@ -126,6 +139,7 @@ class Reconstruction:
     samples: StateSeries
     diagnostics: Diagnostics
     sensors: list[SensorReport] = field(default_factory=list)
+    residuals: PlotResiduals | None = None
     frame: LocalFrame | None = None
     altitude_m: float | None = None
     altitude_sigma_m: float | None = None

@@ -78,6 +78,23 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     assert abs(sensors["R1"]["range_residual_mean_m"]) < 10  # exact plots: no bias
     assert (out / "sensors.csv").read_text().startswith('"sensor","kind"')
     assert json.loads((out / "sensors.json").read_text()) == summary["sensors"]
+    # every plot against its state: the measured range as recorded (to the encoding's 1/256
+    # NM), its residual small on exact plots, and the statistics are these residuals' pooled
+    for sid in ("R1", "R2"):
+        rows = pc.equal(table.column("sensor"), sid)
+        got = table.filter(rows)
+        recorded = np.array([p["range_m"] for p in enc.plots if p["sensor"] == sid])
+        measured = got.column("plot_range_m").to_numpy()
+        assert np.abs(measured[:, None] - recorded[None, :]).min(axis=1).max() < 1852 / 512
+        dr = got.column("range_residual_m").to_numpy()
+        kept = ~got.column("gated").to_numpy(zero_copy_only=False)
+        assert np.abs(dr).max() < 30.0
+        assert dr[kept].mean() == pytest.approx(sensors[sid]["range_residual_mean_m"], abs=1e-6)
+        assert got.column("azimuth_residual_deg").null_count == 0
+    adsb = table.filter(pc.equal(table.column("sensor"), "ADSB"))
+    assert adsb.column("range_residual_m").null_count == adsb.num_rows
+    assert np.nanmax(adsb.column("position_residual_m").to_numpy()) < 30.0
+    assert (out / "sensors.png").read_bytes()[:4] == b"\x89PNG"
     # the filters asked for, beside: every plot of every track once per filter; the
     # two-sensor fusion cannot run on three sensors, which each track's warnings say
     filters = pq.read_table(out / "filters.parquet")

@@ -125,11 +125,12 @@ def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
         assert figure.content[:8] == b"\x89PNG\r\n\x1a\n"
 
     assert client.get(loc + "/map.png").content[:4] == b"\x89PNG"
+    assert client.get(loc + "/sensors.png").content[:4] == b"\x89PNG"
     sensors = {s["sensor"]: s for s in client.get(loc + "/sensors").json()}
     assert set(sensors) == {"R1", "R2", "ADSB"} and sensors["R1"]["scan_period_s"] == 4.0
     archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
     assert {"tracks.parquet", "segments.parquet", "tracks.csv", "tracks.geojsonl",
-            "sensors.json", "summary.json", "problems.txt", "map.png"} <= set(
+            "sensors.json", "summary.json", "problems.txt", "map.png", "sensors.png"} <= set(
                 archive.namelist())
     lines = client.get(loc + "/results/tracks.geojsonl").text.splitlines()
     assert sorted(json.loads(x)["properties"]["aircraft"] for x in lines) == sorted(keys)

@@ -50,7 +50,7 @@ from .nodes import (
     smoother_guess,
     with_altitude,
 )
-from .output import segments, sensor_reports, series
+from .output import plot_residuals, segments, sensor_reports, series
 
 TIME_GAUGE_INFO = 1e6  # 1/s^2: the time offsets' sum held at zero to a millisecond
 
@@ -230,8 +230,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     bias_cov = cov_nodes[-1][nb:, nb:]
     rec = Reconstruction(segs, at_plots_own, samples, diag)
     if table.frame is not None or len(table.sensors) > 1:
-        rec.sensors = sensor_reports(table, at_plots_own, rejected, biases, bias_cov,
-                                     bias_sensors)
+        rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors)
+        rec.sensors = sensor_reports(table, rec.residuals, biases, bias_cov, bias_sensors)
     if variant.altitude:
         w = np.gradient(t_nodes) if n > 1 else np.ones(1)
         w = w / w.sum() if w.sum() > 0 else np.full(n, 1.0 / n)

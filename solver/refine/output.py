@@ -13,7 +13,7 @@ from .. import compiled
 from ..inputs import Bounds, FloatArray
 from ..motion import propagate, propagate_ca
 from ..plots import PlotTable
-from ..results import Segment, SensorReport, StateSeries
+from ..results import PlotResiduals, Segment, SensorReport, StateSeries
 from ..sensors import RadarSensor
 from .covariance import NH
 from .layout import BIAS_TERMS, Variant
@@ -87,37 +87,55 @@ def series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray, t: Float
     return out
 
 
-def sensor_reports(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
-                   biases: np.ndarray, bias_cov: np.ndarray, bias_sensors: list[int]
-                   ) -> list[SensorReport]:
+def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
+                   biases: np.ndarray, bias_sensors: list[int]) -> PlotResiduals:
+    """Every plot against the track, measured minus predicted from the track after its
+    sensor's estimated offsets (wild plots too, flagged): range and azimuth for radar plots,
+    horizontal distance for position plots (NaN where a kind does not apply, or without a
+    frame for position plots)."""
+    n = len(table)
+    out = PlotResiduals(np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan),
+                        np.zeros(n, bool))
+    out.gated[gated] = True
+    for k, sensor in enumerate(table.sensors):
+        rows = np.flatnonzero(table.sensor == k)
+        if not rows.size:
+            continue
+        if isinstance(sensor, RadarSensor):
+            b = biases[bias_sensors.index(k)] if k in bias_sensors else np.zeros(BIAS_TERMS)
+            x = at_plots.x[rows] - b[2] * at_plots.vx[rows]
+            z = at_plots.z[rows] - b[2] * at_plots.vz[rows]
+            r, az = sensor.measure(table.frame, x, z, _heights(table, at_plots, rows, sensor))
+            out.range_m[rows] = table.range_m[rows] - r - b[0]
+            out.azimuth_rad[rows] = np.mod(table.azimuth_rad[rows] - az - b[1] + np.pi,
+                                           2 * np.pi) - np.pi
+        elif table.frame is not None:
+            px, pz = table.frame.to_plane(table.lat_deg[rows], table.lon_deg[rows])
+            out.position_m[rows] = np.hypot(px - at_plots.x[rows], pz - at_plots.z[rows])
+    return out
+
+
+def sensor_reports(table: PlotTable, residuals: PlotResiduals, biases: np.ndarray,
+                   bias_cov: np.ndarray, bias_sensors: list[int]) -> list[SensorReport]:
     """Per sensor: plots, plots gated as wild, the estimated offsets with their sigmas, and the
-    residuals of its plots against the track (measured minus predicted from the track, after
-    the estimated offsets): mean, RMS and standard deviation in range and azimuth (radars) or
-    the horizontal RMS (position sensors)."""
+    statistics of its plots' :func:`plot_residuals` outside the gated ones: mean, RMS and
+    standard deviation in range and azimuth (radars) or the horizontal RMS (position
+    sensors)."""
     reports = []
-    wild = np.zeros(len(table), bool)
-    wild[gated] = True
     for k, sensor in enumerate(table.sensors):
         rows = np.flatnonzero(table.sensor == k)
         rep = SensorReport(id=sensor.id, kind=sensor.kind, plots=int(rows.size),
-                           plots_gated=int(wild[rows].sum()))
-        keep = rows[~wild[rows]]
+                           plots_gated=int(residuals.gated[rows].sum()))
+        keep = rows[~residuals.gated[rows]]
         if isinstance(sensor, RadarSensor):
-            b = np.zeros(BIAS_TERMS)
             if k in bias_sensors:
                 j = bias_sensors.index(k)
-                b = biases[j]
                 sig = np.sqrt(np.maximum(np.diag(bias_cov)[3 * j: 3 * j + 3], 0.0))
-                rep.range_bias_m, rep.azimuth_bias_rad, rep.time_bias_s = map(float, b)
+                rep.range_bias_m, rep.azimuth_bias_rad, rep.time_bias_s = map(float, biases[j])
                 (rep.range_bias_sigma_m, rep.azimuth_bias_sigma_rad,
                  rep.time_bias_sigma_s) = map(float, sig)
             if keep.size:
-                x = at_plots.x[keep] - b[2] * at_plots.vx[keep]
-                z = at_plots.z[keep] - b[2] * at_plots.vz[keep]
-                h = _heights(table, at_plots, keep, sensor)
-                r, az = sensor.measure(table.frame, x, z, h)
-                dr = table.range_m[keep] - r - b[0]
-                da = np.mod(table.azimuth_rad[keep] - az - b[1] + np.pi, 2 * np.pi) - np.pi
+                dr, da = residuals.range_m[keep], residuals.azimuth_rad[keep]
                 rep.range_residual_mean_m = float(dr.mean())
                 rep.range_residual_rms_m = float(np.sqrt(np.mean(dr**2)))
                 rep.range_residual_sigma_m = float(dr.std())
@@ -125,9 +143,7 @@ def sensor_reports(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
                 rep.azimuth_residual_rms_rad = float(np.sqrt(np.mean(da**2)))
                 rep.azimuth_residual_sigma_rad = float(da.std())
         elif keep.size and table.frame is not None:
-            px, pz = table.frame.to_plane(table.lat_deg[keep], table.lon_deg[keep])
-            d2 = (px - at_plots.x[keep]) ** 2 + (pz - at_plots.z[keep]) ** 2
-            rep.position_residual_rms_m = float(np.sqrt(np.mean(d2)))
+            rep.position_residual_rms_m = float(np.sqrt(np.mean(residuals.position_m[keep]**2)))
         reports.append(rep)
     return reports
 

@@ -1,0 +1,69 @@
+"""The run's radar figure (``sensors.png``, :mod:`solver.assessment`): the residuals read from
+``tracks.parquet`` part by part give the same bias, sigma and binned means as numpy over all
+rows at once (gated plots counted, not used), the scatter sample stays bounded, parts without
+residual columns (an earlier version's) are skipped, and the figure is drawn."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from solver import assessment
+from solver.assessment import radar_residuals, write_sensors_figure
+
+
+def _part(path, sensor, rng_m, az, dr, da, gated):
+    n = rng_m.size
+    pq.write_table(pa.table({
+        "aircraft": ["A"] * n, "sensor": sensor, "plot_range_m": rng_m, "plot_azimuth_deg": az,
+        "range_residual_m": dr, "azimuth_residual_deg": da, "gated": gated}), path)
+
+
+def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path, monkeypatch):
+    monkeypatch.setattr(assessment, "SCATTER_POINTS", 500)
+    parts = tmp_path / "tracks.parquet"
+    parts.mkdir()
+    rng = np.random.default_rng(3)
+    rows = []
+    for k in range(4):
+        n = 1_000
+        sensor = rng.choice(["R1", "R2", "ADSB"], n)
+        r = rng.uniform(1e3, 250e3, n)
+        az = rng.uniform(0, 360, n)
+        dr = 20.0 + 1e-4 * r + rng.normal(0, 50, n)  # a range-dependent bias
+        da = 0.05 * np.sin(np.deg2rad(az)) + rng.normal(0, 0.08, n)  # an eccentricity
+        gated = rng.random(n) < 0.02
+        dr[gated] += 5_000.0
+        adsb = sensor == "ADSB"
+        r[adsb] = az[adsb] = dr[adsb] = da[adsb] = np.nan
+        _part(parts / f"part-{k:06d}.parquet", sensor, r, az, dr, da, gated)
+        rows.append((sensor, r, az, dr, da, gated))
+    pq.write_table(pa.table({"aircraft": ["old"], "x": [0.0]}), parts / "part-000009.parquet")
+    sensor, r, az, dr, da, gated = (np.concatenate(c) for c in zip(*rows, strict=True))
+    got = {x.sensor: x for x in radar_residuals(tmp_path)}
+    assert set(got) == {"R1", "R2"}
+    for sid, res in got.items():
+        sel = sensor == sid
+        ok = sel & ~gated
+        assert res.plots == sel.sum() and res.gated == (sel & gated).sum()
+        np.testing.assert_allclose(res.bias_sigma(), (dr[ok].mean(), dr[ok].std(),
+                                                      da[ok].mean(), da[ok].std()), rtol=1e-9)
+        mean, sigma = res.dr_by_range.mean_sigma()
+        b = (r[ok] // assessment.RANGE_BIN_M).astype(int)
+        for k in np.unique(b):
+            if (b == k).sum() >= assessment.MIN_BIN_PLOTS:
+                assert mean[k] == pytest.approx(dr[ok][b == k].mean(), rel=1e-9)
+                assert sigma[k] == pytest.approx(dr[ok][b == k].std(), rel=1e-7)
+        assert res.sample.shape == (500, 5)  # bounded, drawn from every part
+        assert set(np.round(res.sample[:, 0], 6)) <= set(np.round(r[sel], 6))
+    assert write_sensors_figure(tmp_path).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_no_radar_residual_no_figure(tmp_path):
+    parts = tmp_path / "tracks.parquet"
+    parts.mkdir()
+    nan = np.full(3, np.nan)
+    _part(parts / "part-000001.parquet", ["ADSB"] * 3, nan, nan, nan, nan, np.zeros(3, bool))
+    assert radar_residuals(tmp_path) == [] and write_sensors_figure(tmp_path) is None
