@@ -466,6 +466,10 @@ def _state_rows(t: Any) -> list[dict[str, Any]]:
                                        "heading_deg", "lat_deg", "lon_deg")}
         row["heading_deg"] = row["heading_deg"] % 360.0
         row["cov"] = _cov(cols, i)
+        for name in ("range_residual_m", "azimuth_residual_deg", "position_residual_m",
+                     "gated"):
+            if cols.get(name) is not None and cols[name][i] is not None:
+                row[name] = cols[name][i]
         if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:
             row["altitude_m"], row["altitude_sigma_m"] = cols["h_m"][i], cols["h_sigma_m"][i]
         out.append(row)

@@ -120,6 +120,10 @@ def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
         dx = (np.array([s["lon_deg"] for s in states]) - lon) * 111_000 * np.cos(
             np.deg2rad(lat))
         assert np.hypot(dx, dy).max() < 60.0  # exact plots: the flight within 60 m
+        for s in states:  # each plot against its state, as tracks.parquet has it
+            named = "range_residual_m" if s["sensor"] != "ADSB" else "position_residual_m"
+            assert abs(s[named]) < 30.0 and s["gated"] is False, s
+            assert ("azimuth_residual_deg" in s) == (s["sensor"] != "ADSB")
         figure = client.get(f"{loc}/tracks/{key}/figure.png")
         assert figure.headers["content-type"] == "image/png"
         assert figure.content[:8] == b"\x89PNG\r\n\x1a\n"
