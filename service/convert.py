@@ -6,6 +6,7 @@ exists once; it renames the solver's radian fields back to the degree fields the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,7 +16,14 @@ from solver.estimation import FUSION_NAMES
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar
 from solver.plots import PlotTable
-from solver.results import Diagnostics, FilterEstimate, Reconstruction, SensorReport, StateSeries
+from solver.results import (
+    Diagnostics,
+    FilterEstimate,
+    PlotResiduals,
+    Reconstruction,
+    SensorReport,
+    StateSeries,
+)
 from solver.sensors import PositionSensor, RadarSensor, Site
 
 from .models import PositionSensorIn, RadarIn, ReconstructionRequest
@@ -254,7 +262,7 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
     ]
     trajectory: dict = {
         "segments": segments,
-        "at_plots": _states(rec.at_plots, True),
+        "at_plots": _with_residuals(_states(rec.at_plots, True), rec.residuals),
         "samples": [] if "samples" in omit else _states(rec.samples, True),
     }
     if rec.altitude_m is not None:
@@ -270,6 +278,21 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
         "sensors": [_sensor(r) for r in rec.sensors],
         "diagnostics": diagnostics,
     }
+
+
+def _with_residuals(rows: list[dict], res: PlotResiduals | None) -> list[dict]:
+    """Each plot's residuals beside its state (those that apply; none without ``res``)."""
+    if res is None:
+        return rows
+    cols = {"range_residual_m": res.range_m, "azimuth_residual_deg": np.rad2deg(res.azimuth_rad),
+            "position_residual_m": res.position_m}
+    for name, values in cols.items():
+        for row, v in zip(rows, values.tolist(), strict=True):
+            if math.isfinite(v):
+                row[name] = v
+    for row, g in zip(rows, res.gated.tolist(), strict=True):
+        row["gated"] = bool(g)
+    return rows
 
 
 def _sensor(r: SensorReport) -> dict:

@@ -12,13 +12,12 @@ from .models import (
     FilterName,
     FilterOut,
     PlotIn,
+    PlotStateOut,
     ReferenceIn,
     SegmentOut,
     SensorIn,
     SensorOut,
-    StateOut,
     _In,
-    _optional,
     _Out,
 )
 
@@ -126,20 +125,11 @@ class JobTrack(_Out):
     warnings: list[str] = Field(default_factory=list, description="Non-fatal remarks.")
 
 
-class JobStateOut(StateOut):
+class JobStateOut(PlotStateOut):
     """The state at one plot of a job's track."""
 
     plot: int = Field(description="Index of the plot in the track (time order).")
     sensor: str = Field(description="The plot's sensor.")
-    range_residual_m: float | None = _optional(
-        "A radar plot's slant range minus the range of this state (after the sensor's "
-        "estimated offsets), m.")
-    azimuth_residual_deg: float | None = _optional(
-        "A radar plot's azimuth minus the azimuth of this state (after the sensor's estimated "
-        "offsets), degrees.")
-    position_residual_m: float | None = _optional(
-        "A position plot's horizontal distance from this state, m.")
-    gated: bool = Field(False, description="The plot was given no weight as wild.")
 
 
 class JobTrajectoryOut(_Out):

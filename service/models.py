@@ -267,6 +267,21 @@ class StateOut(_GeoOut):
     altitude_sigma_m: float | None = _optional("Its standard deviation (m).")
 
 
+class PlotStateOut(StateOut):
+    """The state at one plot, with the plot against it where the reconstruction gives it
+    (sensors on the earth or several sensors; the sensors' statistics pool these)."""
+
+    range_residual_m: float | None = _optional(
+        "A radar plot's slant range minus the range of this state (after the sensor's "
+        "estimated offsets), m.")
+    azimuth_residual_deg: float | None = _optional(
+        "A radar plot's azimuth minus the azimuth of this state (after the sensor's estimated "
+        "offsets), degrees.")
+    position_residual_m: float | None = _optional(
+        "A position plot's horizontal distance from this state, m.")
+    gated: bool | None = _optional("The plot was given no weight as wild.")
+
+
 class SegmentOut(_Out):
     """One constant-control piece of the trajectory, with the state at its start."""
 
@@ -284,8 +299,8 @@ class TrajectoryOut(_Out):
     """The reconstructed trajectory."""
 
     segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
-    at_plots: list[StateOut] = Field(description="State at every plot time, in input order, "
-                                     "one per plot.")
+    at_plots: list[PlotStateOut] = Field(description="State at every plot time, in input "
+                                         "order, one per plot.")
     samples: list[StateOut] = Field(description="States every `sample_step_s` over the track.")
     altitude_m: float | None = Field(
         None, description="Where the altitude was estimated from several sensors: the "

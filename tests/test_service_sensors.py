@@ -89,6 +89,21 @@ def test_two_radars_and_adsb_answer_on_the_earth(client):
     assert 20 < ljlj["range_residual_rms_m"] < 100
     assert 0.03 < ljlj["azimuth_residual_rms_deg"] < 0.2
     assert out["trajectory"]["altitude_m"] == pytest.approx(10_000, abs=200)
+    # each plot against its state: the statistics are these residuals' over the kept plots
+    for sensor, stats in zip(("LJLJ", "SSR2", "ADSB"), out["sensors"], strict=True):
+        mine = [s for s, p in zip(at, body["plots"], strict=True) if p["sensor"] == sensor]
+        kept = [s for s in mine if not s["gated"]]
+        assert len(mine) - len(kept) == stats["plots_gated"]
+        if sensor == "ADSB":
+            assert all("range_residual_m" not in s for s in mine)
+            rms = np.sqrt(np.mean([s["position_residual_m"] ** 2 for s in kept]))
+            assert rms == pytest.approx(stats["position_residual_rms_m"], rel=1e-9)
+            continue
+        assert all("position_residual_m" not in s for s in mine)
+        for name in ("range_residual_m", "azimuth_residual_deg"):
+            rms = np.sqrt(np.mean([s[name] ** 2 for s in kept]))
+            assert rms == pytest.approx(stats[name.replace("_m", "_rms_m").replace(
+                "_deg", "_rms_deg")], rel=1e-9)
 
 
 def test_filters_take_every_sensor_and_answer_on_the_earth(client):
@@ -137,6 +152,7 @@ def test_single_radar_answer_has_no_earth_fields(client):
     assert res.status_code == 200, res.text
     out = res.json()
     assert "lat_deg" not in out["trajectory"]["at_plots"][0]
+    assert not {"gated", "range_residual_m"} & set(out["trajectory"]["at_plots"][0])
     assert out["sensors"] == []
 
 
