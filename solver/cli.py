@@ -28,7 +28,7 @@ cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
   ``summary.json``; a summary is printed at the end (tracks, plots, failures, plots/s).
 
 ``plot`` draws ``figures/<aircraft>.png`` for the named aircraft and, with ``--map``,
-``map.png`` again.
+``map.png`` and ``sensors.png`` again.
 """
 
 from __future__ import annotations
@@ -707,7 +707,8 @@ def parser() -> argparse.ArgumentParser:
     _inputs(plot)
     plot.add_argument("--aircraft", nargs="+", default=[], metavar="KEY",
                       help="aircraft keys as in tracks.parquet (e.g. a Mode S address 3C6DD4)")
-    plot.add_argument("--map", action="store_true", help="redraw map.png from --out's tracks")
+    plot.add_argument("--map", action="store_true", help="redraw map.png and sensors.png "
+                      "from --out's tracks")
     _method(plot, None)
     _bounds(plot, None)
     return ap
@@ -775,6 +776,9 @@ def plot(args: argparse.Namespace) -> list[Path]:
             raise InputError(("out",), f"{out} holds no reconstructed track: run "
                              "`trajrecon reconstruct` first")
         written.append(path)
+        radars = write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
+        if radars is not None:
+            written.append(radars)
     return written
 
 

@@ -146,8 +146,10 @@ def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys):
     assert "holds no reconstructed track" in capsys.readouterr().err
     assert main(["reconstruct", *args, "--workers", "1", "--no-progress"]) == 0
     (out / "map.png").unlink()
+    (out / "sensors.png").unlink()
     assert main(["plot", *args, "--map"]) == 0
     assert (out / "map.png").stat().st_size > 10_000
+    assert (out / "sensors.png").stat().st_size > 10_000
 
 
 def _first_t(enc, k: int) -> float:
