@@ -85,6 +85,14 @@ class ProblemsOut(_Out):
                                 "(byte offset, row, aircraft).")
 
 
+class JobOptionsOut(_Out):
+    """What every track of the job is reconstructed with."""
+
+    bounds: dict[str, list[float]] = Field(description="The bounds `u`, `w` (m/s^2) and `v` "
+                                           "(m/s), each [min, max].")
+    filters: list[str] = Field(description="The recursive filters run beside.")
+
+
 class JobStatus(_Out):
     """A job's state, progress and timing."""
 
@@ -112,6 +120,8 @@ class JobStatus(_Out):
     runs: int = Field(0, description="Times it was started (more than 1: resumed after a "
                       "restart of the service).")
     input_bytes: int = Field(description="Size of the stored inputs (bytes).")
+    options: JobOptionsOut | None = Field(None, description="The bounds and filters the job "
+                                          "was accepted with.")
 
 
 class JobTrack(_Out):

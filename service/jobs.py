@@ -229,6 +229,16 @@ class JobStore:
                        "WHERE id = ?", (len(tracks), sum(n for _, n in tracks), rows,
                                         json.dumps(problems), job_id))
 
+    def options(self, job_id: str) -> dict[str, Any]:
+        """The job's bounds and filters (``inputs/params.json``; a job accepted before they
+        were stored, or by an earlier version without filters: the defaults)."""
+        params = _read_json(self.job_dir(job_id) / "inputs" / "params.json") or {}
+        default = Bounds()
+        bounds = params.get("bounds") or {}
+        return {"bounds": {k: [float(x) for x in bounds.get(k, getattr(default, k))]
+                           for k in ("u", "w", "v")},
+                "filters": list(params.get("filters") or [])}
+
     def tracks(self, job_id: str) -> list[tuple[str, int]]:
         with self._lock:
             return [(r[0], r[1]) for r in self._db.execute(
@@ -551,11 +561,9 @@ class JobRunner:
             return
         if self._stop_requested(job.id):
             return
-        params = _read_json(d / "inputs" / "params.json") or {}
-        bounds = params.get("bounds")
-        config = ReconstructionConfig(**({"bounds": Bounds(**{k: tuple(v) for k, v in
-                                                              bounds.items()})}
-                                         if bounds else {}))
+        params = self.options(job.id)
+        config = ReconstructionConfig(bounds=Bounds(**{k: tuple(v) for k, v in
+                                                       params["bounds"].items()}))
         stats_path = out / "sensor_stats.jsonl"
         stats_lock = threading.Lock()
 
@@ -586,7 +594,7 @@ class JobRunner:
                              flush_s=1.0, on_outcome=on_outcome,
                              task=partial(job_track, figures_root=figures,
                                           times_of_day=loaded.times_of_day,
-                                          filters=tuple(params.get("filters") or ())))
+                                          filters=tuple(params["filters"])))
         except Aborted:
             LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
             return
@@ -628,8 +636,7 @@ class JobRunner:
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None,
-                   "filters": (_read_json(self.job_dir(job_id) / "inputs" / "params.json")
-                               or {}).get("filters") or []}
+                   "filters": self.options(job_id)["filters"]}
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")
 
@@ -693,6 +700,16 @@ class JobRunner:
                 p.failed += 1
         self._progress_cache[job_id] = (stamp, p)
         return p
+
+    def options(self, job_id: str) -> dict[str, Any]:
+        """The job's bounds and filters (``inputs/params.json``; a job accepted before they
+        were stored, or by an earlier version without filters: the defaults)."""
+        params = _read_json(self.job_dir(job_id) / "inputs" / "params.json") or {}
+        default = Bounds()
+        bounds = params.get("bounds") or {}
+        return {"bounds": {k: [float(x) for x in bounds.get(k, getattr(default, k))]
+                           for k in ("u", "w", "v")},
+                "filters": list(params.get("filters") or [])}
 
     def tracks(self, job_id: str) -> list[tuple[str, int]]:
         return self._db().tracks(job_id)

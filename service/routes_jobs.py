@@ -357,7 +357,8 @@ def _status(runner: JobRunner, job: JobRecord) -> JobStatus:
         error=job.error, created=_iso(job.created) or "", started=_iso(job.started),
         finished=_iso(job.finished),
         elapsed_s=None if job.started is None or end is None else max(end - job.started, 0.0),
-        runs=job.runs, input_bytes=job.input_bytes)
+        runs=job.runs, input_bytes=job.input_bytes,
+        options=runner.options(job.id) if runner.job_dir(job.id).is_dir() else None)
 
 
 def _job(runner: JobRunner, job_id: str) -> JobRecord:

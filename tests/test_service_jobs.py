@@ -205,6 +205,7 @@ def test_job_options_run_the_filters_on_every_track(client):
     loc = r.headers["location"]
     status = wait(client, loc)
     assert status["state"] == "done" and status["tracks_done"] == 2, status
+    assert status["options"] == {"bounds": bounds, "filters": names}  # what it runs with
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
@@ -235,7 +236,10 @@ def test_job_options_run_the_filters_on_every_track(client):
                     data={"options": options})
     assert r.status_code == 202, r.text
     up = r.headers["location"]
-    assert wait(client, up)["state"] == "done"
+    done = wait(client, up)
+    assert done["state"] == "done" and done["options"] == {
+        "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
+        "filters": ["imm_smoother"]}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
