@@ -229,16 +229,6 @@ class JobStore:
                        "WHERE id = ?", (len(tracks), sum(n for _, n in tracks), rows,
                                         json.dumps(problems), job_id))
 
-    def options(self, job_id: str) -> dict[str, Any]:
-        """The job's bounds and filters (``inputs/params.json``; a job accepted before they
-        were stored, or by an earlier version without filters: the defaults)."""
-        params = _read_json(self.job_dir(job_id) / "inputs" / "params.json") or {}
-        default = Bounds()
-        bounds = params.get("bounds") or {}
-        return {"bounds": {k: [float(x) for x in bounds.get(k, getattr(default, k))]
-                           for k in ("u", "w", "v")},
-                "filters": list(params.get("filters") or [])}
-
     def tracks(self, job_id: str) -> list[tuple[str, int]]:
         with self._lock:
             return [(r[0], r[1]) for r in self._db.execute(
