@@ -34,7 +34,7 @@ import sqlite3
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -44,7 +44,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from solver.assessment import write_sensors_figure
-from solver.batch import TrackOutcome, reconstruct_many
+from solver.batch import TRACK_COLUMNS, TrackOutcome, read_part, reconstruct_many
 from solver.cli import (
     AssessedTrack,
     SensorStats,
@@ -617,7 +617,8 @@ class JobRunner:
         export.mkdir(exist_ok=True)
         progress = self.progress(job_id)
         for name in PARQUET_RESULTS:
-            _combine(out / name, _committed_parts(progress), export / name)
+            _combine(out / name, _committed_parts(progress), export / name,
+                     TRACK_COLUMNS if name == "tracks.parquet" else None)
         record = self._db().get(job_id)
         summary = {"tracks": len(progress.entries), "done": progress.done,
                    "failed": progress.failed, "plots": progress.plots_done,
@@ -771,16 +772,19 @@ def _committed_parts(progress: Progress) -> list[str]:
     return sorted({e["part"] for e in progress.entries.values() if e.get("part")})
 
 
-def _combine(parts_dir: Path, parts: list[str], target: Path) -> None:
+def _combine(parts_dir: Path, parts: list[str], target: Path,
+             columns: Sequence[str] | None = None) -> None:
     """One Parquet file of the committed parts, written part by part (memory bounded); a
     part without rows here (``filters.parquet`` of tracks whose filters all failed) is
-    skipped, and nothing is written when no part has any."""
+    skipped, and nothing is written when no part has any. ``columns``: every part read with
+    exactly these (:func:`solver.batch.read_part`: parts of an earlier version conform)."""
     tmp = target.with_suffix(".tmp")
     writer: pq.ParquetWriter | None = None
     for name in parts:
         if not (parts_dir / name).is_file():
             continue
-        table = pq.read_table(parts_dir / name)
+        table = (pq.read_table(parts_dir / name) if columns is None
+                 else read_part(parts_dir / name, columns))
         if writer is None:
             writer = pq.ParquetWriter(tmp, table.schema)
         writer.write_table(table)

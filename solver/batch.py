@@ -74,6 +74,22 @@ FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", 
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
 :data:`solver.estimation.FILTER_NAMES`), as ``tracks.parquet``."""
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
+_TYPES = {"aircraft": pa.string(), "sensor": pa.string(), "filter": pa.string(),
+          "plot": pa.int32(), "gated": pa.bool_()}  # the others: float64
+
+
+def read_part(path: Path, names: Sequence[str] = TRACK_COLUMNS) -> pa.Table:
+    """A Parquet part with exactly the columns ``names``, in that order. A part written before
+    a column existed (a run resumed across an upgrade of this package) gets it as nulls, so
+    parts of both kinds make one table (CSV, combined Parquet)."""
+    table = pq.read_table(path)
+    for name in names:
+        if name not in table.column_names:
+            table = table.append_column(name, pa.nulls(table.num_rows,
+                                                       _TYPES.get(name, pa.float64())))
+    return table.select(list(names))
+
+
 PROGRESS = "progress.jsonl"
 _PART = re.compile(r"part-(\d{6})\.parquet|\.part-\d{6}\.parquet\.tmp")
 

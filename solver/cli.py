@@ -62,6 +62,7 @@ from .batch import (
     embedded_cluster,
     ledger_entries,
     quiet_interrupted_sync,
+    read_part,
     reconstruct_many,
     solve_track,
 )
@@ -397,7 +398,7 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
     writer: pacsv.CSVWriter | None = None
     with open(out / "tracks.geojsonl", "w", encoding="utf-8") as geo:
         for part in parts:
-            table = pq.read_table(part)
+            table = read_part(part)
             if writer is None:
                 writer = pacsv.CSVWriter(out / "tracks.csv", table.schema)
             writer.write_table(table)

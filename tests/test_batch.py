@@ -7,6 +7,7 @@ import json
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
@@ -323,3 +324,35 @@ def test_a_filter_that_fails_leaves_the_track_and_says_why(tracks, monkeypatch):
     assert out.filters.num_rows == len(tracks[0].table)
     tod = np.asarray(out.states.column("time_of_day_s"))
     np.testing.assert_allclose(tod, np.mod(tracks[0].table.t, 86_400.0))
+
+
+def test_parts_of_an_earlier_version_conform(tmp_path):
+    """A run resumed across an upgrade holds parts without the newer columns (the plots'
+    residuals, time_of_day_s): the CSV and a job's combined Parquet take both kinds, the
+    missing columns null (writing the second kind with the first's schema failed)."""
+    from service.jobs import _combine
+    from solver.batch import RESIDUAL_COLUMNS, read_part
+    from solver.cli import write_csv_and_geojson
+
+    parts = tmp_path / "tracks.parquet"
+    parts.mkdir()
+    n = 4
+    new = {c: pa.array(np.full(n, 1.0)) for c in TRACK_COLUMNS}
+    new.update(aircraft=pa.array(["NEW"] * n), sensor=pa.array(["R1"] * n),
+               plot=pa.array(np.arange(n, dtype=np.int32)), gated=pa.array([False] * n),
+               lat_deg=pa.array(np.linspace(46, 46.1, n)), lon_deg=pa.array(np.full(n, 14.0)))
+    old = {k: v for k, v in new.items() if k not in (*RESIDUAL_COLUMNS, "time_of_day_s")}
+    old["aircraft"] = pa.array(["OLD"] * n)
+    pq.write_table(pa.table(old), parts / "part-000001.parquet")
+    pq.write_table(pa.table(new), parts / "part-000002.parquet")
+    back = read_part(parts / "part-000001.parquet")
+    assert tuple(back.column_names) == TRACK_COLUMNS
+    assert back.column("gated").type == pa.bool_() and back.column("gated").null_count == n
+    assert back.column("range_residual_m").null_count == n
+    rows, tracks = write_csv_and_geojson(tmp_path)
+    assert (rows, tracks) == (2 * n, 2)
+    combined = tmp_path / "combined.parquet"
+    _combine(parts, ["part-000001.parquet", "part-000002.parquet"], combined, TRACK_COLUMNS)
+    table = pq.read_table(combined)
+    assert table.num_rows == 2 * n and table.column("gated").to_pylist() == [None] * n + [
+        False] * n
