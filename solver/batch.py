@@ -48,7 +48,6 @@ import pyarrow.parquet as pq
 from .config import ReconstructionConfig
 from .plots import PlotTable
 from .results import PlotResiduals, StateSeries
-from .sensors import RadarSensor
 
 COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
@@ -214,11 +213,8 @@ def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
     cols = _state_columns(key, table, s, times_of_day)
     cols.update(speed=s.speed, heading_deg=np.rad2deg(s.heading), h_m=s.h, h_sigma_m=s.h_sigma)
     n, res = len(s), residuals
-    radar = np.array([isinstance(x, RadarSensor) for x in table.sensors], bool)[table.sensor] \
-        if len(table.sensors) else np.zeros(n, bool)
-    cols.update(
-        plot_range_m=np.where(radar, table.range_m, np.nan),
-        plot_azimuth_deg=np.where(radar, np.rad2deg(table.azimuth_rad), np.nan),
+    cols.update(  # the table's range and azimuth are NaN on position rows
+        plot_range_m=table.range_m, plot_azimuth_deg=np.rad2deg(table.azimuth_rad),
         range_residual_m=None if res is None else res.range_m,
         azimuth_residual_deg=None if res is None else np.rad2deg(res.azimuth_rad),
         position_residual_m=None if res is None else res.position_m,
