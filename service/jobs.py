@@ -54,7 +54,8 @@ from solver.cli import (
     write_map,
 )
 from solver.config import ReconstructionConfig
-from solver.inputs import Bounds, InputError, format_loc
+from solver.inputs import InputError, format_loc
+from solver.run_settings import RunSettings
 
 from .logs import LOGGER
 from .settings import Settings
@@ -551,9 +552,8 @@ class JobRunner:
             return
         if self._stop_requested(job.id):
             return
-        params = self.options(job.id)
-        config = ReconstructionConfig(bounds=Bounds(**{k: tuple(v) for k, v in
-                                                       params["bounds"].items()}))
+        settings = self.options(job.id)
+        config = settings.config()
         stats_path = out / "sensor_stats.jsonl"
         stats_lock = threading.Lock()
 
@@ -584,7 +584,7 @@ class JobRunner:
                              flush_s=1.0, on_outcome=on_outcome,
                              task=partial(job_track, figures_root=figures,
                                           times_of_day=loaded.times_of_day,
-                                          filters=tuple(params["filters"])))
+                                          filters=settings.filters))
         except Aborted:
             LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
             return
@@ -627,7 +627,7 @@ class JobRunner:
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None,
-                   "filters": self.options(job_id)["filters"]}
+                   "filters": list(self.options(job_id).filters)}
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")
 
@@ -692,15 +692,11 @@ class JobRunner:
         self._progress_cache[job_id] = (stamp, p)
         return p
 
-    def options(self, job_id: str) -> dict[str, Any]:
+    def options(self, job_id: str) -> RunSettings:
         """The job's bounds and filters (``inputs/params.json``; a job accepted before they
         were stored, or by an earlier version without filters: the defaults)."""
-        params = _read_json(self.job_dir(job_id) / "inputs" / "params.json") or {}
-        default = Bounds()
-        bounds = params.get("bounds") or {}
-        return {"bounds": {k: [float(x) for x in bounds.get(k, getattr(default, k))]
-                           for k in ("u", "w", "v")},
-                "filters": list(params.get("filters") or [])}
+        return RunSettings.from_json(
+            _read_json(self.job_dir(job_id) / "inputs" / "params.json") or {})
 
     def tracks(self, job_id: str) -> list[tuple[str, int]]:
         return self._db().tracks(job_id)

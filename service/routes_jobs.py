@@ -21,10 +21,10 @@ from starlette.datastructures import UploadFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from solver.config import ReconstructionConfig
 from solver.inputs import Bounds, InputError
 from solver.io.sensors_file import parse_sensors
 from solver.io.tables import PlotRows, write_table
+from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
 from .job_models import (
@@ -260,11 +260,13 @@ def _options(text: str | None) -> JobOptions:
 
 
 def _params(bounds: BoundsIn, filters: list[str]) -> str:
-    """``params.json``: what the job's run reads (:meth:`service.jobs.JobRunner`); the bounds
-    are checked here as the reconstruction would (422 at ``bounds.<name>``)."""
-    ReconstructionConfig(bounds=Bounds(u=tuple(bounds.u), w=tuple(bounds.w),  # type: ignore[arg-type]
-                                       v=tuple(bounds.v))).validate()
-    return json.dumps({"bounds": bounds.model_dump(), "filters": list(dict.fromkeys(filters))})
+    """``params.json``: the job's :class:`solver.run_settings.RunSettings` (what its run reads,
+    :meth:`service.jobs.JobRunner.options`); the bounds are checked here as the reconstruction
+    would (422 at ``bounds.<name>``)."""
+    settings = RunSettings(bounds=Bounds(u=tuple(bounds.u), w=tuple(bounds.w),  # type: ignore[arg-type]
+                                         v=tuple(bounds.v)), filters=tuple(filters))
+    settings.config().validate()
+    return json.dumps(settings.as_json())
 
 
 def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
@@ -358,7 +360,13 @@ def _status(runner: JobRunner, job: JobRecord) -> JobStatus:
         finished=_iso(job.finished),
         elapsed_s=None if job.started is None or end is None else max(end - job.started, 0.0),
         runs=job.runs, input_bytes=job.input_bytes,
-        options=runner.options(job.id) if runner.job_dir(job.id).is_dir() else None)
+        options=_options_out(runner.options(job.id)) if runner.job_dir(job.id).is_dir()
+        else None)
+
+
+def _options_out(settings: RunSettings) -> dict[str, Any]:
+    doc = settings.as_json()
+    return {"bounds": doc["bounds"], "filters": doc["filters"]}
 
 
 def _job(runner: JobRunner, job_id: str) -> JobRecord:
