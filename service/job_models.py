@@ -17,6 +17,7 @@ from .models import (
     SegmentOut,
     SensorIn,
     SensorOut,
+    StateOut,
     _In,
     _Out,
 )
@@ -37,6 +38,10 @@ _BOUNDS_DOC = "Control and speed bounds, for every track."
 _FILTERS_DOC = ("Recursive estimators run beside the reconstruction of every track, each "
                 "answered under the track's `filters.<name>` and in `filters.parquet` (a "
                 "filter that cannot run on a track is a warning of that track). Default: none.")
+_SAMPLES_DOC = ("Keep every track's state every this many seconds (s, > 0; from its first plot "
+                "to its last, with the covariance): the track's `trajectory.samples` and "
+                "`samples.parquet`. A track that would have `max_samples` (a service setting) "
+                "or more keeps none, with a warning. Default: none kept.")
 
 
 class JobOptions(_In):
@@ -45,11 +50,12 @@ class JobOptions(_In):
 
     model_config = ConfigDict(json_schema_extra={"examples": [
         {"bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
-         "filters": ["imm_smoother"]}]})
+         "filters": ["imm_smoother"], "sample_step_s": 1.0}]})
 
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
+    sample_step_s: float | None = Field(None, gt=0, description=_SAMPLES_DOC)
 
 
 class JobTracksRequest(_In):
@@ -71,6 +77,7 @@ class JobTracksRequest(_In):
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
+    sample_step_s: float | None = Field(None, gt=0, description=_SAMPLES_DOC)
 
 
 class ProblemsOut(_Out):
@@ -91,6 +98,8 @@ class JobOptionsOut(_Out):
     bounds: dict[str, list[float]] = Field(description="The bounds `u`, `w` (m/s^2) and `v` "
                                            "(m/s), each [min, max].")
     filters: list[str] = Field(description="The recursive filters run beside.")
+    sample_step_s: float | None = Field(None, description="The step of the regular samples "
+                                        "kept (null: none).")
 
 
 class JobStatus(_Out):
@@ -120,8 +129,8 @@ class JobStatus(_Out):
     runs: int = Field(0, description="Times it was started (more than 1: resumed after a "
                       "restart of the service).")
     input_bytes: int = Field(description="Size of the stored inputs (bytes).")
-    options: JobOptionsOut | None = Field(None, description="The bounds and filters the job "
-                                          "was accepted with.")
+    options: JobOptionsOut | None = Field(None, description="The bounds, filters and sample "
+                                          "step the job was accepted with.")
 
 
 class JobTrack(_Out):
@@ -143,10 +152,14 @@ class JobStateOut(PlotStateOut):
 
 
 class JobTrajectoryOut(_Out):
-    """A job track's trajectory: the segments and the state at every plot."""
+    """A job track's trajectory: the segments, the state at every plot and, when the job
+    keeps them, the regular samples."""
 
     segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
     at_plots: list[JobStateOut] = Field(description="State at every plot, in time order.")
+    samples: list[StateOut] = Field(
+        default_factory=list, description="States every `sample_step_s` of the job's options "
+        "over the track (empty when the job keeps none).")
 
 
 class JobTrackDiagnostics(_Out):

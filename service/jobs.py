@@ -63,7 +63,7 @@ from .settings import Settings
 State = Literal["queued", "running", "done", "failed", "cancelled"]
 FINISHED: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 ACTIVE: frozenset[str] = frozenset({"queued", "running"})
-PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet")
+PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet", "samples.parquet")
 """Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
 RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "sensors.json",
                 "problems.txt", "summary.json", "map.png", "sensors.png", "results.zip")
@@ -323,12 +323,15 @@ def _set(f: cf.Future[Any], result: Any = None, exc: BaseException | None = None
 
 def job_track(key: str, table: Any, config: ReconstructionConfig | None,
               time_limit_s: float | None, figures_root: str | None = None,
-              times_of_day: bool = False, filters: tuple[str, ...] = ()) -> AssessedTrack:
+              times_of_day: bool = False, filters: tuple[str, ...] = (),
+              samples: bool = False, max_samples: int | None = None) -> AssessedTrack:
     """The per-track task of a job (on a worker): :func:`solver.cli.assess_track` (with the
-    job's ``filters``), the figure in a directory of its own per key (:func:`figure_dir`)."""
+    job's ``filters`` and samples), the figure in a directory of its own per key
+    (:func:`figure_dir`)."""
     figures = None if figures_root is None else str(figure_dir(Path(figures_root), key))
     return assess_track(key, table, config, time_limit_s, figures_dir=figures,
-                        filters=filters, times_of_day=times_of_day)
+                        filters=filters, times_of_day=times_of_day, samples=samples,
+                        max_samples=max_samples)
 
 
 def figure_dir(root: Path, key: str) -> Path:
@@ -584,7 +587,9 @@ class JobRunner:
                              flush_s=1.0, on_outcome=on_outcome,
                              task=partial(job_track, figures_root=figures,
                                           times_of_day=loaded.times_of_day,
-                                          filters=settings.filters))
+                                          filters=settings.filters,
+                                          samples=settings.sample_step_s is not None,
+                                          max_samples=s.max_samples))
         except Aborted:
             LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
             return
@@ -627,7 +632,8 @@ class JobRunner:
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None,
-                   "filters": list(self.options(job_id).filters)}
+                   "filters": list(self.options(job_id).filters),
+                   "sample_step_s": self.options(job_id).sample_step_s}
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")
 
@@ -705,9 +711,9 @@ class JobRunner:
         return self._db().track(job_id, aircraft)
 
     def track_rows(self, job_id: str, aircraft: str
-                   ) -> tuple[pa.Table, pa.Table, pa.Table | None] | None:
-        """A finished track's states, segments and filters' states (None without filters),
-        from its committed part; None when it is not done."""
+                   ) -> tuple[pa.Table, pa.Table, pa.Table | None, pa.Table | None] | None:
+        """A finished track's states, segments, filters' states and samples (each None when
+        the job has none), from its committed part; None when it is not done."""
         entry = self.progress(job_id).entries.get(aircraft)
         if entry is None or entry["status"] != "done" or not entry.get("part"):
             return None
@@ -715,9 +721,10 @@ class JobRunner:
         flt = pa.compute.field("aircraft") == aircraft
         states = pq.read_table(out / "tracks.parquet" / entry["part"], filters=flt)
         segments = pq.read_table(out / "segments.parquet" / entry["part"], filters=flt)
-        filtered = out / "filters.parquet" / entry["part"]
-        return states, segments, (pq.read_table(filtered, filters=flt) if filtered.is_file()
-                                  else None)
+        more = [out / name / entry["part"] for name in ("filters.parquet", "samples.parquet")]
+        filtered, sampled = (pq.read_table(p, filters=flt) if p.is_file() else None
+                             for p in more)
+        return states, segments, filtered, sampled
 
     def track_sensors(self, job_id: str, aircraft: str) -> list[dict[str, Any]]:
         return _sensor_reports(self.job_dir(job_id) / "out").get(aircraft, [])

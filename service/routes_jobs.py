@@ -259,12 +259,13 @@ def _options(text: str | None) -> JobOptions:
                                       for err in errors]) from None
 
 
-def _params(bounds: BoundsIn, filters: list[str]) -> str:
+def _params(bounds: BoundsIn, filters: list[str], sample_step_s: float | None) -> str:
     """``params.json``: the job's :class:`solver.run_settings.RunSettings` (what its run reads,
     :meth:`service.jobs.JobRunner.options`); the bounds are checked here as the reconstruction
     would (422 at ``bounds.<name>``)."""
     settings = RunSettings(bounds=Bounds(u=tuple(bounds.u), w=tuple(bounds.w),  # type: ignore[arg-type]
-                                         v=tuple(bounds.v)), filters=tuple(filters))
+                                         v=tuple(bounds.v)), filters=tuple(filters),
+                           sample_step_s=sample_step_s)
     settings.config().validate()
     return json.dumps(settings.as_json())
 
@@ -273,7 +274,7 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
                   inputs: Path) -> None:
     parse_sensors(sensors_text)  # 422 at sensors[j].field for a bad sensor file
     try:
-        params = _params(options.bounds, options.filters)
+        params = _params(options.bounds, options.filters, options.sample_step_s)
     except InputError as e:
         raise InputError(("options", *e.loc), e.message) from None
     src = recording.file
@@ -311,7 +312,7 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
     if req.reference is not None:
         doc["reference"] = req.reference.model_dump()
     sensors = parse_sensors(doc)
-    params = _params(req.bounds, req.filters)
+    params = _params(req.bounds, req.filters, req.sample_step_s)
     radar = {s.id: isinstance(s, RadarSensor) for s in sensors.sensors}
     cols: dict[str, list[Any]] = {k: [] for k in ("t", "sensor", "range_m", "azimuth_deg",
                                                   "lat_deg", "lon_deg", "altitude_m",
@@ -366,7 +367,8 @@ def _status(runner: JobRunner, job: JobRecord) -> JobStatus:
 
 def _options_out(settings: RunSettings) -> dict[str, Any]:
     doc = settings.as_json()
-    return {"bounds": doc["bounds"], "filters": doc["filters"]}
+    return {"bounds": doc["bounds"], "filters": doc["filters"],
+            "sample_step_s": doc["sample_step_s"]}
 
 
 def _job(runner: JobRunner, job_id: str) -> JobRecord:
@@ -457,10 +459,11 @@ def get_job_track(job_id: str, aircraft: str, request: Request) -> JobTrackResul
     got = runner.track_rows(job_id, aircraft)
     if got is None:  # pragma: no cover - a done entry always names its part
         raise HTTPException(409, f"track {aircraft!r} has no stored rows")
-    states, segments, filtered = got
+    states, segments, filtered, sampled = got
     return JobTrackResult.model_validate({
         "aircraft": aircraft,
-        "trajectory": {"segments": _segment_rows(segments), "at_plots": _state_rows(states)},
+        "trajectory": {"segments": _segment_rows(segments), "at_plots": _state_rows(states),
+                       "samples": [] if sampled is None else _sample_rows(sampled)},
         "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, aircraft)],
         "filters": _filter_rows(filtered),
         "diagnostics": {"elapsed_ms": 1e3 * float(entry.get("elapsed_s") or 0.0),
@@ -479,6 +482,20 @@ def _state_rows(t: Any) -> list[dict[str, Any]]:
                      "gated"):
             if cols.get(name) is not None and cols[name][i] is not None:
                 row[name] = cols[name][i]
+        if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:
+            row["altitude_m"], row["altitude_sigma_m"] = cols["h_m"][i], cols["h_sigma_m"][i]
+        out.append(row)
+    return out
+
+
+def _sample_rows(t: Any) -> list[dict[str, Any]]:
+    cols = t.to_pydict()
+    out = []
+    for i in range(t.num_rows):
+        row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "speed", "heading_deg",
+                                       "lat_deg", "lon_deg")}
+        row["heading_deg"] = row["heading_deg"] % 360.0
+        row["cov"] = _cov(cols, i)
         if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:
             row["altitude_m"], row["altitude_sigma_m"] = cols["h_m"][i], cols["h_sigma_m"][i]
         out.append(row)
@@ -590,7 +607,8 @@ _MEDIA = {".parquet": "application/vnd.apache.parquet", ".csv": "text/csv",
                        **_NOT_FOUND, **_NOT_YET}, summary="A done job's result file")
 def get_job_result(job_id: str, name: str, request: Request) -> Response:
     """`tracks.parquet` (states at every plot), `segments.parquet`, `filters.parquet` (the
-    job's `filters`' states at every plot, when it asked for any), `tracks.csv`,
+    job's `filters`' states at every plot, when it asked for any), `samples.parquet` (every
+    track's state every `sample_step_s`, when it asked for them), `tracks.csv`,
     `tracks.geojsonl` (one LineString per aircraft), `sensors.json`, `sensors.png`,
     `problems.txt`, `summary.json`, `map.png`, or all of them as `results.zip`."""
     runner = _runner(request)
@@ -599,8 +617,9 @@ def get_job_result(job_id: str, name: str, request: Request) -> Response:
     _finished(runner, job_id)
     path = runner.result_file(job_id, name)
     if path is None:
-        why = ("it asked for no filters, or none could run on its tracks"
-               if name == "filters.parquet" else "no track was reconstructed")
+        why = {"filters.parquet": "it asked for no filters, or none could run on its tracks",
+               "samples.parquet": "it asked for no samples (`sample_step_s`), or no track "
+               "kept any"}.get(name, "no track was reconstructed")
         raise HTTPException(404, f"job {job_id} has no {name} ({why})")
     return FileResponse(path, media_type=_MEDIA.get(Path(name).suffix,
                                                     "application/octet-stream"),

@@ -16,6 +16,8 @@ Memory is bounded however long the recording: the problems are consumed lazily w
     OUT/tracks.parquet/part-000001.parquet    states at every plot (see TRACK_COLUMNS)
     OUT/segments.parquet/part-000001.parquet  constant-control segments
     OUT/filters.parquet/part-000001.parquet   the recursive filters asked for (FILTER_COLUMNS)
+    OUT/samples.parquet/part-000001.parquet   states on a regular time step, when asked
+                                              (SAMPLE_COLUMNS)
     OUT/progress.jsonl                        one line per finished track (the commit log)
 
 A part is written to a temporary name and renamed, then its tracks' lines are appended to
@@ -37,7 +39,7 @@ import os
 import re
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -72,6 +74,11 @@ FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", 
                   "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS)
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
 :data:`solver.estimation.FILTER_NAMES`), as ``tracks.parquet``."""
+SAMPLE_COLUMNS = ("aircraft", "t", "time_of_day_s", "x", "z", "lat_deg", "lon_deg", "vx", "vz",
+                  "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m")
+"""Columns of ``samples.parquet``: the reconstructed state every ``sample_step_s`` from the
+track's first plot to its last (the last plot's time always included), propagated from the
+solution with its covariance, as the single-track answer's ``trajectory.samples``."""
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
 _TYPES = {"aircraft": pa.string(), "sensor": pa.string(), "filter": pa.string(),
           "plot": pa.int32(), "gated": pa.bool_()}  # the others: float64
@@ -115,6 +122,7 @@ class TrackOutcome:
     segments: pa.Table | None = None
     extras: dict[str, Any] = field(default_factory=dict)
     filters: pa.Table | None = None
+    samples: pa.Table | None = None
     cpu_s: float | None = None  # the task thread's CPU time (elapsed_s - cpu_s: waiting)
 
     def ledger(self, part: str | None) -> dict[str, Any]:
@@ -151,36 +159,58 @@ class BatchSummary:
 def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None = None,
                 time_limit_s: float | None = None,
                 extras: Callable[[Any], dict[str, Any]] | None = None, *,
-                filters: Sequence[str] = (), times_of_day: bool = False) -> TrackOutcome:
+                filters: Sequence[str] = (), times_of_day: bool = False,
+                samples: bool = False, max_samples: int | None = None) -> TrackOutcome:
     """Reconstruct one track (runs on a worker). Any ``Exception`` of the track (bad input,
     solver failure, the deadline ``time_limit_s`` after the start) is returned as a failed
     outcome naming it; the result's rows come back as Arrow tables. ``extras(reconstruction)``
     (e.g. per-sensor statistics, a figure) fills ``TrackOutcome.extras``, on the worker.
     ``filters``: recursive filters run beside (:data:`FILTER_COLUMNS`); one that cannot run on
     this track (e.g. a two-sensor fusion on one sensor) is a warning, not a failure.
-    ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled)."""
+    ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled).
+    ``samples``: keep the states every ``config.sample_step_s`` (:data:`SAMPLE_COLUMNS`);
+    a track that would have ``max_samples`` or more keeps none, with a warning."""
     from .reconstruct import reconstruct
 
     start, cpu = time.perf_counter(), time.thread_time()
     deadline = None if time_limit_s is None else time.monotonic() + time_limit_s
+    config = config or ReconstructionConfig()
+    warnings: list[str] = []
     try:
-        rec = reconstruct(table, config=config or ReconstructionConfig(), deadline=deadline)
+        if samples and max_samples is not None and len(table):
+            span = float(table.t.max() - table.t.min())
+            if span / config.sample_step_s >= max_samples:
+                warnings.append(f"samples: none kept: sample_step_s {config.sample_step_s:g} "
+                                f"gives {max_samples} or more over the {span:g}-s track (the "
+                                "limit max_samples); ask a larger step")
+                samples, config = False, replace(config, sample_step_s=span / 2 or 1.0)
+        rec = reconstruct(table, config=config, deadline=deadline)
         states = _states_table(key, table, rec.at_plots, times_of_day, rec.residuals)
         segments = _segments_table(key, rec)
+        sampled = _samples_table(key, table, rec.samples, times_of_day) if samples else None
         more = extras(rec) if extras is not None else {}
-        warnings = list(rec.diagnostics.warnings)
+        warnings += rec.diagnostics.warnings
         filtered = _filters_table(key, table, filters, times_of_day, warnings)
     except Exception as e:  # isolated: one track's failure is its own
         return TrackOutcome(key, "failed", len(table), time.perf_counter() - start,
                             f"{type(e).__name__}: {e}", cpu_s=time.thread_time() - cpu)
     return TrackOutcome(key, "done", len(table), time.perf_counter() - start, None,
-                        warnings, states, segments, more, filtered,
+                        warnings, states, segments, more, filtered, sampled,
                         cpu_s=time.thread_time() - cpu)
 
 
 def _state_columns(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
                    ) -> dict[str, Any]:
     """The columns shared by ``tracks.parquet`` and ``filters.parquet``."""
+    cols = _kinematics(key, table, s, times_of_day)
+    cols.update(plot=pa.array(np.arange(len(s)), pa.int32()), sensor=pa.array(
+        [table.sensors[k].id for k in table.sensor.tolist()], pa.string()))
+    return cols
+
+
+def _kinematics(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
+                ) -> dict[str, Any]:
+    """Time, position (plane and WGS-84), velocity and covariance columns of ``s``."""
     n = len(s)
     cov = s.cov if s.cov is not None else np.full((n, 4, 4), np.nan)
     lat, lon = s.lat_deg, s.lon_deg
@@ -188,13 +218,18 @@ def _state_columns(key: str, table: PlotTable, s: StateSeries, times_of_day: boo
         lat, lon = table.frame.to_geodetic(s.x, s.z)
     cols: dict[str, Any] = {
         "aircraft": pa.array([key] * n, pa.string()),
-        "plot": pa.array(np.arange(n), pa.int32()),
-        "sensor": pa.array([table.sensors[k].id for k in table.sensor.tolist()], pa.string()),
         "t": s.t, "time_of_day_s": np.mod(s.t, 86_400.0) if times_of_day else None,
         "x": s.x, "z": s.z, "lat_deg": lat, "lon_deg": lon, "vx": s.vx, "vz": s.vz}
     iu = np.triu_indices(4)
     cols.update(zip(COV_COLUMNS, cov[:, iu[0], iu[1]].T, strict=True))
     return cols
+
+
+def _samples_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
+                   ) -> pa.Table:
+    cols = _kinematics(key, table, s, times_of_day)
+    cols.update(speed=s.speed, heading_deg=np.rad2deg(s.heading), h_m=s.h, h_sigma_m=s.h_sigma)
+    return _arrow(cols, SAMPLE_COLUMNS, len(s))
 
 
 _NULLABLE = frozenset({"time_of_day_s", "lat_deg", "lon_deg", "h_m", "h_sigma_m",
@@ -292,6 +327,7 @@ class _Store:
         self.tracks_dir = out / "tracks.parquet"
         self.segments_dir = out / "segments.parquet"
         self.filters_dir = out / "filters.parquet"  # made when a track has filters
+        self.samples_dir = out / "samples.parquet"  # made when a track has samples
         for d in (self.tracks_dir, self.segments_dir):
             d.mkdir(parents=True, exist_ok=True)
         self.ledger_path = out / PROGRESS
@@ -307,7 +343,7 @@ class _Store:
             if len(entries) != len(lines):  # the torn line dropped (written as commit() does)
                 self._rewrite([json.dumps(e).encode() for e in entries])
         numbers = [0]
-        for d in (self.tracks_dir, self.segments_dir, self.filters_dir):
+        for d in (self.tracks_dir, self.segments_dir, self.filters_dir, self.samples_dir):
             if not d.is_dir():
                 continue
             for f in d.iterdir():
@@ -332,10 +368,11 @@ class _Store:
         if done:
             part = f"part-{self.next_part:06d}.parquet"
             self.next_part += 1
-            filtered = [o.filters for o in done if o.filters is not None]
             for d, tables in ((self.tracks_dir, [o.states for o in done]),
                               (self.segments_dir, [o.segments for o in done]),
-                              (self.filters_dir, filtered)):
+                              (self.filters_dir, [o.filters for o in done]),
+                              (self.samples_dir, [o.samples for o in done])):
+                tables = [t for t in tables if t is not None]
                 if not tables:
                     continue
                 d.mkdir(exist_ok=True)

@@ -2,7 +2,7 @@
 
     trajrecon reconstruct RECORDING --sensors SENSORS.json --out DIR [--scheduler ADDRESS]
         [--workers N] [--method refined|sliding] [--bounds NAME=MIN,MAX ...]
-        [--filters NAME ...] [--figures] ...
+        [--filters NAME ...] [--samples STEP] [--figures] ...
     trajrecon plot RECORDING --sensors SENSORS.json --out DIR [--aircraft KEY ...] [--map]
 
 (``trajrecon RECORDING ...`` is ``trajrecon reconstruct RECORDING ...``.) ``reconstruct`` reads a
@@ -11,16 +11,16 @@ in CSV or Parquet, see ``solver/io/README.md``) and the sensor file, splits it i
 reconstructs every track on Dask (an embedded ``LocalCluster`` sized to the cores, or the
 cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
 
-- ``tracks.parquet/``, ``segments.parquet/`` and with ``--filters`` ``filters.parquet/``
-  (streamed as tracks finish; a rerun resumes), ``progress.jsonl`` (:mod:`solver.batch`), and
-  at the end ``tracks.csv`` and ``tracks.geojsonl`` (one GeoJSON LineString feature per
-  aircraft, for maps);
+- ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
+  with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
+  resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
+  ``tracks.geojsonl`` (one GeoJSON LineString feature per aircraft, for maps);
 - ``sensors.json`` and ``sensors.csv``: per sensor, against the reconstruction
   (SASS-C/TRES-style assessment): plots, detection rate (plots over expected scans at the
   estimated scan period), wild plots, bias and sigma of the range and azimuth residuals,
   estimated offsets where asked;
-- ``run.json``: the method, bounds and filters; a rerun resumes only a run with the same
-  (:mod:`solver.run_settings`);
+- ``run.json``: the method, bounds, filters and sample step; a rerun resumes only a run with
+  the same (:mod:`solver.run_settings`);
 - ``sensors.png``: each radar's range and azimuth residuals over range and azimuth
   (:mod:`solver.assessment`);
 - ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
@@ -113,8 +113,9 @@ class AssessedTrack(TrackOutcome):
 
 def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None,
                  time_limit_s: float | None, figures_dir: str | None = None,
-                 filters: Sequence[str] = (), times_of_day: bool = False) -> AssessedTrack:
-    """:func:`solver.batch.solve_track` (with ``filters`` and ``times_of_day``) plus the
+                 filters: Sequence[str] = (), times_of_day: bool = False,
+                 samples: bool = False, max_samples: int | None = None) -> AssessedTrack:
+    """:func:`solver.batch.solve_track` (with its keyword arguments) plus the
     per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the
     worker)."""
     spans = _sensor_spans(table)
@@ -127,7 +128,7 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
         return {"sensors": [{**asdict(r), **spans.get(r.id, {})} for r in rec.sensors]}
 
     out = solve_track(key, table, config, time_limit_s, extras=extras, filters=filters,
-                      times_of_day=times_of_day)
+                      times_of_day=times_of_day, samples=samples, max_samples=max_samples)
     return AssessedTrack(**{k: v for k, v in vars(out).items() if k != "extras"},
                          sensors=out.extras.get("sensors", []))
 
@@ -503,18 +504,20 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
     _check_out(out, Path(args.sensors))
     started = time.perf_counter()
     load_sensors(Path(args.sensors))  # a bad sensor file is refused before a cluster starts
-    keep_settings(out, _settings(args))  # a rerun resumes only the same run
+    settings = _settings(args)
+    keep_settings(out, settings)  # a rerun resumes only the same run
     with _cluster(args.scheduler, args.workers) as client:
         workers = max(len(client.scheduler_info()["workers"]), 1)
         on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)
         loaded = stream(Path(args.recording), Path(args.sensors),
                         executor=client if on_cluster else None)
-        summary, first_result_s = _reconstruct(args, out, loaded, client, started)
-    return _finish(args, out, loaded, summary, first_result_s, started)
+        summary, first_result_s = _reconstruct(args, settings, out, loaded, client, started)
+    return _finish(args, settings, out, loaded, summary, first_result_s, started)
 
 
 def _settings(args: argparse.Namespace) -> RunSettings:
-    return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters))
+    return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters),
+                       args.samples)
 
 
 def _check_out(out: Path, sensors: Path) -> None:
@@ -542,11 +545,11 @@ def _cluster(scheduler: str | None, workers: int | None) -> Iterator[Any]:
             yield client
 
 
-def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: Any,
-                 started: float) -> tuple[BatchSummary, float | None]:
+def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: Streamed,
+                 client: Any, started: float) -> tuple[BatchSummary, float | None]:
     """Every track of ``loaded`` on ``client``, with the sensors' statistics recorded as
     they come; the summary and the time to the first result."""
-    config = _settings(args).config()
+    config = settings.config()
     stats_path = out / "sensor_stats.jsonl"
     first_result: list[float] = []
     bar = _progress(args.no_progress)
@@ -564,8 +567,9 @@ def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: 
     figures = str(out / "figures") if args.figures else None
     from functools import partial
 
-    task = partial(assess_track, figures_dir=figures, filters=tuple(args.filters),
-                   times_of_day=bool(loaded.times_of_day))
+    task = partial(assess_track, figures_dir=figures, filters=settings.filters,
+                   times_of_day=bool(loaded.times_of_day),
+                   samples=settings.sample_step_s is not None)
     summary: BatchSummary = reconstruct_many(
         loaded.tracks, out, config=config, executor=client,
         time_limit_s=args.time_limit or None, retry_failed=args.retry_failed,
@@ -575,8 +579,9 @@ def _reconstruct(args: argparse.Namespace, out: Path, loaded: Streamed, client: 
     return summary, first_result[0] if first_result else None
 
 
-def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: BatchSummary,
-            first_result_s: float | None, started: float) -> dict[str, Any]:
+def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: Streamed,
+            summary: BatchSummary, first_result_s: float | None, started: float
+            ) -> dict[str, Any]:
     """The whole-recording outputs once every track is in."""
     stats_path = out / "sensor_stats.jsonl"
     stats = SensorStats(loaded.sensors, loaded.scan_periods)  # the periods read by now
@@ -591,7 +596,7 @@ def _finish(args: argparse.Namespace, out: Path, loaded: Streamed, summary: Batc
     write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
     result = {
-        "recording": str(args.recording), **_settings(args).as_json(),
+        "recording": str(args.recording), **settings.as_json(),
         "tracks": summary.tracks, "done": summary.done,
         "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
         "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
@@ -694,6 +699,9 @@ def parser() -> argparse.ArgumentParser:
     rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
                      metavar="FILTER", help="recursive filters run beside the reconstruction "
                      f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")
+    rec.add_argument("--samples", type=_step, default=None, metavar="STEP",
+                     help="also write every track's state every STEP seconds (from its first "
+                     "plot to its last, with the covariance) into --out/samples.parquet")
     rec.add_argument("--figures", action="store_true", help="also draw every track's figure")
     rec.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
                      "an earlier run")
@@ -713,6 +721,17 @@ def parser() -> argparse.ArgumentParser:
     _method(plot, None)
     _bounds(plot, None)
     return ap
+
+
+def _step(text: str) -> float:
+    """``--samples``: a positive, finite number of seconds."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
 
 
 def _inputs(ap: argparse.ArgumentParser) -> None:

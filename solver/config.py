@@ -153,8 +153,8 @@ class ReconstructionConfig:
             raise InputError(("window", "plots"), "must be at least 2")
         if not self.trial_step_s > 0:
             raise InputError(("window", "trial_step_s"), "must be positive")
-        if not self.sample_step_s > 0:
-            raise InputError(("sample_step_s",), "must be positive")
+        if not 0 < self.sample_step_s < float("inf"):
+            raise InputError(("sample_step_s",), "must be positive and finite")
         if self.criterion not in ("R1", "R2"):
             raise InputError(("criterion",), "must be R1 or R2")
         self.refine.validate()

@@ -24,18 +24,22 @@ RUN_FILE = "run.json"
 @dataclass(frozen=True)
 class RunSettings:
     """The settings every track of a run shares (``filters`` as a set: their order changes
-    no output)."""
+    no output); ``sample_step_s``: the regular samples kept (``samples.parquet``), none when
+    None."""
 
     method: str = "refined"
     bounds: Bounds = field(default_factory=Bounds)
     filters: tuple[str, ...] = ()
+    sample_step_s: float | None = None
 
     def config(self) -> ReconstructionConfig:
-        return ReconstructionConfig(method=self.method, bounds=self.bounds)  # type: ignore[arg-type]
+        more = {} if self.sample_step_s is None else {"sample_step_s": self.sample_step_s}
+        return ReconstructionConfig(method=self.method, bounds=self.bounds, **more)  # type: ignore[arg-type]
 
     def as_json(self) -> dict[str, Any]:
         return {"method": self.method, "filters": list(dict.fromkeys(self.filters)),
-                "bounds": {k: list(getattr(self.bounds, k)) for k in ("u", "w", "v")}}
+                "bounds": {k: list(getattr(self.bounds, k)) for k in ("u", "w", "v")},
+                "sample_step_s": self.sample_step_s}
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> RunSettings:
@@ -44,7 +48,8 @@ class RunSettings:
         return cls(str(doc.get("method", "refined")),
                    Bounds(**{k: tuple(float(x) for x in b.get(k, getattr(defaults, k)))
                              for k in ("u", "w", "v")}),
-                   tuple(doc.get("filters") or ()))
+                   tuple(doc.get("filters") or ()),
+                   None if doc.get("sample_step_s") is None else float(doc["sample_step_s"]))
 
 
 def parse_bounds(items: Sequence[str]) -> Bounds:

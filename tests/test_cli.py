@@ -37,7 +37,7 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     out = d / "out"
     code = main(["reconstruct", str(d / "day.ast"), "--sensors", str(d / "sensors.json"),
                  "--out", str(out), "--workers", "2", "--no-progress", "--figures",
-                 "--filters", "imm_smoother", "cv_rts", "fusion_a"])
+                 "--filters", "imm_smoother", "cv_rts", "fusion_a", "--samples", "2.5"])
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tracks"] == summary["done"] == len(FLIGHTS) and summary["failed"] == 0
@@ -107,6 +107,8 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     ledger = [json.loads(x) for x in (out / "progress.jsonl").read_text().splitlines()]
     assert all(any(w.startswith("filters.fusion_a: fusion_a fuses exactly two")
                    for w in e["warnings"]) for e in ledger)
+    _check_samples(pq.read_table(out / "samples.parquet"), table, enc, 2.5)
+    assert summary["sample_step_s"] == 2.5
     assert (out / "map.png").stat().st_size > 10_000
     assert len(list((out / "figures").glob("*.png"))) == len(FLIGHTS)
     printed = capsys.readouterr().out
@@ -122,12 +124,38 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     # filters in another order are the same run)
     code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
                  "--workers", "2", "--no-progress", "--filters", "fusion_a", "imm_smoother",
-                 "cv_rts"])
+                 "cv_rts", "--samples", "2.5"])
     again = json.loads((out / "summary.json").read_text())
     assert code == 0 and again["skipped"] == len(FLIGHTS) and again["done"] == 0
     assert pq.read_table(out / "tracks.parquet").num_rows == table.num_rows
     assert {r["sensor"]: r["plots"] for r in again["sensors"]} == {
         k: v["plots"] for k, v in sensors.items()}
+
+
+def _check_samples(samples, table, enc, step: float) -> None:
+    """``samples.parquet``: per aircraft, a state every ``step`` s from the first plot to the
+    last (both included), on the flight (exact plots: within 60 m of the truth), the first one
+    the state at the first plot, with a positive covariance and the time of day beside."""
+    keys = np.asarray(samples.column("aircraft").to_pylist())
+    plot_keys = np.asarray(table.column("aircraft").to_pylist())
+    for k, f in enumerate(FLIGHTS):
+        got = samples.filter(pc.equal(samples.column("aircraft"), f"{f.address:06X}"))
+        at = table.filter(pc.equal(table.column("aircraft"), f"{f.address:06X}"))
+        t, tp = got.column("t").to_numpy(), at.column("t").to_numpy()
+        assert t[0] == tp.min() and t[-1] == tp.max()
+        np.testing.assert_allclose(np.diff(t)[:-1], step, rtol=0, atol=1e-9)
+        assert 0 < t[-1] - t[-2] <= step
+        lat, lon, _ = f.at(t - t[0] + _first_t(enc, k))
+        dy = (got.column("lat_deg").to_numpy() - lat) * 111_000
+        dx = (got.column("lon_deg").to_numpy() - lon) * 111_000 * np.cos(np.deg2rad(lat))
+        assert np.hypot(dx, dy).max() < 60.0
+        first = int(np.argmin(tp))
+        for name in ("x", "z", "vx", "vz", "cov_x_x", "cov_x_vz", "cov_vz_vz"):
+            assert got.column(name)[0].as_py() == pytest.approx(at.column(name)[first].as_py(),
+                                                                rel=1e-9, abs=1e-9), name
+        assert (got.column("cov_x_x").to_numpy() > 0).all()
+        np.testing.assert_allclose(got.column("time_of_day_s").to_numpy(), np.mod(t, 86_400.0))
+    assert set(keys) == set(plot_keys)
 
 
 def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys):
@@ -176,6 +204,13 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
                  str(tmp_path / "out3"), "--no-progress", "--bounds", "v=200,30"])
     assert code == 2 and "bounds.v is inverted" in capsys.readouterr().err
+    for step in ("0", "-1", "nan", "inf", "x"):  # argparse's usage error: exit 2
+        with pytest.raises(SystemExit) as stop:
+            main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
+                  str(tmp_path / "out3"), "--samples", step])
+        assert stop.value.code == 2
+        assert f"--samples: {step!r} is not a positive number of seconds" in \
+            capsys.readouterr().err
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps([{**SENSOR_FILE[0], "lat_deg": 95.0}]))
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(bad), "--out",

@@ -101,7 +101,7 @@ def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monke
 
 
 def _stub_task(key, table, config, time_limit_s, figures_dir=None, filters=(),
-               times_of_day=False):
+               times_of_day=False, samples=False):
     """What :func:`solver.cli.assess_track` returns, without the reconstruction: the
     track's rows and its sensor's statistics."""
     import pyarrow as pa
@@ -141,13 +141,14 @@ def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
     loaded = cli.Streamed(SENSORS, cli.Problems(), (TrackProblem(f"A{k:05d}", table)
                                                     for k in range(tracks)))
     args = argparse.Namespace(method="refined", no_progress=True, figures=False,
-                              time_limit=None, retry_failed=False, filters=[], bounds=[])
+                              time_limit=None, retry_failed=False)
     out = tmp_path / f"out{tracks}"
     gc.collect()
     tracemalloc.start()
     try:
         before, _ = tracemalloc.get_traced_memory()
-        summary, _ = cli._reconstruct(args, out, loaded, client, time.perf_counter())
+        summary, _ = cli._reconstruct(args, cli.RunSettings(), out, loaded, client,
+                                      time.perf_counter())
         del loaded
         gc.collect()
         after, _ = tracemalloc.get_traced_memory()

@@ -33,11 +33,23 @@ def test_a_run_keeps_its_settings_and_resumes_only_the_same(tmp_path):
     keep(tmp_path, RunSettings("refined", Bounds(v=(15.0, 250.0)), ("singer", "cv_rts")))
     for other, named in ((RunSettings("sliding", first.bounds, first.filters), "method"),
                          (RunSettings("refined", Bounds(), first.filters), "bounds"),
-                         (RunSettings("refined", first.bounds, ("cv_rts",)), "filters")):
+                         (RunSettings("refined", first.bounds, ("cv_rts",)), "filters"),
+                         (RunSettings("refined", first.bounds, first.filters, 2.0),
+                          "sample_step_s")):
         with pytest.raises(InputError) as e:
             keep(tmp_path, other)
         assert f"holds a run made with {named} " in str(e.value)
     assert stored(tmp_path) == first  # the refused run changed nothing
+    sampled = RunSettings(sample_step_s=2.0)
+    keep(tmp_path / "sampled", sampled)
+    assert stored(tmp_path / "sampled") == sampled
+    assert sampled.config().sample_step_s == 2.0
+    # a run.json written before the sample step was kept is a run without samples
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / RUN_FILE).write_text(json.dumps(
+        {"method": "refined", "filters": [], "bounds": {"v": [30.0, 330.0]}}))
+    assert stored(tmp_path / "old") == RunSettings()
+    keep(tmp_path / "old", RunSettings())
     (tmp_path / RUN_FILE).write_text("[1, 2]")
     with pytest.raises(InputError, match="is not a run's settings"):
         stored(tmp_path)

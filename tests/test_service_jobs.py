@@ -185,10 +185,12 @@ def test_json_tracks_job(client):
 
 
 def test_job_options_run_the_filters_on_every_track(client):
-    """`filters` (JSON body; `options` part of an upload): each track's answer carries every
-    filter's state at its plots, the same as the single-track endpoint's for those plots (an
-    independent path: one request, no job, no Parquet); `filters.parquet` holds them all; the
-    bounds reach the reconstruction (a speed cap the flight is held under)."""
+    """`filters` and `sample_step_s` (JSON body; `options` part of an upload): each track's
+    answer carries every filter's state at its plots and the regular samples, the same as the
+    single-track endpoint's for those plots (an independent path: one request, no job, no
+    Parquet); `filters.parquet` and `samples.parquet` hold them all; the bounds reach the
+    reconstruction (a speed cap the flight is held under). A step that would give a track
+    more than `max_samples` keeps none, with the track's warning."""
     enc = encode_recording(duration=40.0)
     sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
     tracks: dict[str, list[dict]] = {"A": [], "B": []}
@@ -200,19 +202,30 @@ def test_job_options_run_the_filters_on_every_track(client):
     names = ["imm_smoother", "cv_rts"]
     bounds = {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 150.0]}  # the flights fly 206 and 234
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks, "bounds": bounds,
-                                      "filters": [*names, "cv_rts"]})  # asked twice: run once
+                                      "filters": [*names, "cv_rts"],  # asked twice: run once
+                                      "sample_step_s": 5.0})
     assert r.status_code == 202, r.text
     loc = r.headers["location"]
     status = wait(client, loc)
     assert status["state"] == "done" and status["tracks_done"] == 2, status
-    assert status["options"] == {"bounds": bounds, "filters": names}  # what it runs with
+    assert status["options"] == {"bounds": bounds, "filters": names,  # what it runs with
+                                 "sample_step_s": 5.0}
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
         assert max(s["speed"] for s in body["trajectory"]["at_plots"]) <= 150.0 + 1e-3
         single = client.post("/v1/reconstructions", json={
-            "sensors": sensors, "plots": plots, "filters": names, "omit": ["samples"]})
+            "sensors": sensors, "plots": plots, "filters": names, "sample_step_s": 5.0,
+            "bounds": bounds})
         assert single.status_code == 200, single.text
+        got, want = body["trajectory"]["samples"], single.json()["trajectory"]["samples"]
+        assert len(got) == len(want) > 5 and got[0]["t"] == plots[0]["t"]
+        assert got[-1]["t"] == max(p["t"] for p in plots)
+        for field in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg", "speed", "heading_deg"):
+            np.testing.assert_allclose([s[field] for s in got], [s[field] for s in want],
+                                       rtol=0, atol=1e-6, err_msg=f"{key} samples {field}")
+        np.testing.assert_allclose(np.array([s["cov"] for s in got]),
+                                   np.array([s["cov"] for s in want]), rtol=1e-9)
         for name in names:
             got, want = body["filters"][name]["states"], single.json()["filters"][name]["states"]
             assert len(got) == len(want) == len(plots)
@@ -224,13 +237,17 @@ def test_job_options_run_the_filters_on_every_track(client):
     table = pq.read_table(io.BytesIO(client.get(loc + "/results/filters.parquet").content))
     assert table.num_rows == len(names) * sum(len(p) for p in tracks.values())
     assert sorted(set(table.column("filter").to_pylist())) == sorted(names)
+    sampled = pq.read_table(io.BytesIO(client.get(loc + "/results/samples.parquet").content))
+    assert sampled.num_rows == sum(len(client.get(f"{loc}/tracks/{k}").json()["trajectory"]
+                                       ["samples"]) for k in tracks)
     summary = json.loads(client.get(loc + "/results/summary.json").content)
-    assert summary["filters"] == names
+    assert summary["filters"] == names and summary["sample_step_s"] == 5.0
     archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
-    assert "filters.parquet" in archive.namelist()
+    assert {"filters.parquet", "samples.parquet"} <= set(archive.namelist())
 
-    # an upload's `options` part: the recording's tracks carry the filter too
-    options = json.dumps({"filters": ["imm_smoother"]})
+    # an upload's `options` part: the recording's tracks carry the filter too; a step that
+    # would give more than max_samples (100,000) samples keeps none, saying so
+    options = json.dumps({"filters": ["imm_smoother"], "sample_step_s": 1e-4})
     r = client.post("/v1/jobs", files={"recording": ("day.ast", enc.data),
                                        "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
                     data={"options": options})
@@ -239,11 +256,16 @@ def test_job_options_run_the_filters_on_every_track(client):
     done = wait(client, up)
     assert done["state"] == "done" and done["options"] == {
         "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
-        "filters": ["imm_smoother"]}
+        "filters": ["imm_smoother"], "sample_step_s": 1e-4}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
         assert len(body["filters"]["imm_smoother"]["states"]) == t["plots"]
+        assert body["trajectory"]["samples"] == []
+        assert any(w.startswith("samples: none kept: sample_step_s 0.0001 gives 100000 or "
+                                "more") for w in body["diagnostics"]["warnings"])
+    missing = client.get(up + "/results/samples.parquet")
+    assert missing.status_code == 404 and "no track kept any" in missing.json()["message"]
     for job in (loc, up):
         assert client.delete(job).status_code == 204
 
@@ -309,6 +331,7 @@ def test_upload_over_the_limit_is_413(client):
         ('{"filters": ["singer", "nope"]}', "options.filters[1]"),
         ('{"bounds": {"v": [300.0, 30.0]}}', "options.bounds.v"),
         ('{"filters": ["singer"], "colour": 1}', "options.colour"),
+        ('{"sample_step_s": 0}', "options.sample_step_s"),
         ('{"filters": [', "options is not valid JSON"))),
 ])
 def test_bad_upload_is_422_naming_the_part(client, files, field):
@@ -334,6 +357,8 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
          "bounds.v"),
         ({"sensors": sensors, "tracks": {"A": [plot]}, "filters": ["kalman"]},
          "filters[0]"),
+        ({"sensors": sensors, "tracks": {"A": [plot]}, "sample_step_s": -1.0},
+         "sample_step_s"),
     ]
     for body, field in cases:
         r = client.post("/v1/jobs", json=body)
