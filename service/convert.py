@@ -17,7 +17,6 @@ from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar
 from solver.plots import PlotTable
 from solver.results import (
-    Diagnostics,
     FilterEstimate,
     PlotResiduals,
     Reconstruction,
@@ -230,23 +229,6 @@ def _states(s: StateSeries, with_heading: bool, frame: LocalFrame | None = None)
     return rows
 
 
-def _diagnostics(d: Diagnostics) -> dict:
-    return {
-        "method": d.method,
-        "windows_solved": d.windows_solved,
-        "trial_windows": d.trial_windows,
-        "solver_failures": d.solver_failures,
-        "fallbacks": d.fallbacks,
-        "criterion": d.criterion,
-        "criterion_values": [float(v) for v in d.criterion_values],
-        "nlp_solves": len(d.nlp_solve_ms),
-        "nlp_solve_ms_total": float(np.sum(d.nlp_solve_ms)) if d.nlp_solve_ms else 0.0,
-        "elapsed_ms": d.elapsed_ms,
-        "warnings": list(d.warnings),
-        "extra": dict(d.extra),
-    }
-
-
 def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
                   omit: frozenset[str] = frozenset()) -> dict:
     """The JSON-ready body of a 200 (validated against ``ReconstructionResponse`` by the
@@ -268,7 +250,7 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
     if rec.altitude_m is not None:
         trajectory["altitude_m"] = rec.altitude_m
         trajectory["altitude_sigma_m"] = rec.altitude_sigma_m
-    diagnostics = _diagnostics(rec.diagnostics)
+    diagnostics = rec.diagnostics.as_dict()
     diagnostics["warnings"] += [f"filters.{name}: {e.info['warning']}"
                                 for name, e in estimates.items() if e.info.get("warning")]
     return {

@@ -9,6 +9,7 @@ from pydantic import ConfigDict, Field
 
 from .models import (
     BoundsIn,
+    DiagnosticsOut,
     FilterName,
     FilterOut,
     PlotIn,
@@ -157,16 +158,26 @@ class JobTrajectoryOut(_Out):
 
     segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
     at_plots: list[JobStateOut] = Field(description="State at every plot, in time order.")
+    altitude_m: float | None = Field(
+        None, description="Where the altitude was estimated from several sensors: the "
+        "time-weighted mean height above the ellipsoid (m); per state in `altitude_m`.")
+    altitude_sigma_m: float | None = Field(None, description="Its standard deviation (m).")
     samples: list[StateOut] = Field(
         default_factory=list, description="States every `sample_step_s` of the job's options "
         "over the track (empty when the job keeps none).")
 
 
-class JobTrackDiagnostics(_Out):
-    """What the reconstruction of a job's track did."""
+class JobTrackDiagnostics(DiagnosticsOut):
+    """What the reconstruction of a job's track did: the single-track answer's diagnostics
+    (a track stored by an earlier version has only `elapsed_ms`, the task's, and
+    `warnings`)."""
 
-    elapsed_ms: float = Field(description="Solve time (ms).")
-    warnings: list[str] = Field(default_factory=list, description="Non-fatal remarks.")
+    method: str | None = Field(None, description="Method that produced the trajectory.")
+    windows_solved: int | None = Field(None, description="Window NLPs solved (current "
+                                       "windows; 0 for the refinement).")
+    solver_failures: int | None = Field(None, description="NLP solves that failed.")
+    task_ms: float | None = Field(None, description="The whole task on its worker (ms): the "
+                                  "reconstruction, the filters, the statistics, the figure.")
 
 
 class JobTrackResult(_Out):

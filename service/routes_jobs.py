@@ -463,11 +463,22 @@ def get_job_track(job_id: str, aircraft: str, request: Request) -> JobTrackResul
     return JobTrackResult.model_validate({
         "aircraft": aircraft,
         "trajectory": {"segments": _segment_rows(segments), "at_plots": _state_rows(states),
-                       "samples": [] if sampled is None else _sample_rows(sampled)},
+                       "samples": [] if sampled is None else _sample_rows(sampled),
+                       **_altitude(entry.get("altitude"))},
         "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, aircraft)],
         "filters": _filter_rows(filtered),
-        "diagnostics": {"elapsed_ms": 1e3 * float(entry.get("elapsed_s") or 0.0),
-                        "warnings": entry.get("warnings") or []}})
+        "diagnostics": _track_diagnostics(entry)})
+
+
+def _altitude(got: dict[str, float] | None) -> dict[str, float]:
+    return {} if got is None else {"altitude_m": got["m"], "altitude_sigma_m": got["sigma_m"]}
+
+
+def _track_diagnostics(entry: dict[str, Any]) -> dict[str, Any]:
+    """A done track's ledger line -> the answer's ``diagnostics``."""
+    task_ms = 1e3 * float(entry.get("elapsed_s") or 0.0)
+    return {"elapsed_ms": task_ms, **(entry.get("diagnostics") or {}), "task_ms": task_ms,
+            "warnings": entry.get("warnings") or []}
 
 
 def _state_rows(t: Any) -> list[dict[str, Any]]:

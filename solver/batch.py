@@ -124,12 +124,19 @@ class TrackOutcome:
     filters: pa.Table | None = None
     samples: pa.Table | None = None
     cpu_s: float | None = None  # the task thread's CPU time (elapsed_s - cpu_s: waiting)
+    diagnostics: dict[str, Any] | None = None
+    altitude: dict[str, float] | None = None
 
     def ledger(self, part: str | None) -> dict[str, Any]:
+        """The track's line of ``progress.jsonl``; ``diagnostics``: the reconstruction's
+        (:meth:`solver.results.Diagnostics.as_dict` without the warnings, which are the
+        track's), ``altitude``: the height estimated for the whole track (``m``, ``sigma_m``)
+        where it was."""
         return {"aircraft": self.key, "status": self.status, "plots": self.plots,
                 "elapsed_s": round(self.elapsed_s, 4),
                 "cpu_s": None if self.cpu_s is None else round(self.cpu_s, 4), "error": self.error,
-                "warnings": self.warnings, "part": part}
+                "warnings": self.warnings, "part": part, "diagnostics": self.diagnostics,
+                "altitude": self.altitude}
 
 
 @dataclass
@@ -190,13 +197,20 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
         sampled = _samples_table(key, table, rec.samples, times_of_day) if samples else None
         more = extras(rec) if extras is not None else {}
         warnings += rec.diagnostics.warnings
+        t_filters = time.perf_counter()
         filtered = _filters_table(key, table, filters, times_of_day, warnings)
+        diagnostics = rec.diagnostics.as_dict()
+        del diagnostics["warnings"]
+        diagnostics["filters_ms"] = 1e3 * (time.perf_counter() - t_filters) if filters else 0.0
+        altitude = (None if rec.altitude_m is None else
+                    {"m": float(rec.altitude_m), "sigma_m": float(rec.altitude_sigma_m or 0.0)})
     except Exception as e:  # isolated: one track's failure is its own
         return TrackOutcome(key, "failed", len(table), time.perf_counter() - start,
                             f"{type(e).__name__}: {e}", cpu_s=time.thread_time() - cpu)
     return TrackOutcome(key, "done", len(table), time.perf_counter() - start, None,
                         warnings, states, segments, more, filtered, sampled,
-                        cpu_s=time.thread_time() - cpu)
+                        cpu_s=time.thread_time() - cpu, diagnostics=diagnostics,
+                        altitude=altitude)
 
 
 def _state_columns(key: str, table: PlotTable, s: StateSeries, times_of_day: bool

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -86,6 +87,25 @@ class Diagnostics:
     elapsed_ms: float = 0.0
     warnings: list[str] = field(default_factory=list)
     extra: dict[str, float | int | str] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: the answer's ``diagnostics`` (spec api.md; the solve times summed)."""
+        return {
+            "method": self.method,
+            "windows_solved": int(self.windows_solved),
+            "trial_windows": int(self.trial_windows),
+            "solver_failures": int(self.solver_failures),
+            "fallbacks": int(self.fallbacks),
+            "criterion": self.criterion,
+            "criterion_values": [float(v) for v in self.criterion_values],
+            "nlp_solves": len(self.nlp_solve_ms),
+            "nlp_solve_ms_total": float(np.sum(self.nlp_solve_ms)) if self.nlp_solve_ms
+            else 0.0,
+            "elapsed_ms": float(self.elapsed_ms),
+            "warnings": list(self.warnings),
+            "extra": {k: v if isinstance(v, str) else v.item() if isinstance(v, np.generic)
+                      else v for k, v in self.extra.items()},
+        }
 
 
 @dataclass

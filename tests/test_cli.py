@@ -107,6 +107,12 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     ledger = [json.loads(x) for x in (out / "progress.jsonl").read_text().splitlines()]
     assert all(any(w.startswith("filters.fusion_a: fusion_a fuses exactly two")
                    for w in e["warnings"]) for e in ledger)
+    # each track's line carries its reconstruction's diagnostics (and the height estimated for
+    # the track, none here: the plots' flight levels give it)
+    assert all(e["diagnostics"]["method"] == "refined" and e["diagnostics"]["solver_failures"]
+               == 0 and e["diagnostics"]["extra"]["refine_iterations"] > 0 for e in ledger)
+    assert all(e["altitude"] is None for e in ledger)
+    assert table.column("h_m").null_count == table.num_rows
     _check_samples(pq.read_table(out / "samples.parquet"), table, enc, 2.5)
     assert summary["sample_step_s"] == 2.5
     assert (out / "map.png").stat().st_size > 10_000

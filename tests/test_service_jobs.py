@@ -218,6 +218,19 @@ def test_job_options_run_the_filters_on_every_track(client):
             "sensors": sensors, "plots": plots, "filters": names, "sample_step_s": 5.0,
             "bounds": bounds})
         assert single.status_code == 200, single.text
+        # the single-track answer's diagnostics and estimated altitude
+        got, want = body["diagnostics"], single.json()["diagnostics"]
+        for field in ("method", "windows_solved", "solver_failures", "criterion", "nlp_solves"):
+            assert got[field] == want[field], field
+        np.testing.assert_allclose(got["criterion_values"], want["criterion_values"], rtol=1e-9)
+        assert set(got["extra"]) == set(want["extra"]) and got["extra"]["refine_nodes"] > 0
+        assert got["extra"]["refine_iterations"] == want["extra"]["refine_iterations"]
+        assert got["task_ms"] >= got["elapsed_ms"] > 0 and got["filters_ms"] > 0
+        alt, alt_want = body["trajectory"].get("altitude_m"), single.json()["trajectory"].get(
+            "altitude_m")
+        assert (alt is None) == (alt_want is None)
+        if alt is not None:
+            assert alt == pytest.approx(alt_want, abs=1e-6)
         got, want = body["trajectory"]["samples"], single.json()["trajectory"]["samples"]
         assert len(got) == len(want) > 5 and got[0]["t"] == plots[0]["t"]
         assert got[-1]["t"] == max(p["t"] for p in plots)
