@@ -710,10 +710,11 @@ class JobRunner:
     def track_plots(self, job_id: str, aircraft: str) -> int | None:
         return self._db().track(job_id, aircraft)
 
-    def track_rows(self, job_id: str, aircraft: str
+    def track_rows(self, job_id: str, aircraft: str, samples: bool = True
                    ) -> tuple[pa.Table, pa.Table, pa.Table | None, pa.Table | None] | None:
         """A finished track's states, segments, filters' states and samples (each None when
-        the job has none), from its committed part; None when it is not done."""
+        the job has none, the samples when not asked for), from its committed part; None when
+        it is not done."""
         entry = self.progress(job_id).entries.get(aircraft)
         if entry is None or entry["status"] != "done" or not entry.get("part"):
             return None
@@ -721,10 +722,13 @@ class JobRunner:
         flt = pa.compute.field("aircraft") == aircraft
         states = pq.read_table(out / "tracks.parquet" / entry["part"], filters=flt)
         segments = pq.read_table(out / "segments.parquet" / entry["part"], filters=flt)
-        more = [out / name / entry["part"] for name in ("filters.parquet", "samples.parquet")]
-        filtered, sampled = (pq.read_table(p, filters=flt) if p.is_file() else None
-                             for p in more)
-        return states, segments, filtered, sampled
+
+        def optional(name: str) -> pa.Table | None:
+            path = out / name / entry["part"]
+            return pq.read_table(path, filters=flt) if path.is_file() else None
+
+        return (states, segments, optional("filters.parquet"),
+                optional("samples.parquet") if samples else None)
 
     def track_sensors(self, job_id: str, aircraft: str) -> list[dict[str, Any]]:
         return _sensor_reports(self.job_dir(job_id) / "out").get(aircraft, [])

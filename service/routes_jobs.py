@@ -9,10 +9,10 @@ import shutil
 import time
 from collections.abc import AsyncGenerator
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, FastAPI, HTTPException, Request
+from fastapi import APIRouter, FastAPI, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
@@ -451,22 +451,31 @@ def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> Respon
 
 @router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft:path}", response_model=JobTrackResult,
             responses={**_NOT_FOUND, **_NOT_YET}, summary="One reconstructed track of a job")
-def get_job_track(job_id: str, aircraft: str, request: Request) -> JobTrackResult:
-    """The track's segments and its state at every plot (with latitude and longitude), and
-    its sensors' statistics; available as soon as the track is done."""
+def get_job_track(job_id: str, aircraft: str, request: Request,
+                  omit: Annotated[list[Literal["samples", "covariances"]], Query(
+                      max_length=2, description="Parts of the answer to leave out, as in "
+                      "`POST /v1/reconstructions`: `samples` (an empty `trajectory.samples`) "
+                      "and/or `covariances` (every `cov` null), e.g. "
+                      "`?omit=samples&omit=covariances`.")] = []  # noqa: B006 - not mutated
+                  ) -> JobTrackResult:
+    """The track's segments and its state at every plot (with latitude and longitude), the
+    regular samples when the job keeps them, the filters' states, its sensors' statistics and
+    the reconstruction's diagnostics; available as soon as the track is done."""
     runner = _runner(request)
     entry = _track_entry(runner, job_id, aircraft)
-    got = runner.track_rows(job_id, aircraft)
+    got = runner.track_rows(job_id, aircraft, samples="samples" not in omit)
     if got is None:  # pragma: no cover - a done entry always names its part
         raise HTTPException(409, f"track {aircraft!r} has no stored rows")
     states, segments, filtered, sampled = got
+    cov = "covariances" not in omit
     return JobTrackResult.model_validate({
         "aircraft": aircraft,
-        "trajectory": {"segments": _segment_rows(segments), "at_plots": _state_rows(states),
-                       "samples": [] if sampled is None else _sample_rows(sampled),
+        "trajectory": {"segments": _segment_rows(segments),
+                       "at_plots": _state_rows(states, cov),
+                       "samples": [] if sampled is None else _sample_rows(sampled, cov),
                        **_altitude(entry.get("altitude"))},
         "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, aircraft)],
-        "filters": _filter_rows(filtered),
+        "filters": _filter_rows(filtered, cov),
         "diagnostics": _track_diagnostics(entry)})
 
 
@@ -481,14 +490,14 @@ def _track_diagnostics(entry: dict[str, Any]) -> dict[str, Any]:
             "warnings": entry.get("warnings") or []}
 
 
-def _state_rows(t: Any) -> list[dict[str, Any]]:
+def _state_rows(t: Any, cov: bool = True) -> list[dict[str, Any]]:
     cols = t.to_pydict()
     out = []
     for i in range(t.num_rows):
         row = {k: cols[k][i] for k in ("plot", "sensor", "t", "x", "z", "vx", "vz", "speed",
                                        "heading_deg", "lat_deg", "lon_deg")}
         row["heading_deg"] = row["heading_deg"] % 360.0
-        row["cov"] = _cov(cols, i)
+        row["cov"] = _cov(cols, i) if cov else None
         for name in ("range_residual_m", "azimuth_residual_deg", "position_residual_m",
                      "gated"):
             if cols.get(name) is not None and cols[name][i] is not None:
@@ -499,14 +508,14 @@ def _state_rows(t: Any) -> list[dict[str, Any]]:
     return out
 
 
-def _sample_rows(t: Any) -> list[dict[str, Any]]:
+def _sample_rows(t: Any, cov: bool = True) -> list[dict[str, Any]]:
     cols = t.to_pydict()
     out = []
     for i in range(t.num_rows):
         row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "speed", "heading_deg",
                                        "lat_deg", "lon_deg")}
         row["heading_deg"] = row["heading_deg"] % 360.0
-        row["cov"] = _cov(cols, i)
+        row["cov"] = _cov(cols, i) if cov else None
         if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:
             row["altitude_m"], row["altitude_sigma_m"] = cols["h_m"][i], cols["h_sigma_m"][i]
         out.append(row)
@@ -526,7 +535,7 @@ def _cov(cols: dict[str, list[Any]], i: int) -> list[list[Any]] | None:
     return cov
 
 
-def _filter_rows(t: Any) -> dict[str, dict[str, list[dict[str, Any]]]]:
+def _filter_rows(t: Any, cov: bool = True) -> dict[str, dict[str, list[dict[str, Any]]]]:
     """``filters.parquet`` rows of one track -> ``{name: {"states": [...]}}`` in plot order."""
     if t is None:
         return {}
@@ -534,7 +543,7 @@ def _filter_rows(t: Any) -> dict[str, dict[str, list[dict[str, Any]]]]:
     out: dict[str, list[tuple[int, dict[str, Any]]]] = {}
     for i in range(t.num_rows):
         row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg")}
-        row["cov"] = _cov(cols, i)
+        row["cov"] = _cov(cols, i) if cov else None
         out.setdefault(cols["filter"][i], []).append((cols["plot"][i], row))
     return {name: {"states": [r for _, r in sorted(rows, key=lambda p: p[0])]}
             for name, rows in out.items()}

@@ -250,6 +250,14 @@ def test_job_options_run_the_filters_on_every_track(client):
     table = pq.read_table(io.BytesIO(client.get(loc + "/results/filters.parquet").content))
     assert table.num_rows == len(names) * sum(len(p) for p in tracks.values())
     assert sorted(set(table.column("filter").to_pylist())) == sorted(names)
+    # ?omit=: the single-track request's parts to leave out (a bad one: 422 naming it)
+    key = next(iter(tracks))
+    lean = client.get(f"{loc}/tracks/{key}", params={"omit": ["samples", "covariances"]})
+    assert lean.status_code == 200 and lean.json()["trajectory"]["samples"] == []
+    assert all(s["cov"] is None for s in lean.json()["trajectory"]["at_plots"])
+    assert all(s["cov"] is None for f in lean.json()["filters"].values() for s in f["states"])
+    bad = client.get(f"{loc}/tracks/{key}", params={"omit": "plots"})
+    assert bad.status_code == 422 and "omit" in bad.json()["message"], bad.text
     sampled = pq.read_table(io.BytesIO(client.get(loc + "/results/samples.parquet").content))
     assert sampled.num_rows == sum(len(client.get(f"{loc}/tracks/{k}").json()["trajectory"]
                                        ["samples"]) for k in tracks)
