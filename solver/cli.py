@@ -2,7 +2,7 @@
 
     trajrecon reconstruct RECORDING --sensors SENSORS.json --out DIR [--scheduler ADDRESS]
         [--workers N] [--method refined|sliding] [--bounds NAME=MIN,MAX ...]
-        [--filters NAME ...] [--samples STEP] [--figures] ...
+        [--filters NAME ...] [--samples STEP] [--aircraft KEY ...] [--figures] ...
     trajrecon plot RECORDING --sensors SENSORS.json --out DIR [--aircraft KEY ...] [--map]
 
 (``trajrecon RECORDING ...`` is ``trajrecon reconstruct RECORDING ...``.) ``reconstruct`` reads a
@@ -511,8 +511,39 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
         on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)
         loaded = stream(Path(args.recording), Path(args.sensors),
                         executor=client if on_cluster else None)
+        chosen = Selection(getattr(args, "aircraft", None))
+        loaded.tracks = chosen.filter(loaded.tracks)
         summary, first_result_s = _reconstruct(args, settings, out, loaded, client, started)
-    return _finish(args, settings, out, loaded, summary, first_result_s, started)
+    return _finish(args, settings, out, loaded, summary, first_result_s, started, chosen)
+
+
+class Selection:
+    """``--aircraft``: the aircraft keys to reconstruct (None: all). A key selects its track
+    and the later pieces of it (``KEY#2`` ...: the same key after a gap, :mod:`solver.io.split`);
+    a Mode S address matches in either case (``4ca2d1`` is ``4CA2D1``)."""
+
+    def __init__(self, keys: Sequence[str] | None):
+        self.keys = None if not keys else {_normal_key(k) for k in keys}
+        self.found: set[str] = set()
+
+    def filter(self, tracks: Iterator[AircraftTrack]) -> Iterator[AircraftTrack]:
+        if self.keys is None:
+            yield from tracks
+            return
+        for track in tracks:
+            base = track.key.rsplit("#", 1)[0] if re.search(r"#\d+$", track.key) else track.key
+            hit = next((k for k in (track.key, base) if k in self.keys), None)
+            if hit is not None:
+                self.found.add(hit)
+                yield track
+
+    def missing(self) -> list[str]:
+        """The keys named that matched no track (after the whole recording was read)."""
+        return sorted((self.keys or set()) - self.found)
+
+
+def _normal_key(key: str) -> str:
+    return key.upper() if re.fullmatch(r"[0-9a-fA-F]{6}(#\d+)?", key) else key
 
 
 def _settings(args: argparse.Namespace) -> RunSettings:
@@ -580,8 +611,8 @@ def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loa
 
 
 def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: Streamed,
-            summary: BatchSummary, first_result_s: float | None, started: float
-            ) -> dict[str, Any]:
+            summary: BatchSummary, first_result_s: float | None, started: float,
+            chosen: Selection | None = None) -> dict[str, Any]:
     """The whole-recording outputs once every track is in."""
     stats_path = out / "sensor_stats.jsonl"
     stats = SensorStats(loaded.sensors, loaded.scan_periods)  # the periods read by now
@@ -604,6 +635,8 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
         "time_to_first_result_s": first_result_s,
         "problems": dict(loaded.problems.counts), "failures": summary.failures,
         "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "sensors": sensor_rows}
+    if chosen is not None and chosen.keys is not None:
+        result.update(aircraft=sorted(chosen.keys), aircraft_not_found=chosen.missing())
     (out / "summary.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
     return result
 
@@ -699,6 +732,11 @@ def parser() -> argparse.ArgumentParser:
     rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
                      metavar="FILTER", help="recursive filters run beside the reconstruction "
                      f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")
+    rec.add_argument("--aircraft", nargs="+", default=None, metavar="KEY",
+                     help="reconstruct only these aircraft (keys as in tracks.parquet, e.g. a "
+                     "Mode S address 3C6DD4, in either case; a key takes its later pieces "
+                     "KEY#2 ... too); the whole recording is still read, and a key it does not "
+                     "hold makes the exit status 2 after the others are written")
     rec.add_argument("--samples", type=_step, default=None, metavar="STEP",
                      help="also write every track's state every STEP seconds (from its first "
                      "plot to its last, with the covariance) into --out/samples.parquet")
@@ -844,6 +882,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     print_summary(result)
+    if result.get("aircraft_not_found"):
+        print(f"trajrecon: not in the recording (or too short to reconstruct: "
+              f"{args.out}/problems.txt names those): "
+              f"{', '.join(result['aircraft_not_found'])}", file=sys.stderr)
+        return 2
     return 1 if result["failed"] else 0
 
 

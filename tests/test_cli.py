@@ -326,3 +326,37 @@ def test_sigterm_closes_the_cluster_and_the_same_command_resumes(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert (summary["skipped"], summary["done"]) == (len(kept), len(flights) - len(kept))
     assert sorted(ledger()) == sorted(f"{f.address:06X}" for f in flights)
+
+
+def test_named_aircraft_alone_are_reconstructed(recording, tmp_path, capsys):
+    """`--aircraft`: only the named tracks (a Mode S address in either case); a name the
+    recording does not hold: the others written, exit status 2 naming it."""
+    d, _ = recording
+    key = f"{FLIGHTS[1].address:06X}"
+    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--workers", "1",
+            "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "one"), "--aircraft", key.lower()]) == 0
+    summary = json.loads((tmp_path / "one" / "summary.json").read_text())
+    assert summary["tracks"] == summary["done"] == 1 and summary["aircraft"] == [key]
+    assert summary["aircraft_not_found"] == []
+    keys = set(pq.read_table(tmp_path / "one" / "tracks.parquet").column("aircraft").to_pylist())
+    assert keys == {key}
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "two"), "--aircraft", key, "ABC123"]) == 2
+    assert "not in the recording" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert summary["done"] == 1 and summary["aircraft_not_found"] == ["ABC123"]
+
+
+def test_a_selection_takes_a_keys_later_pieces():
+    from types import SimpleNamespace
+
+    from solver.cli import Selection
+
+    chosen = Selection(["4ca2d1", "R1:track:101"])
+    names = ["4CA2D1", "3C6DD4", "4CA2D1#2", "4CA2D12", "R1:track:101#3", "R1:track:1011"]
+    got = [t.key for t in chosen.filter(iter(SimpleNamespace(key=k) for k in names))]
+    assert got == ["4CA2D1", "4CA2D1#2", "R1:track:101#3"]
+    assert chosen.missing() == []
+    assert Selection(["ABC123"]).missing() == ["ABC123"]
+    assert list(Selection(None).filter(iter(names))) == names
