@@ -20,6 +20,7 @@ from .models import (
     SensorOut,
     StateOut,
     _In,
+    _optional,
     _Out,
 )
 
@@ -150,6 +151,11 @@ class JobStateOut(PlotStateOut):
 
     plot: int = Field(description="Index of the plot in the track (time order).")
     sensor: str = Field(description="The plot's sensor.")
+    along_track_residual_m: float | None = _optional(
+        "A position plot's distance from this state along its velocity, m (ahead positive: a "
+        "report late by d s lies about speed * d behind; the sensors' statistics pool these).")
+    cross_track_residual_m: float | None = _optional(
+        "That distance across the velocity, m (right of the track positive).")
 
 
 class JobTrajectoryOut(_Out):
@@ -209,6 +215,10 @@ class SensorSummaryOut(_Out):
     azimuth_residual_mean_deg: float | None = None
     azimuth_residual_sigma_deg: float | None = None
     position_residual_rms_m: float | None = None
+    along_track_residual_mean_m: float | None = None
+    along_track_residual_sigma_m: float | None = None
+    cross_track_residual_mean_m: float | None = None
+    cross_track_residual_sigma_m: float | None = None
     range_bias_m: float | None = None
     azimuth_bias_deg: float | None = None
     time_bias_s: float | None = None

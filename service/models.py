@@ -334,6 +334,17 @@ class SensorOut(_Out):
                                                      "azimuth residuals (deg).")
     position_residual_rms_m: float | None = Field(
         description="Horizontal RMS of the plots against the track (m); position sensors.")
+    along_track_residual_mean_m: float | None = Field(
+        None, description="Mean of the position plots' residuals along the track (m; ahead "
+        "positive: a sensor reporting late by d s shows about -speed * d, less what its own "
+        "weight in the fit pulls the track towards it); position sensors.")
+    along_track_residual_sigma_m: float | None = Field(None, description="Their standard "
+                                                       "deviation (m).")
+    cross_track_residual_mean_m: float | None = Field(
+        None, description="Mean of the residuals across the track (m; right positive); "
+        "position sensors.")
+    cross_track_residual_sigma_m: float | None = Field(None, description="Their standard "
+                                                       "deviation (m).")
 
 
 class FilterStateOut(_GeoOut):

@@ -499,7 +499,7 @@ def _state_rows(t: Any, cov: bool = True) -> list[dict[str, Any]]:
         row["heading_deg"] = row["heading_deg"] % 360.0
         row["cov"] = _cov(cols, i) if cov else None
         for name in ("range_residual_m", "azimuth_residual_deg", "position_residual_m",
-                     "gated"):
+                     "along_track_residual_m", "cross_track_residual_m", "gated"):
             if cols.get(name) is not None and cols[name][i] is not None:
                 row[name] = cols[name][i]
         if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:

@@ -1,11 +1,14 @@
-"""Each radar's plots against the reconstruction over a whole run, as a figure (``sensors.png``):
-the range and azimuth residuals by slant range and by azimuth, where a range-dependent bias, an
-azimuth-dependent (eccentricity, north alignment) error or a sector of wild plots shows at a
-glance (the plots of SASS-C's and TRES's radar assessment).
+"""Each sensor's plots against the reconstruction over a whole run, as a figure (``sensors.png``):
+a radar's range and azimuth residuals by slant range and by azimuth, where a range-dependent
+bias, an azimuth-dependent (eccentricity, north alignment) error or a sector of wild plots shows
+at a glance (the plots of SASS-C's and TRES's radar assessment); a position sensor's (ADS-B)
+residuals along and across the track by ground speed, where a report latency shows as an
+along-track offset growing with the speed.
 
 Read from ``tracks.parquet`` (its residual columns, :data:`solver.batch.RESIDUAL_COLUMNS`) one
-part at a time, so memory does not grow with the run: per radar, the residuals' count, sum and
-sum of squares in fixed bins (:data:`RANGE_BIN_M`, :data:`AZIMUTH_BIN_DEG`), and at most
+part at a time, so memory does not grow with the run: per sensor, the residuals' count, sum and
+sum of squares in fixed bins (:data:`RANGE_BIN_M`, :data:`AZIMUTH_BIN_DEG`,
+:data:`SPEED_BIN_MS`), and at most
 :data:`SCATTER_POINTS` plots for the scatter (those with the smallest keys of a seeded random
 draw: an even sample of the run, the same on a rerun).
 """
@@ -24,10 +27,13 @@ from .inputs import FloatArray
 RANGE_BIN_M = 10_000.0
 AZIMUTH_BIN_DEG = 10.0
 MAX_RANGE_M = 600_000.0  # the last range bin holds every plot beyond
-SCATTER_POINTS = 20_000  # per radar
+SCATTER_POINTS = 20_000  # per sensor
+SPEED_BIN_MS = 10.0
+MAX_SPEED_MS = 400.0  # the last speed bin holds every plot beyond
 MIN_BIN_PLOTS = 5  # a bin's mean and sigma are drawn from this many plots up
 _COLUMNS = ["sensor", "plot_range_m", "plot_azimuth_deg", "range_residual_m",
             "azimuth_residual_deg", "gated"]
+_POSITION_COLUMNS = ["speed", "along_track_residual_m", "cross_track_residual_m"]
 
 
 @dataclass
@@ -58,29 +64,41 @@ class _Binned:
 
 
 @dataclass
-class RadarResiduals:
-    """One radar's residuals over a run: binned statistics, totals, and a scatter sample
-    (columns: range (m), azimuth (deg), range residual (m), azimuth residual (deg), gated)."""
+class SensorResiduals:
+    """One sensor's residuals over a run in two panels, each a residual over an axis: a radar's
+    range residual (m) over the slant range (m) and azimuth residual (deg) over the azimuth
+    (deg); a position sensor's along- and across-track residuals (m) over the ground speed
+    (m/s), where a report late by ``d`` s lies about ``speed * d`` behind. Binned statistics
+    per panel, totals, and a scatter sample (columns: axis 0, axis 1, residual 0, residual 1,
+    gated)."""
 
     sensor: str
-    dr_by_range: _Binned = field(default_factory=lambda: _Binned.empty(_range_bins()))
-    da_by_azimuth: _Binned = field(default_factory=lambda: _Binned.empty(_azimuth_bins()))
+    kind: str = "radar"
+    first: _Binned = field(default_factory=lambda: _Binned.empty(_range_bins()))
+    second: _Binned = field(default_factory=lambda: _Binned.empty(_azimuth_bins()))
     plots: int = 0
     gated: int = 0
-    total: np.ndarray = field(default_factory=lambda: np.zeros(5))  # n, s_dr, s_dr2, s_da, s_da2
+    total: np.ndarray = field(default_factory=lambda: np.zeros(5))  # n, s0, s00, s1, s11
     sample: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
-    def add(self, rng_m: FloatArray, az_deg: FloatArray, dr: FloatArray, da: FloatArray,
+    @classmethod
+    def position(cls, sensor: str) -> SensorResiduals:
+        return cls(sensor, "position", _Binned.empty(_speed_bins()),
+                   _Binned.empty(_speed_bins()))
+
+    def add(self, x0: FloatArray, x1: FloatArray, y0: FloatArray, y1: FloatArray,
             gated: np.ndarray, keys: FloatArray) -> None:
-        self.plots += rng_m.size
+        self.plots += x0.size
         self.gated += int(gated.sum())
         ok = ~gated
-        self.dr_by_range.add(_range_bin(rng_m[ok]), dr[ok])
-        self.da_by_azimuth.add(_azimuth_bin(az_deg[ok]), da[ok])
-        self.total += [ok.sum(), dr[ok].sum(), (dr[ok] ** 2).sum(), da[ok].sum(),
-                       (da[ok] ** 2).sum()]
-        rows = np.column_stack([rng_m, az_deg, dr, da, gated.astype(float)])
+        bins = ((_range_bin(x0[ok]), _azimuth_bin(x1[ok])) if self.kind == "radar"
+                else (_speed_bin(x0[ok]), _speed_bin(x1[ok])))
+        self.first.add(bins[0], y0[ok])
+        self.second.add(bins[1], y1[ok])
+        self.total += [ok.sum(), y0[ok].sum(), (y0[ok] ** 2).sum(), y1[ok].sum(),
+                       (y1[ok] ** 2).sum()]
+        rows = np.column_stack([x0, x1, y0, y1, gated.astype(float)])
         self.sample = np.concatenate([self.sample, rows])
         self.keys = np.concatenate([self.keys, keys])
         if self.keys.size > SCATTER_POINTS:
@@ -88,13 +106,22 @@ class RadarResiduals:
             self.sample, self.keys = self.sample[best], self.keys[best]
 
     def bias_sigma(self) -> tuple[float, float, float, float]:
-        """Mean and standard deviation of the range (m) and azimuth (deg) residuals outside
-        the gated plots."""
+        """Mean and standard deviation of the two residuals outside the gated plots (a
+        radar's range in m and azimuth in deg; a position sensor's along and across the
+        track, m)."""
         n, s1, s2, a1, a2 = self.total
         if n == 0:
             return (np.nan,) * 4  # type: ignore[return-value]
         return (s1 / n, float(np.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0))), a1 / n,
                 float(np.sqrt(max(a2 / n - (a1 / n) ** 2, 0.0))))
+
+
+def _speed_bins() -> int:
+    return int(MAX_SPEED_MS // SPEED_BIN_MS) + 1
+
+
+def _speed_bin(v: FloatArray) -> np.ndarray:
+    return np.minimum((v // SPEED_BIN_MS).astype(int), _speed_bins() - 1)
 
 
 def _range_bins() -> int:
@@ -113,38 +140,49 @@ def _azimuth_bin(a: FloatArray) -> np.ndarray:
     return (np.mod(a, 360.0) // AZIMUTH_BIN_DEG).astype(int) % _azimuth_bins()
 
 
-def radar_residuals(out: Path, order: Sequence[str] = ()) -> list[RadarResiduals]:
-    """Every radar's residuals in the run at ``out`` (its ``tracks.parquet`` parts), in the
-    order of the ids ``order`` (the sensor file's), others after them by id; radars without a
+def sensor_residuals(out: Path, order: Sequence[str] = ()) -> list[SensorResiduals]:
+    """Every sensor's residuals in the run at ``out`` (its ``tracks.parquet`` parts): the
+    radars', then the position sensors' (where the parts have their columns), each in the
+    order of the ids ``order`` (the sensor file's), others after them by id; sensors without a
     residual (none reconstructed) are left out."""
     rng = np.random.default_rng(0)
-    radars: dict[str, RadarResiduals] = {}
+    found: dict[tuple[str, str], SensorResiduals] = {}
     for part in sorted((out / "tracks.parquet").glob("part-*.parquet")):
         names = set(pq.read_schema(part).names)
         if not set(_COLUMNS) <= names:  # a part of an earlier version: no residuals
             continue
-        t = pq.read_table(part, columns=_COLUMNS)
-        cols = {c: t.column(c).to_numpy(zero_copy_only=False) for c in _COLUMNS}
-        dr = cols["range_residual_m"].astype(float)
-        found = np.isfinite(dr)
+        wanted = _COLUMNS + (_POSITION_COLUMNS if set(_POSITION_COLUMNS) <= names else [])
+        t = pq.read_table(part, columns=wanted)
+        cols = {c: t.column(c).to_numpy(zero_copy_only=False) for c in wanted}
         sensors = cols["sensor"].astype(str)
+        gated = cols["gated"].astype(bool)
         keys = rng.random(t.num_rows)
-        for sid in dict.fromkeys(sensors[found].tolist()):
-            sel = found & (sensors == sid)
-            radars.setdefault(sid, RadarResiduals(sid)).add(
-                cols["plot_range_m"][sel].astype(float), cols["plot_azimuth_deg"][sel].astype(
-                    float), dr[sel], cols["azimuth_residual_deg"][sel].astype(float),
-                cols["gated"][sel].astype(bool), keys[sel])
+        panels = [("radar", cols["plot_range_m"], cols["plot_azimuth_deg"],
+                   cols["range_residual_m"], cols["azimuth_residual_deg"])]
+        if "speed" in cols:
+            panels.append(("position", cols["speed"], cols["speed"],
+                           cols["along_track_residual_m"], cols["cross_track_residual_m"]))
+        for kind, x0, x1, y0, y1 in panels:
+            y0 = y0.astype(float)
+            has = np.isfinite(y0)
+            for sid in dict.fromkeys(sensors[has].tolist()):
+                sel = has & (sensors == sid)
+                if (kind, sid) not in found:
+                    found[(kind, sid)] = (SensorResiduals(sid) if kind == "radar"
+                                          else SensorResiduals.position(sid))
+                found[(kind, sid)].add(x0[sel].astype(float), x1[sel].astype(float), y0[sel],
+                                       y1[sel].astype(float), gated[sel], keys[sel])
     rank = {sid: k for k, sid in enumerate(order)}
-    return sorted(radars.values(), key=lambda x: (rank.get(x.sensor, len(rank)), x.sensor))
+    return sorted(found.values(), key=lambda x: (x.kind != "radar", rank.get(x.sensor, len(rank)),
+                                                 x.sensor))
 
 
 def write_sensors_figure(out: Path, order: Sequence[str] = ()) -> Path | None:
-    """``out/sensors.png`` (:func:`solver.figures.residuals_figure`; radars in the order of the
-    ids ``order``), or None when no radar plot has a residual."""
+    """``out/sensors.png`` (:func:`solver.figures.residuals_figure`; sensors in the order of
+    the ids ``order``), or None when no plot has a residual."""
     from .figures import residuals_figure, save
 
-    radars = radar_residuals(out, order)
-    if not radars:
+    sensors = sensor_residuals(out, order)
+    if not sensors:
         return None
-    return save(residuals_figure(radars), out / "sensors.png")
+    return save(residuals_figure(sensors), out / "sensors.png")

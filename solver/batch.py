@@ -54,7 +54,8 @@ from .results import PlotResiduals, StateSeries
 COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
 RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "range_residual_m",
-                    "azimuth_residual_deg", "position_residual_m", "gated")
+                    "azimuth_residual_deg", "position_residual_m", "along_track_residual_m",
+                    "cross_track_residual_m", "gated")
 TRACK_COLUMNS = ("aircraft", "plot", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
                  "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m",
                  *RESIDUAL_COLUMNS)
@@ -68,8 +69,10 @@ estimated (else null), and the plot against the state, as the sensors' statistic
 (:func:`solver.refine.output.plot_residuals`): a radar plot's measured slant range and azimuth
 (``plot_range_m``, ``plot_azimuth_deg``) and its residuals after the sensor's estimated
 offsets (``range_residual_m``, ``azimuth_residual_deg``), a position plot's horizontal distance
-(``position_residual_m``); null where they do not apply or the method gives none; ``gated``:
-given no weight as wild."""
+(``position_residual_m``) and its parts along and across the track (``along_track_residual_m``:
+ahead of the state positive, a late report's is negative; ``cross_track_residual_m``: right of
+the track positive); null where they do not apply or the method gives none; ``gated``: given no
+weight as wild."""
 FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
                   "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS)
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
@@ -267,6 +270,8 @@ def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
         range_residual_m=None if res is None else res.range_m,
         azimuth_residual_deg=None if res is None else np.rad2deg(res.azimuth_rad),
         position_residual_m=None if res is None else res.position_m,
+        along_track_residual_m=None if res is None else res.along_m,
+        cross_track_residual_m=None if res is None else res.cross_m,
         gated=pa.array(np.zeros(n, bool) if res is None else res.gated, pa.bool_()))
     return _arrow(cols, TRACK_COLUMNS, n)
 

@@ -85,7 +85,10 @@ TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
 SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "scan_period_s",
                   "detection_rate", "range_residual_mean_m", "range_residual_sigma_m",
                   "azimuth_residual_mean_deg", "azimuth_residual_sigma_deg",
-                  "position_residual_rms_m", "range_bias_m", "azimuth_bias_deg", "time_bias_s")
+                  "position_residual_rms_m", "along_track_residual_mean_m",
+                  "along_track_residual_sigma_m", "cross_track_residual_mean_m",
+                  "cross_track_residual_sigma_m", "range_bias_m", "azimuth_bias_deg",
+                  "time_bias_s")
 MAP_POINTS_PER_TRACK = 200  # a recording map draws each track with at most this many points
 STREAM_CHUNK_BYTES = 1 << 18  # ASTERIX decoded in units of this size when streaming
 STREAM_BATCH_ROWS = 1 << 15  # a plot table read in batches of this many rows when streaming
@@ -309,6 +312,7 @@ class SensorStats:
             s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "used": 0,
                    "steps": _Sample(MEDIAN_SAMPLE), "span_s": 0.0, "spans": 0,
                    "r1": 0.0, "r2": 0.0, "a1": 0.0, "a2": 0.0, "p2": 0.0,
+                   "along": [0, 0.0, 0.0], "cross": [0, 0.0, 0.0],
                    "biases": _Sample(MEDIAN_SAMPLE)} for s in sensors.sensors}
 
     def add(self, reports: Sequence[dict[str, Any]]) -> None:
@@ -334,6 +338,14 @@ class SensorStats:
                 a["a2"] += n * r["azimuth_residual_rms_rad"] ** 2
             if r["position_residual_rms_m"] is not None:
                 a["p2"] += n * r["position_residual_rms_m"] ** 2
+            for name in ("along", "cross"):  # count, sum, sum of squares
+                mean = r.get(f"{name}_track_residual_mean_m")
+                if mean is not None:
+                    sigma = r[f"{name}_track_residual_sigma_m"]
+                    acc = a[name]
+                    acc[0] += n
+                    acc[1] += n * mean
+                    acc[2] += n * (sigma**2 + mean**2)
             if r["range_bias_m"] is not None:
                 a["biases"].add((r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]))
 
@@ -360,6 +372,13 @@ class SensorStats:
                     np.sqrt(max(a["a2"] / n - a_mean**2, 0.0))))
             if not radar and n:
                 row["position_residual_rms_m"] = float(np.sqrt(a["p2"] / n))
+            for name in ("along", "cross"):
+                count, total, squares = a[name]
+                if count:
+                    mean = total / count
+                    row[f"{name}_track_residual_mean_m"] = mean
+                    row[f"{name}_track_residual_sigma_m"] = float(
+                        np.sqrt(max(squares / count - mean**2, 0.0)))
             if a["biases"].values:
                 b = np.median(np.array(a["biases"].values), axis=0)
                 row["range_bias_m"], row["time_bias_s"] = float(b[0]), float(b[2])

@@ -17,7 +17,7 @@ from __future__ import annotations
 import io
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -35,7 +35,7 @@ from .results import Reconstruction
 from .sensors import RadarSensor
 
 if TYPE_CHECKING:
-    from .assessment import RadarResiduals
+    from .assessment import SensorResiduals
 
 CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square with 2 degrees of freedom
 MAX_ELLIPSES = 400  # drawn per figure (every k-th plot beyond): more only hide the track
@@ -156,56 +156,69 @@ def recording_map(tracks: Sequence[tuple[str, FloatArray, FloatArray]],
     return fig
 
 
-def residuals_figure(radars: Sequence[RadarResiduals]) -> Figure:
-    """One row per radar: the range residual (m) over the slant range and the azimuth
-    residual (deg) over the azimuth; a sample of the plots (gated ones as red crosses), the
-    binned mean (line) and mean +- sigma (band); the axes span the bias +- 5 sigma of the
+def residuals_figure(sensors: Sequence[SensorResiduals]) -> Figure:
+    """One row per sensor: a radar's range residual (m) over the slant range and azimuth
+    residual (deg) over the azimuth; a position sensor's along- and across-track residuals (m)
+    over the ground speed. In each panel a sample of the plots (gated ones as red crosses),
+    the binned mean (line) and mean +- sigma (band); the axes span the mean +- 5 sigma of the
     plots kept."""
-    from .assessment import AZIMUTH_BIN_DEG, RANGE_BIN_M
+    from .assessment import AZIMUTH_BIN_DEG, RANGE_BIN_M, SPEED_BIN_MS
 
-    fig, axes = plt.subplots(len(radars), 2, figsize=(12, 3.2 * len(radars) + 0.6), dpi=DPI,
+    fig, axes = plt.subplots(len(sensors), 2, figsize=(12, 3.2 * len(sensors) + 0.6), dpi=DPI,
                              squeeze=False)
-    for row, rad in zip(axes, radars, strict=True):
-        dr_mean, dr_sigma, da_mean, da_sigma = rad.bias_sigma()
-        smp = rad.sample
-        wild = smp[:, 4] > 0
-        for ax, col, res, binned, width, scale, unit, (m, sd) in (
-                (row[0], 0, 2, rad.dr_by_range, RANGE_BIN_M, 1e-3, "m", (dr_mean, dr_sigma)),
-                (row[1], 1, 3, rad.da_by_azimuth, AZIMUTH_BIN_DEG, 1.0, "deg",
-                 (da_mean, da_sigma))):
-            ax.plot(smp[~wild, col] * scale, smp[~wild, res], ".", ms=1.5, color="0.75",
-                    alpha=0.5, rasterized=True, zorder=1)
-            ax.plot(smp[wild, col] * scale, smp[wild, res], "x", ms=3, color="tab:red",
-                    zorder=2)
-            mean, sigma = binned.mean_sigma()
-            centre = (np.arange(mean.size) + 0.5) * width * scale
-            ax.fill_between(centre, mean - sigma, mean + sigma, color="tab:blue", alpha=0.25,
-                            lw=0, zorder=3)
-            for edge in (mean - sigma, mean + sigma):
-                ax.plot(centre, edge, "-", color="tab:blue", lw=0.6, zorder=4)
-            ax.plot(centre, mean, "-", color="navy", lw=1.5, zorder=4)
-            ax.axhline(0.0, color="k", lw=0.6)
-            if np.isfinite(m) and sd > 0:
-                ax.set_ylim(m - 5 * sd, m + 5 * sd)
-            if col == 0:
-                ok = smp[~wild, 0]
-                if ok.size:
-                    ax.set_xlim(0.0, float(ok.max()) * scale * 1.05)
-                ax.set_xlabel("slant range (km)")
-            else:
-                ax.set_xlim(0.0, 360.0)
-                ax.set_xlabel("azimuth (deg)")
-            ax.set_ylabel(f"{'range' if col == 0 else 'azimuth'} residual ({unit})")
-            digits = 1 if col == 0 else 4
-            ax.set_title(f"{rad.sensor}: bias {m:+.{digits}f} {unit}, sigma {sd:.{digits}f} "
-                         f"{unit} (band: binned mean +- sigma)", fontsize=9)
-            ax.grid(True, lw=0.3)
-        row[0].annotate(f"{rad.plots} plots, {rad.gated} wild", (0.01, 0.97),
+    for row, res in zip(axes, sensors, strict=True):
+        m0, sd0, m1, sd1 = res.bias_sigma()
+        smp = res.sample
+        if res.kind == "radar":
+            panels = ((0, 2, res.first, RANGE_BIN_M, 1e-3, "slant range (km)", "range residual",
+                       "m", (m0, sd0), 1, "bias"),
+                      (1, 3, res.second, AZIMUTH_BIN_DEG, 1.0, "azimuth (deg)",
+                       "azimuth residual", "deg", (m1, sd1), 4, "bias"))
+        else:
+            panels = ((0, 2, res.first, SPEED_BIN_MS, 1.0, "ground speed (m/s)",
+                       "along-track residual", "m", (m0, sd0), 1, "mean"),
+                      (1, 3, res.second, SPEED_BIN_MS, 1.0, "ground speed (m/s)",
+                       "cross-track residual", "m", (m1, sd1), 1, "mean"))
+        for ax, panel in zip(row, panels, strict=True):
+            _residual_panel(ax, smp, res.sensor, *panel)
+        if res.kind == "radar":
+            row[1].set_xlim(0.0, 360.0)
+        row[0].annotate(f"{res.plots} plots, {res.gated} wild", (0.01, 0.97),
                         xycoords="axes fraction", va="top", fontsize=8)
-    fig.suptitle("Radar plots against the reconstruction (measured minus reconstructed, "
-                 "after estimated offsets)", fontsize=10)
+    fig.suptitle("Plots against the reconstruction (measured minus reconstructed, after "
+                 "estimated offsets; along-track: ahead positive, a late report lies behind)",
+                 fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def _residual_panel(ax: Axes, smp: np.ndarray, sensor: str, col: int, res: int, binned: Any,
+                    width: float, scale: float, xlabel: str, name: str, unit: str,
+                    stats: tuple[float, float], digits: int, word: str) -> None:
+    """One panel of :func:`residuals_figure`: sample column ``res`` over column ``col``."""
+    wild = smp[:, 4] > 0
+    ax.plot(smp[~wild, col] * scale, smp[~wild, res], ".", ms=1.5, color="0.75", alpha=0.5,
+            rasterized=True, zorder=1)
+    ax.plot(smp[wild, col] * scale, smp[wild, res], "x", ms=3, color="tab:red", zorder=2)
+    mean, sigma = binned.mean_sigma()
+    centre = (np.arange(mean.size) + 0.5) * width * scale
+    ax.fill_between(centre, mean - sigma, mean + sigma, color="tab:blue", alpha=0.25, lw=0,
+                    zorder=3)
+    for edge in (mean - sigma, mean + sigma):
+        ax.plot(centre, edge, "-", color="tab:blue", lw=0.6, zorder=4)
+    ax.plot(centre, mean, "-", color="navy", lw=1.5, zorder=4)
+    ax.axhline(0.0, color="k", lw=0.6)
+    m, sd = stats
+    if np.isfinite(m) and sd > 0:
+        ax.set_ylim(m - 5 * sd, m + 5 * sd)
+    ok = smp[~wild, col]
+    if ok.size:
+        ax.set_xlim(0.0, float(ok.max()) * scale * 1.05)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(f"{name} ({unit})")
+    ax.set_title(f"{sensor}: {word} {m:+.{digits}f} {unit}, sigma {sd:.{digits}f} {unit} "
+                 "(band: binned mean +- sigma)", fontsize=9)
+    ax.grid(True, lw=0.3)
 
 
 def sensor_sites(table: PlotTable) -> list[tuple[str, float, float]]:

@@ -113,7 +113,8 @@ class SensorReport:
     """One sensor's plots against the reconstruction: counts, the estimated systematic offsets
     with their standard deviations (None when not estimated), and the residuals (measured minus
     predicted from the track, after the offsets): mean, RMS and standard deviation in slant
-    range (m) and azimuth (rad) for a radar, the horizontal RMS (m) for a position sensor."""
+    range (m) and azimuth (rad) for a radar; for a position sensor the horizontal RMS (m) and
+    the mean and standard deviation along and across the track (m)."""
 
     id: str
     kind: str
@@ -132,19 +133,27 @@ class SensorReport:
     azimuth_residual_rms_rad: float | None = None
     azimuth_residual_sigma_rad: float | None = None
     position_residual_rms_m: float | None = None
+    along_track_residual_mean_m: float | None = None
+    along_track_residual_sigma_m: float | None = None
+    cross_track_residual_mean_m: float | None = None
+    cross_track_residual_sigma_m: float | None = None
 
 
 @dataclass
 class PlotResiduals:
     """Each plot (input order) against the reconstruction, measured minus predicted after its
     sensor's estimated offsets: ``range_m`` and ``azimuth_rad`` for radar plots,
-    ``position_m`` (horizontal distance) for position plots, NaN where a kind does not apply;
-    ``gated``: given no weight as wild."""
+    ``position_m`` (horizontal distance) for position plots, split along the track's velocity
+    (``along_m``: ahead of the state positive, so a report late by ``d`` s gives about
+    ``-speed * d``) and across it (``cross_m``: right of the track positive); NaN where a kind
+    does not apply; ``gated``: given no weight as wild."""
 
     range_m: FloatArray
     azimuth_rad: FloatArray
     position_m: FloatArray
     gated: np.ndarray
+    along_m: FloatArray | None = None
+    cross_m: FloatArray | None = None
 
 
 @dataclass

@@ -1,7 +1,8 @@
-"""The run's radar figure (``sensors.png``, :mod:`solver.assessment`): the residuals read from
+"""The run's sensor figure (``sensors.png``, :mod:`solver.assessment`): the residuals read from
 ``tracks.parquet`` part by part give the same bias, sigma and binned means as numpy over all
-rows at once (gated plots counted, not used), the scatter sample stays bounded, parts without
-residual columns (an earlier version's) are skipped, and the figure is drawn."""
+rows at once (gated plots counted, not used), for radars and for position sensors (along and
+across the track by speed); the scatter sample stays bounded, parts without residual columns
+(an earlier version's) are skipped, and the figure is drawn."""
 
 from __future__ import annotations
 
@@ -11,14 +12,18 @@ import pyarrow.parquet as pq
 import pytest
 
 from solver import assessment
-from solver.assessment import radar_residuals, write_sensors_figure
+from solver.assessment import sensor_residuals, write_sensors_figure
 
 
-def _part(path, sensor, rng_m, az, dr, da, gated):
+def _part(path, sensor, rng_m, az, dr, da, gated, position=None):
     n = rng_m.size
-    pq.write_table(pa.table({
-        "aircraft": ["A"] * n, "sensor": sensor, "plot_range_m": rng_m, "plot_azimuth_deg": az,
-        "range_residual_m": dr, "azimuth_residual_deg": da, "gated": gated}), path)
+    cols = {"aircraft": ["A"] * n, "sensor": sensor, "plot_range_m": rng_m,
+            "plot_azimuth_deg": az, "range_residual_m": dr, "azimuth_residual_deg": da,
+            "gated": gated}
+    if position is not None:
+        cols.update(zip(("speed", "along_track_residual_m", "cross_track_residual_m"), position,
+                        strict=True))
+    pq.write_table(pa.table(cols), path)
 
 
 def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path, monkeypatch):
@@ -38,11 +43,30 @@ def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path,
         dr[gated] += 5_000.0
         adsb = sensor == "ADSB"
         r[adsb] = az[adsb] = dr[adsb] = da[adsb] = np.nan
-        _part(parts / f"part-{k:06d}.parquet", sensor, r, az, dr, da, gated)
-        rows.append((sensor, r, az, dr, da, gated))
+        speed = rng.uniform(60, 300, n)
+        along = np.where(adsb, -0.5 * speed + rng.normal(0, 30, n), np.nan)  # 0.5 s late
+        cross = np.where(adsb, rng.normal(5, 30, n), np.nan)
+        _part(parts / f"part-{k:06d}.parquet", sensor, r, az, dr, da, gated,
+              None if k == 0 else (speed, along, cross))  # part 0: before the columns
+        rows.append((sensor, r, az, dr, da, gated, speed, along, cross, np.full(n, k > 0)))
     pq.write_table(pa.table({"aircraft": ["old"], "x": [0.0]}), parts / "part-000009.parquet")
-    sensor, r, az, dr, da, gated = (np.concatenate(c) for c in zip(*rows, strict=True))
-    got = {x.sensor: x for x in radar_residuals(tmp_path)}
+    sensor, r, az, dr, da, gated, speed, along, cross, newer = (
+        np.concatenate(c) for c in zip(*rows, strict=True))
+    found = sensor_residuals(tmp_path, order=["R2", "ADSB", "R1"])
+    assert [(x.kind, x.sensor) for x in found] == [("radar", "R2"), ("radar", "R1"),
+                                                   ("position", "ADSB")]
+    pos = found[-1]
+    sel = (sensor == "ADSB") & newer
+    ok = sel & ~gated
+    assert pos.plots == sel.sum() and pos.gated == (sel & gated).sum()
+    np.testing.assert_allclose(pos.bias_sigma(), (along[ok].mean(), along[ok].std(),
+                                                  cross[ok].mean(), cross[ok].std()), rtol=1e-9)
+    mean, _ = pos.first.mean_sigma()
+    b = (speed[ok] // assessment.SPEED_BIN_MS).astype(int)
+    for k in np.unique(b):
+        if (b == k).sum() >= assessment.MIN_BIN_PLOTS:
+            assert mean[k] == pytest.approx(along[ok][b == k].mean(), rel=1e-9)
+    got = {x.sensor: x for x in found if x.kind == "radar"}
     assert set(got) == {"R1", "R2"}
     for sid, res in got.items():
         sel = sensor == sid
@@ -50,7 +74,7 @@ def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path,
         assert res.plots == sel.sum() and res.gated == (sel & gated).sum()
         np.testing.assert_allclose(res.bias_sigma(), (dr[ok].mean(), dr[ok].std(),
                                                       da[ok].mean(), da[ok].std()), rtol=1e-9)
-        mean, sigma = res.dr_by_range.mean_sigma()
+        mean, sigma = res.first.mean_sigma()
         b = (r[ok] // assessment.RANGE_BIN_M).astype(int)
         for k in np.unique(b):
             if (b == k).sum() >= assessment.MIN_BIN_PLOTS:
@@ -61,9 +85,9 @@ def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path,
     assert write_sensors_figure(tmp_path).read_bytes()[:4] == b"\x89PNG"
 
 
-def test_no_radar_residual_no_figure(tmp_path):
+def test_no_residual_no_figure(tmp_path):
     parts = tmp_path / "tracks.parquet"
     parts.mkdir()
     nan = np.full(3, np.nan)
     _part(parts / "part-000001.parquet", ["ADSB"] * 3, nan, nan, nan, nan, np.zeros(3, bool))
-    assert radar_residuals(tmp_path) == [] and write_sensors_figure(tmp_path) is None
+    assert sensor_residuals(tmp_path) == [] and write_sensors_figure(tmp_path) is None

@@ -94,6 +94,14 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     adsb = table.filter(pc.equal(table.column("sensor"), "ADSB"))
     assert adsb.column("range_residual_m").null_count == adsb.num_rows
     assert np.nanmax(adsb.column("position_residual_m").to_numpy()) < 30.0
+    # the ADS-B statistics along and across the track pool every track's kept plots
+    kept = adsb.filter(pc.invert(adsb.column("gated")))
+    for part in ("along", "cross"):
+        v = kept.column(f"{part}_track_residual_m").to_numpy()
+        assert v.mean() == pytest.approx(sensors["ADSB"][f"{part}_track_residual_mean_m"],
+                                         abs=1e-6)
+        assert v.std() == pytest.approx(sensors["ADSB"][f"{part}_track_residual_sigma_m"],
+                                        rel=1e-6)
     assert (out / "sensors.png").read_bytes()[:4] == b"\x89PNG"
     # the filters asked for, beside: every plot of every track once per filter; the
     # two-sensor fusion cannot run on three sensors, which each track's warnings say

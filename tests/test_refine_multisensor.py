@@ -51,9 +51,9 @@ def _simulate(sensors, periods, noise: float, seed: int = 1, biases=None, mode_c
         st = evaluate(segs, t)
         h = _height(t)
         n = t.size
+        b = (biases or {}).get(k, (0.0, 0.0, 0.0))
         if isinstance(sensor, RadarSensor):
             r, a = sensor.measure(FRAME, st.x, st.z, h)
-            b = (biases or {}).get(k, (0.0, 0.0, 0.0))
             if b[2]:  # reported late by b_t: the aircraft is where it was b_t earlier
                 sb = evaluate(segs, t - b[2])
                 r, a = sensor.measure(FRAME, sb.x, sb.z, _height(t - b[2]))
@@ -62,6 +62,8 @@ def _simulate(sensors, periods, noise: float, seed: int = 1, biases=None, mode_c
             lat = lon = np.full(n, np.nan)
             alt = h if mode_c else np.full(n, np.nan)
         else:
+            if b[2]:  # a position reported late by b_t
+                st = evaluate(segs, t - b[2])
             xx = st.x + noise * rng.normal(0, sensor.position_sigma_m, n)
             zz = st.z + noise * rng.normal(0, sensor.position_sigma_m, n)
             lat, lon = FRAME.to_geodetic(xx, zz)
@@ -148,6 +150,31 @@ def test_registration_recovers_known_biases_within_3_sigma():
     assert abs(reps["A"].range_residual_mean_m) < 15.0
     assert reps["ADSB"].range_bias_m is None and reps["ADSB"].position_residual_rms_m < 60
     assert _rms(rec, x, z) < 40.0
+
+
+@pytest.mark.parametrize("late_s", [0.0, 1.0])
+def test_a_late_position_sensor_lies_behind_the_track(late_s):
+    """ADS-B reporting ``late_s`` late beside two unbiased radars: its plots lie behind the
+    track (along-track mean about -speed * late, less the part of the way the fit is drawn
+    towards them: -68 m at 203 m/s here), not beside it; on time, neither (0.01 m). Along and
+    across make up the distance."""
+    adsb = PositionSensor("ADSB", 30.0)
+    table, *_ = _simulate((SSR_A, SSR_B, adsb), ((4.8, 0.3), (4.0, 1.1), (5.0, 2.0)),
+                          noise=1.0, seed=3, biases={2: (0.0, 0.0, late_s)}, mode_c=True)
+    rec = reconstruct(table)
+    rep = {r.id: r for r in rec.sensors}["ADSB"]
+    rows = np.flatnonzero(table.sensor == 2)
+    speed = float(np.mean(rec.at_plots.speed[rows]))
+    if late_s:
+        assert -speed * late_s < rep.along_track_residual_mean_m < -0.25 * speed * late_s
+    else:
+        assert abs(rep.along_track_residual_mean_m) < 5.0
+    assert abs(rep.cross_track_residual_mean_m) < 5.0
+    assert 0 < rep.along_track_residual_sigma_m < 60 and 0 < rep.cross_track_residual_sigma_m < 60
+    res = rec.residuals
+    np.testing.assert_allclose(np.hypot(res.along_m[rows], res.cross_m[rows]),
+                               res.position_m[rows], rtol=1e-9)
+    assert np.isnan(res.along_m[table.sensor != 2]).all()
 
 
 def test_radar_and_adsb_with_a_gap():

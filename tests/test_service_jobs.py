@@ -124,6 +124,9 @@ def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
             named = "range_residual_m" if s["sensor"] != "ADSB" else "position_residual_m"
             assert abs(s[named]) < 30.0 and s["gated"] is False, s
             assert ("azimuth_residual_deg" in s) == (s["sensor"] != "ADSB")
+            if s["sensor"] == "ADSB":  # the distance split along and across the track
+                assert np.hypot(s["along_track_residual_m"], s["cross_track_residual_m"]) == \
+                    pytest.approx(s["position_residual_m"], rel=1e-9)
         figure = client.get(f"{loc}/tracks/{key}/figure.png")
         assert figure.headers["content-type"] == "image/png"
         assert figure.content[:8] == b"\x89PNG\r\n\x1a\n"

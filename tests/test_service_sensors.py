@@ -98,6 +98,10 @@ def test_two_radars_and_adsb_answer_on_the_earth(client):
             assert all("range_residual_m" not in s for s in mine)
             rms = np.sqrt(np.mean([s["position_residual_m"] ** 2 for s in kept]))
             assert rms == pytest.approx(stats["position_residual_rms_m"], rel=1e-9)
+            # split along and across the track (the statistics; per plot in a job's tracks)
+            assert abs(stats["along_track_residual_mean_m"]) < 20
+            assert 0 < stats["cross_track_residual_sigma_m"] < stats["position_residual_rms_m"]
+            assert all("along_track_residual_m" not in s for s in mine)
             continue
         assert all("position_residual_m" not in s for s in mine)
         for name in ("range_residual_m", "azimuth_residual_deg"):

@@ -87,6 +87,10 @@ def series(t_nodes: FloatArray, sol: np.ndarray, cov_nodes: np.ndarray, t: Float
     return out
 
 
+MIN_SPEED_FOR_TRACK_AXES = 1.0
+"""m/s: below it a state has no direction to split a position residual along (NaN there)."""
+
+
 def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
                    biases: np.ndarray, bias_sensors: list[int]) -> PlotResiduals:
     """Every plot against the track, measured minus predicted from the track after its
@@ -95,7 +99,7 @@ def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
     frame for position plots)."""
     n = len(table)
     out = PlotResiduals(np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan),
-                        np.zeros(n, bool))
+                        np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan))
     out.gated[gated] = True
     for k, sensor in enumerate(table.sensors):
         rows = np.flatnonzero(table.sensor == k)
@@ -111,7 +115,16 @@ def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
                                            2 * np.pi) - np.pi
         elif table.frame is not None:
             px, pz = table.frame.to_plane(table.lat_deg[rows], table.lon_deg[rows])
-            out.position_m[rows] = np.hypot(px - at_plots.x[rows], pz - at_plots.z[rows])
+            dx, dz = px - at_plots.x[rows], pz - at_plots.z[rows]
+            out.position_m[rows] = np.hypot(dx, dz)
+            vx, vz = at_plots.vx[rows], at_plots.vz[rows]
+            speed = np.hypot(vx, vz)
+            scale = np.where(speed >= MIN_SPEED_FOR_TRACK_AXES,
+                             1.0 / np.maximum(speed, MIN_SPEED_FOR_TRACK_AXES), np.nan)
+            ux, uz = vx * scale, vz * scale
+            assert out.along_m is not None and out.cross_m is not None
+            out.along_m[rows] = dx * ux + dz * uz
+            out.cross_m[rows] = dz * ux - dx * uz
     return out
 
 
@@ -144,6 +157,12 @@ def sensor_reports(table: PlotTable, residuals: PlotResiduals, biases: np.ndarra
                 rep.azimuth_residual_sigma_rad = float(da.std())
         elif keep.size and table.frame is not None:
             rep.position_residual_rms_m = float(np.sqrt(np.mean(residuals.position_m[keep]**2)))
+            for name, values in (("along", residuals.along_m), ("cross", residuals.cross_m)):
+                v = values[keep] if values is not None else np.empty(0)
+                v = v[np.isfinite(v)]
+                if v.size:
+                    setattr(rep, f"{name}_track_residual_mean_m", float(v.mean()))
+                    setattr(rep, f"{name}_track_residual_sigma_m", float(v.std()))
         reports.append(rep)
     return reports
 
