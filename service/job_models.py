@@ -3,9 +3,9 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, StringConstraints
 
 from .models import (
     BoundsIn,
@@ -58,6 +58,12 @@ class JobOptions(_In):
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
     sample_step_s: float | None = Field(None, gt=0, description=_SAMPLES_DOC)
+    aircraft: list[Annotated[str, StringConstraints(min_length=1, max_length=200)]] | None = \
+        Field(None, min_length=1, max_length=10_000, description="Reconstruct only these "
+              "aircraft of the recording (keys as in its tracks, e.g. a Mode S address "
+              "`3C6DD4` in either case; a key takes its later pieces `KEY#2` ... too): an "
+              "incident's aircraft out of a long recording. A key the recording does not hold "
+              "is an `aircraft_not_found` problem of the job. Default: every aircraft.")
 
 
 class JobTracksRequest(_In):
@@ -102,6 +108,8 @@ class JobOptionsOut(_Out):
     filters: list[str] = Field(description="The recursive filters run beside.")
     sample_step_s: float | None = Field(None, description="The step of the regular samples "
                                         "kept (null: none).")
+    aircraft: list[str] | None = Field(None, description="The aircraft asked for (null: "
+                                       "every aircraft).")
 
 
 class JobStatus(_Out):

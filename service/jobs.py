@@ -47,6 +47,7 @@ from solver.assessment import write_sensors_figure
 from solver.batch import TRACK_COLUMNS, TrackOutcome, read_part, reconstruct_many
 from solver.cli import (
     AssessedTrack,
+    Selection,
     SensorStats,
     assess_track,
     load,
@@ -535,7 +536,12 @@ class JobRunner:
         try:
             recording = next((d / "inputs").glob("recording.*"))
             loaded = load(recording, d / "inputs" / "sensors.json")
-            tracks = list(loaded.tracks)
+            chosen = Selection(self.aircraft(job.id))
+            tracks = list(chosen.filter(loaded.tracks))
+            for key in chosen.missing():
+                loaded.problems.add("aircraft_not_found", "options.aircraft",
+                                    f"{key} is not in the recording (or its track is too "
+                                    "short: see short_track)")
         except (InputError, ValueError, OSError, StopIteration) as e:
             reason = (f"{format_loc(e.loc)} {e.message}" if isinstance(e, InputError)
                       else f"the recording could not be read: {type(e).__name__}: {e}")
@@ -697,6 +703,11 @@ class JobRunner:
                 p.failed += 1
         self._progress_cache[job_id] = (stamp, p)
         return p
+
+    def aircraft(self, job_id: str) -> list[str] | None:
+        """The aircraft the job asked for (``params.json``; None: every aircraft)."""
+        doc = _read_json(self.job_dir(job_id) / "inputs" / "params.json") or {}
+        return doc.get("aircraft") or None
 
     def options(self, job_id: str) -> RunSettings:
         """The job's bounds and filters (``inputs/params.json``; a job accepted before they

@@ -259,22 +259,28 @@ def _options(text: str | None) -> JobOptions:
                                       for err in errors]) from None
 
 
-def _params(bounds: BoundsIn, filters: list[str], sample_step_s: float | None) -> str:
+def _params(bounds: BoundsIn, filters: list[str], sample_step_s: float | None,
+            aircraft: list[str] | None = None) -> str:
     """``params.json``: the job's :class:`solver.run_settings.RunSettings` (what its run reads,
-    :meth:`service.jobs.JobRunner.options`); the bounds are checked here as the reconstruction
-    would (422 at ``bounds.<name>``)."""
+    :meth:`service.jobs.JobRunner.options`) and the aircraft asked for
+    (:meth:`service.jobs.JobRunner.aircraft`); the bounds are checked here as the
+    reconstruction would (422 at ``bounds.<name>``)."""
     settings = RunSettings(bounds=Bounds(u=tuple(bounds.u), w=tuple(bounds.w),  # type: ignore[arg-type]
                                          v=tuple(bounds.v)), filters=tuple(filters),
                            sample_step_s=sample_step_s)
     settings.config().validate()
-    return json.dumps(settings.as_json())
+    doc = settings.as_json()
+    if aircraft:
+        doc["aircraft"] = aircraft
+    return json.dumps(doc)
 
 
 def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
                   inputs: Path) -> None:
     parse_sensors(sensors_text)  # 422 at sensors[j].field for a bad sensor file
     try:
-        params = _params(options.bounds, options.filters, options.sample_step_s)
+        params = _params(options.bounds, options.filters, options.sample_step_s,
+                         options.aircraft)
     except InputError as e:
         raise InputError(("options", *e.loc), e.message) from None
     src = recording.file
@@ -361,14 +367,15 @@ def _status(runner: JobRunner, job: JobRecord) -> JobStatus:
         finished=_iso(job.finished),
         elapsed_s=None if job.started is None or end is None else max(end - job.started, 0.0),
         runs=job.runs, input_bytes=job.input_bytes,
-        options=_options_out(runner.options(job.id)) if runner.job_dir(job.id).is_dir()
+        options=_options_out(runner.options(job.id), runner.aircraft(job.id))
+        if runner.job_dir(job.id).is_dir()
         else None)
 
 
-def _options_out(settings: RunSettings) -> dict[str, Any]:
+def _options_out(settings: RunSettings, aircraft: list[str] | None) -> dict[str, Any]:
     doc = settings.as_json()
     return {"bounds": doc["bounds"], "filters": doc["filters"],
-            "sample_step_s": doc["sample_step_s"]}
+            "sample_step_s": doc["sample_step_s"], "aircraft": aircraft}
 
 
 def _job(runner: JobRunner, job_id: str) -> JobRecord:

@@ -212,7 +212,7 @@ def test_job_options_run_the_filters_on_every_track(client):
     status = wait(client, loc)
     assert status["state"] == "done" and status["tracks_done"] == 2, status
     assert status["options"] == {"bounds": bounds, "filters": names,  # what it runs with
-                                 "sample_step_s": 5.0}
+                                 "sample_step_s": 5.0, "aircraft": None}
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
@@ -280,7 +280,7 @@ def test_job_options_run_the_filters_on_every_track(client):
     done = wait(client, up)
     assert done["state"] == "done" and done["options"] == {
         "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
-        "filters": ["imm_smoother"], "sample_step_s": 1e-4}
+        "filters": ["imm_smoother"], "sample_step_s": 1e-4, "aircraft": None}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
@@ -290,7 +290,22 @@ def test_job_options_run_the_filters_on_every_track(client):
                                 "more") for w in body["diagnostics"]["warnings"])
     missing = client.get(up + "/results/samples.parquet")
     assert missing.status_code == 404 and "no track kept any" in missing.json()["message"]
-    for job in (loc, up):
+
+    # `aircraft`: only the named (a Mode S address in either case); a name the recording does
+    # not hold is the job's problem
+    key = f"{FLIGHTS[1].address:06X}"
+    r = client.post("/v1/jobs", files={"recording": ("day.ast", enc.data),
+                                       "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                    data={"options": json.dumps({"aircraft": [key.lower(), "ABC123"]})})
+    assert r.status_code == 202, r.text
+    one = r.headers["location"]
+    done = wait(client, one)
+    assert done["state"] == "done" and done["tracks_total"] == done["tracks_done"] == 1
+    assert done["options"]["aircraft"] == [key.lower(), "ABC123"]
+    assert done["problems"]["counts"] == {"aircraft_not_found": 1}
+    assert "ABC123 is not in the recording" in done["problems"]["examples"][0]
+    assert [t["aircraft"] for t in client.get(one + "/tracks").json()] == [key]
+    for job in (loc, up, one):
         assert client.delete(job).status_code == 204
 
 
@@ -356,6 +371,8 @@ def test_upload_over_the_limit_is_413(client):
         ('{"bounds": {"v": [300.0, 30.0]}}', "options.bounds.v"),
         ('{"filters": ["singer"], "colour": 1}', "options.colour"),
         ('{"sample_step_s": 0}', "options.sample_step_s"),
+        ('{"aircraft": []}', "options.aircraft"),
+        ('{"aircraft": [""]}', "options.aircraft[0]"),
         ('{"filters": [', "options is not valid JSON"))),
 ])
 def test_bad_upload_is_422_naming_the_part(client, files, field):
