@@ -715,6 +715,12 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
               f"{f(r['range_residual_sigma_m'], '.1f'):>8}"
               f"{f(r['azimuth_residual_mean_deg'], '.3f'):>10}"
               f"{f(r['azimuth_residual_sigma_deg'], '.3f'):>8}", file=file)
+    for r in p["sensors"]:
+        if r.get("along_track_residual_mean_m") is not None:
+            print(f"{r['sensor']}: along the track {r['along_track_residual_mean_m']:+.1f} m "
+                  f"(sigma {r['along_track_residual_sigma_m']:.1f}; a late report lies behind), "
+                  f"across {r['cross_track_residual_mean_m']:+.1f} m "
+                  f"(sigma {r['cross_track_residual_sigma_m']:.1f})", file=file)
 
 
 COMMANDS = ("reconstruct", "plot")

@@ -127,6 +127,7 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     assert len(list((out / "figures").glob("*.png"))) == len(FLIGHTS)
     printed = capsys.readouterr().out
     assert "tracks: 2 (2 reconstructed, 0 failed" in printed and "R1" in printed
+    assert "ADSB: along the track " in printed
 
     # a rerun with other settings would mix two runs' tracks: refused, nothing touched
     code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
