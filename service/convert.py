@@ -179,7 +179,8 @@ def _sensor_table(req: ReconstructionRequest) -> PlotTable:
     sensors: list[RadarSensor | PositionSensor] = []
     for j, s in enumerate(req.sensors):
         if isinstance(s, PositionSensorIn):
-            sensors.append(PositionSensor(s.id, s.position_sigma_m, s.altitude_sigma_m))
+            sensors.append(PositionSensor(s.id, s.position_sigma_m, s.altitude_sigma_m,
+                                          estimate_bias=s.estimate_bias))
             continue
         if (s.lat_deg is None) != (s.lon_deg is None):
             missing = "lat_deg" if s.lat_deg is None else "lon_deg"

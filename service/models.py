@@ -93,6 +93,10 @@ class PositionSensorIn(_In):
                                     "> 0).", examples=[30.0])
     altitude_sigma_m: float = Field(15.0, description="Standard deviation of the plots' "
                                     "`altitude_m` (m, > 0).", examples=[15.0])
+    estimate_bias: bool = Field(
+        False, description="Estimate this sensor's time offset (s; its latency: a report late "
+        "by d s gives where the aircraft was d s before) against the other sensors, with the "
+        "trajectory (prior 1 s); reported in `sensors` as `time_bias_s`.")
 
 
 SensorIn = Annotated[RadarSensorIn | PositionSensorIn, Field(discriminator="kind")]

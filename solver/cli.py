@@ -346,8 +346,9 @@ class SensorStats:
                     acc[0] += n
                     acc[1] += n * mean
                     acc[2] += n * (sigma**2 + mean**2)
-            if r["range_bias_m"] is not None:
-                a["biases"].add((r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]))
+            if r.get("time_bias_s") is not None:  # a position sensor: its time offset alone
+                a["biases"].add(tuple(math.nan if r.get(k) is None else r[k] for k in (
+                    "range_bias_m", "azimuth_bias_rad", "time_bias_s")))
 
     def rows(self) -> list[dict[str, Any]]:
         out = []
@@ -381,8 +382,10 @@ class SensorStats:
                         np.sqrt(max(squares / count - mean**2, 0.0)))
             if a["biases"].values:
                 b = np.median(np.array(a["biases"].values), axis=0)
-                row["range_bias_m"], row["time_bias_s"] = float(b[0]), float(b[2])
-                row["azimuth_bias_deg"] = float(np.rad2deg(b[1]))
+                row["time_bias_s"] = float(b[2])
+                if radar:
+                    row["range_bias_m"] = float(b[0])
+                    row["azimuth_bias_deg"] = float(np.rad2deg(b[1]))
             out.append({k: row.get(k) for k in SENSOR_COLUMNS})
         return out
 

@@ -227,11 +227,15 @@ def _altitude_remainder(sensor: RadarSensor, frame: LocalFrame | None, r: FloatA
 @dataclass(frozen=True)
 class PositionSensor:
     """ADS-B / WAM-like positions: latitude, longitude with ``position_sigma_m`` per horizontal
-    axis; ``altitude_sigma_m`` for the altitude its plots may carry."""
+    axis; ``altitude_sigma_m`` for the altitude its plots may carry; ``estimate_bias``: estimate
+    its time offset (a report late by ``b_t`` s gives where the aircraft was ``b_t`` s before;
+    the latency of ADS-B) against the other sensors, with the prior ``bias_prior.time_s``."""
 
     id: str
     position_sigma_m: float
     altitude_sigma_m: float = 15.0
+    estimate_bias: bool = field(default=False, kw_only=True)
+    bias_prior: BiasPrior = field(default_factory=BiasPrior, kw_only=True)
     kind: ClassVar[str] = "position"
 
     def validate_at(self, loc: tuple[str | int, ...]) -> None:

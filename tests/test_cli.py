@@ -369,3 +369,19 @@ def test_a_selection_takes_a_keys_later_pieces():
     assert chosen.missing() == []
     assert Selection(["ABC123"]).missing() == ["ABC123"]
     assert list(Selection(None).filter(iter(names))) == names
+
+
+def test_sensor_statistics_pool_a_position_sensors_time_offset():
+    """A position sensor's per-track time offsets (its latency) pool to their median; it has
+    no range or azimuth offset."""
+    from solver.cli import SensorStats
+
+    stats = SensorStats(parse_sensors(SENSOR_FILE), {})
+    for k, lag in enumerate((0.9, 1.1, 1.0)):
+        stats.add([{"id": "ADSB", "kind": "position", "plots": 50, "plots_gated": 0,
+                    "range_residual_mean_m": None, "position_residual_rms_m": 20.0,
+                    "range_bias_m": None, "azimuth_bias_rad": None, "time_bias_s": lag,
+                    "span_s": 250.0, "median_step_s": 5.0 + k}])
+    row = {r["sensor"]: r for r in stats.rows()}["ADSB"]
+    assert row["time_bias_s"] == pytest.approx(1.0)
+    assert row["range_bias_m"] is None and row["azimuth_bias_deg"] is None

@@ -159,3 +159,17 @@ def test_table_rejects_bad_input_naming_the_field(change, loc):
 def test_input_error_survives_pickling():
     e = pickle.loads(pickle.dumps(InputError(("plots", 3, "sensor"), "is unknown")))
     assert e.loc == ("plots", 3, "sensor") and e.message == "is unknown"
+
+
+def test_a_position_sensor_may_ask_for_its_time_offset():
+    from solver.io.sensors_file import parse_sensors
+    from solver.sensors import PositionSensor
+
+    radar = {"id": "R", "kind": "radar", "range_error_m": 150.0, "azimuth_error_deg": 0.24}
+    adsb = {"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}
+    got = parse_sensors([radar, {**adsb, "estimate_bias": True}]).sensors[1]
+    assert isinstance(got, PositionSensor) and got.estimate_bias
+    assert not parse_sensors([radar, adsb]).sensors[1].estimate_bias
+    with pytest.raises(InputError) as e:
+        parse_sensors([radar, {**adsb, "estimate_bias": "yes"}])
+    assert e.value.loc == ("sensors", 1, "estimate_bias")

@@ -62,10 +62,9 @@ def _simulate(sensors, periods, noise: float, seed: int = 1, biases=None, mode_c
             lat = lon = np.full(n, np.nan)
             alt = h if mode_c else np.full(n, np.nan)
         else:
-            if b[2]:  # a position reported late by b_t
-                st = evaluate(segs, t - b[2])
-            xx = st.x + noise * rng.normal(0, sensor.position_sigma_m, n)
-            zz = st.z + noise * rng.normal(0, sensor.position_sigma_m, n)
+            sb = evaluate(segs, t - b[2]) if b[2] else st  # a position reported late by b_t
+            xx = sb.x + noise * rng.normal(0, sensor.position_sigma_m, n)
+            zz = sb.z + noise * rng.normal(0, sensor.position_sigma_m, n)
             lat, lon = FRAME.to_geodetic(xx, zz)
             r = a = np.full(n, np.nan)
             alt = h
@@ -175,6 +174,27 @@ def test_a_late_position_sensor_lies_behind_the_track(late_s):
     np.testing.assert_allclose(np.hypot(res.along_m[rows], res.cross_m[rows]),
                                res.position_m[rows], rtol=1e-9)
     assert np.isnan(res.along_m[table.sensor != 2]).all()
+
+
+def test_a_position_sensors_latency_is_estimated():
+    """ADS-B 1 s late beside two unbiased radars, its time offset estimated (``estimate_bias``):
+    recovered within 3 sigma (1.000 +- 0.017 s), its plots then on the track (along-track mean
+    0.01 m, where unestimated it is -68 m), and the track 15 m RMS from the truth (136 m
+    without the estimate)."""
+    periods = ((4.8, 0.3), (4.0, 1.1), (5.0, 2.0))
+    fits = {}
+    for estimate in (False, True):
+        adsb = PositionSensor("ADSB", 30.0, estimate_bias=estimate)
+        table, x, z, _ = _simulate((SSR_A, SSR_B, adsb), periods, noise=1.0, seed=3,
+                                   biases={2: (0.0, 0.0, 1.0)}, mode_c=True)
+        rec = reconstruct(table)
+        fits[estimate] = (rec, {r.id: r for r in rec.sensors}["ADSB"], _rms(rec, x, z))
+    rec, rep, rms = fits[True]
+    assert abs(rep.time_bias_s - 1.0) < 3 * rep.time_bias_sigma_s, rep
+    assert 0 < rep.time_bias_sigma_s < 0.2 and rep.range_bias_m is None
+    assert abs(rep.along_track_residual_mean_m) < 10.0
+    assert fits[False][1].time_bias_s is None
+    assert rms < 25.0 and rms < 0.2 * fits[False][2], (rms, fits[False][2])
 
 
 def test_radar_and_adsb_with_a_gap():

@@ -146,6 +146,15 @@ def test_bias_estimates_are_reported_in_degrees(client):
     s = res.json()["sensors"][0]
     assert s["range_bias_sigma_m"] > 0 and s["azimuth_bias_sigma_deg"] > 0
     assert abs(s["azimuth_bias_deg"]) < 3 * s["azimuth_bias_sigma_deg"] + 1e-3
+    # a position sensor's estimate_bias: its time offset alone (the plots are on time here)
+    body = _body(mode_c=True)
+    body["sensors"][2]["estimate_bias"] = True
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 200, res.text
+    adsb = res.json()["sensors"][2]
+    assert adsb["id"] == "ADSB" and adsb["range_bias_m"] is None
+    assert 0 < adsb["time_bias_sigma_s"] < 0.1
+    assert abs(adsb["time_bias_s"]) < 3 * adsb["time_bias_sigma_s"]
 
 
 def test_single_radar_answer_has_no_earth_fields(client):

@@ -13,7 +13,8 @@ neither, unique pairs) so ASTERIX records find their sensor::
       "max_altitude_m": 0.0, "max_elevation_deg": 0.0,             # optional
       "estimate_bias": false},                                      # optional
      {"id": "ADSB", "kind": "position", "sac": 25, "sic": 1,
-      "position_sigma_m": 30.0, "altitude_sigma_m": 15.0}]         # altitude: optional
+      "position_sigma_m": 30.0, "altitude_sigma_m": 15.0,          # altitude: optional
+      "estimate_bias": false}]                                      # its time offset: optional
 
 A radar without ``lat_deg``/``lon_deg`` sits at the reference point. Unknown keys, wrong types,
 NaN and bad values raise :class:`solver.InputError` at ``sensors[j].field``; JSON syntax errors
@@ -37,7 +38,8 @@ Loc = tuple[str | int, ...]
 _RADAR_KEYS = {"id", "kind", "sac", "sic", "lat_deg", "lon_deg", "height_m", "range_error_m",
                "azimuth_error_deg", "range_sigma_m", "azimuth_sigma_deg", "max_altitude_m",
                "max_elevation_deg", "estimate_bias"}
-_POSITION_KEYS = {"id", "kind", "sac", "sic", "position_sigma_m", "altitude_sigma_m"}
+_POSITION_KEYS = {"id", "kind", "sac", "sic", "position_sigma_m", "altitude_sigma_m",
+                  "estimate_bias"}
 
 
 @dataclass(frozen=True)
@@ -138,10 +140,14 @@ def _sensor(obj: object, loc: Loc) -> tuple[Sensor, tuple[int, int] | None]:
         raise InputError((*loc, missing), "is required with the other ASTERIX code")
     if "sac" in obj:
         code = (_code(obj, "sac", loc), _code(obj, "sic", loc))
+    bias = obj.get("estimate_bias", False)
+    if not isinstance(bias, bool):
+        raise InputError((*loc, "estimate_bias"), "must be true or false")
     if kind == "position":
         sensor: Sensor = PositionSensor(
             sid, _number(obj, "position_sigma_m", loc, required=True),  # type: ignore[arg-type]
-            _number(obj, "altitude_sigma_m", loc, default=15.0))  # type: ignore[arg-type]
+            _number(obj, "altitude_sigma_m", loc, default=15.0),  # type: ignore[arg-type]
+            estimate_bias=bias)
         return sensor, code
     if ("lat_deg" in obj) != ("lon_deg" in obj):
         missing = "lon_deg" if "lat_deg" in obj else "lat_deg"
@@ -154,9 +160,6 @@ def _sensor(obj: object, loc: Loc) -> tuple[Sensor, tuple[int, int] | None]:
     elif "height_m" in obj:
         raise InputError((*loc, "height_m"), "needs lat_deg and lon_deg")
     deg = math.pi / 180
-    bias = obj.get("estimate_bias", False)
-    if not isinstance(bias, bool):
-        raise InputError((*loc, "estimate_bias"), "must be true or false")
     sigma_psi = _number(obj, "azimuth_sigma_deg", loc)
     sensor = RadarSensor(
         _number(obj, "range_error_m", loc, required=True),  # type: ignore[arg-type]

@@ -13,7 +13,8 @@ segments, states and per-sensor statistics.
 Every plot is weighted by its own sensor's model at its own time (no "aging"). Where radar plots
 without altitude meet another sensor, the height becomes observable and is estimated per node
 (an integrated random walk); radars with ``estimate_bias`` have their range, azimuth and time
-offsets estimated with the track under their priors.
+offsets estimated with the track under their priors, position sensors (ADS-B) their time
+offset.
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ from ..config import ReconstructionConfig, RefineSettings
 from ..inputs import Plots, Radar
 from ..plots import PlotTable
 from ..results import Diagnostics, Reconstruction
-from ..sensors import RadarSensor
 from ..trajectory import sample_times
 from . import nlp
 from .blocks import (
@@ -96,8 +96,9 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     n = t_nodes.size
     plot_node = np.empty(len(table), dtype=int)
     plot_node[order] = node_of_sorted
-    bias_sensors = [k for k, s in enumerate(table.sensors)
-                    if isinstance(s, RadarSensor) and s.estimate_bias]
+    # a position sensor's range and azimuth terms have no plot behind them (zero derivatives):
+    # their priors hold them at zero, and only its time offset is reported
+    bias_sensors = [k for k, s in enumerate(table.sensors) if s.estimate_bias]
     lone = bool(bias_sensors) and len(table.sensors) < 2
     if lone:  # nothing to register against: the penalties, not the plots, would set them
         bias_sensors = []
@@ -117,7 +118,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     else:
         diag = Diagnostics(criterion="R2")
         if lone:
-            diag.warnings.append("estimate_bias: a lone radar's offsets are not observable "
+            kind = "radar" if table.sensors[0].kind == "radar" else "position sensor"
+            diag.warnings.append(f"estimate_bias: a lone {kind}'s offsets are not observable "
                                  "(nothing to register it against); not estimated")
         if variant.altitude:
             guess, h0 = altitude_guess(table, data, plot_node, t_nodes, bounds)

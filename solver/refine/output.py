@@ -115,7 +115,9 @@ def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
                                            2 * np.pi) - np.pi
         elif table.frame is not None:
             px, pz = table.frame.to_plane(table.lat_deg[rows], table.lon_deg[rows])
-            dx, dz = px - at_plots.x[rows], pz - at_plots.z[rows]
+            lag = biases[bias_sensors.index(k)][2] if k in bias_sensors else 0.0
+            dx = px - (at_plots.x[rows] - lag * at_plots.vx[rows])
+            dz = pz - (at_plots.z[rows] - lag * at_plots.vz[rows])
             out.position_m[rows] = np.hypot(dx, dz)
             vx, vz = at_plots.vx[rows], at_plots.vz[rows]
             speed = np.hypot(vx, vz)
@@ -155,7 +157,11 @@ def sensor_reports(table: PlotTable, residuals: PlotResiduals, biases: np.ndarra
                 rep.azimuth_residual_mean_rad = float(da.mean())
                 rep.azimuth_residual_rms_rad = float(np.sqrt(np.mean(da**2)))
                 rep.azimuth_residual_sigma_rad = float(da.std())
-        elif keep.size and table.frame is not None:
+        elif k in bias_sensors:  # a position sensor's time offset (its latency)
+            j = bias_sensors.index(k)
+            rep.time_bias_s = float(biases[j][2])
+            rep.time_bias_sigma_s = float(np.sqrt(max(np.diag(bias_cov)[3 * j + 2], 0.0)))
+        if not isinstance(sensor, RadarSensor) and keep.size and table.frame is not None:
             rep.position_residual_rms_m = float(np.sqrt(np.mean(residuals.position_m[keep]**2)))
             for name, values in (("along", residuals.along_m), ("cross", residuals.cross_m)):
                 v = values[keep] if values is not None else np.empty(0)
