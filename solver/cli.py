@@ -723,7 +723,9 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
             print(f"{r['sensor']}: along the track {r['along_track_residual_mean_m']:+.1f} m "
                   f"(sigma {r['along_track_residual_sigma_m']:.1f}; a late report lies behind), "
                   f"across {r['cross_track_residual_mean_m']:+.1f} m "
-                  f"(sigma {r['cross_track_residual_sigma_m']:.1f})", file=file)
+                  f"(sigma {r['cross_track_residual_sigma_m']:.1f})"
+                  + ("" if r.get("time_bias_s") is None
+                     else f"; time offset {r['time_bias_s']:+.3f} s"), file=file)
 
 
 COMMANDS = ("reconstruct", "plot")
