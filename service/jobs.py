@@ -631,6 +631,7 @@ class JobRunner:
             _combine(out / name, _committed_parts(progress), export / name,
                      TRACK_COLUMNS if name == "tracks.parquet" else None)
         record = self._db().get(job_id)
+        settings = self.options(job_id)
         summary = {"tracks": len(progress.entries), "done": progress.done,
                    "failed": progress.failed, "plots": progress.plots_done,
                    "rows_in_recording": len(loaded.rows),
@@ -638,8 +639,8 @@ class JobRunner:
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None,
-                   "filters": list(self.options(job_id).filters),
-                   "sample_step_s": self.options(job_id).sample_step_s}
+                   "filters": list(settings.filters),
+                   "sample_step_s": settings.sample_step_s}
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")
 

@@ -498,25 +498,25 @@ def _track_diagnostics(entry: dict[str, Any]) -> dict[str, Any]:
 
 
 def _state_rows(t: Any, cov: bool = True) -> list[dict[str, Any]]:
+    """``tracks.parquet`` rows of one track: :func:`_sample_rows` with each plot's index,
+    sensor and residuals (those it has)."""
     cols = t.to_pydict()
-    out = []
-    for i in range(t.num_rows):
-        row = {k: cols[k][i] for k in ("plot", "sensor", "t", "x", "z", "vx", "vz", "speed",
-                                       "heading_deg", "lat_deg", "lon_deg")}
-        row["heading_deg"] = row["heading_deg"] % 360.0
-        row["cov"] = _cov(cols, i) if cov else None
+    out = _sample_rows(t, cov, cols)
+    for i, row in enumerate(out):
+        row["plot"], row["sensor"] = cols["plot"][i], cols["sensor"][i]
         for name in ("range_residual_m", "azimuth_residual_deg", "position_residual_m",
                      "along_track_residual_m", "cross_track_residual_m", "gated"):
             if cols.get(name) is not None and cols[name][i] is not None:
                 row[name] = cols[name][i]
-        if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:
-            row["altitude_m"], row["altitude_sigma_m"] = cols["h_m"][i], cols["h_sigma_m"][i]
-        out.append(row)
     return out
 
 
-def _sample_rows(t: Any, cov: bool = True) -> list[dict[str, Any]]:
-    cols = t.to_pydict()
+def _sample_rows(t: Any, cov: bool = True, cols: dict[str, list[Any]] | None = None
+                 ) -> list[dict[str, Any]]:
+    """States of one track (``samples.parquet``, or ``tracks.parquet`` with ``cols`` its
+    columns already read): kinematics, the covariance unless ``cov`` is false, the height
+    where it was estimated."""
+    cols = t.to_pydict() if cols is None else cols
     out = []
     for i in range(t.num_rows):
         row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "speed", "heading_deg",

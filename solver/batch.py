@@ -202,9 +202,10 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
         warnings += rec.diagnostics.warnings
         t_filters = time.perf_counter()
         filtered = _filters_table(key, table, filters, times_of_day, warnings)
+        filters_ms = 1e3 * (time.perf_counter() - t_filters) if filters else 0.0
         diagnostics = rec.diagnostics.as_dict()
         del diagnostics["warnings"]
-        diagnostics["filters_ms"] = 1e3 * (time.perf_counter() - t_filters) if filters else 0.0
+        diagnostics["filters_ms"] = filters_ms
         altitude = (None if rec.altitude_m is None else
                     {"m": float(rec.altitude_m), "sigma_m": float(rec.altitude_sigma_m or 0.0)})
     except Exception as e:  # isolated: one track's failure is its own
