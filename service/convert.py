@@ -119,9 +119,6 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
         raise InputError(("sample_step_s",), f"({config.sample_step_s:g} s) gives more than "
                          f"{max_samples} samples over the {span:g}-s track; this service's "
                          "limit is max_samples")
-    if not table.is_legacy and config.method == "sliding":
-        raise InputError(("method",), "sliding takes the plots of one radar at the origin of a "
-                         "flat plane (`radar`); use refined with `sensors`")
     if not table.is_legacy and n < 3:
         raise InputError(("plots",), f"has {n} plot(s); reconstructing from `sensors` needs at "
                          "least 3")

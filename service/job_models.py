@@ -12,6 +12,7 @@ from .models import (
     DiagnosticsOut,
     FilterName,
     FilterOut,
+    Method,
     PlotIn,
     PlotStateOut,
     ReferenceIn,
@@ -40,6 +41,9 @@ _BOUNDS_DOC = "Control and speed bounds, for every track."
 _FILTERS_DOC = ("Recursive estimators run beside the reconstruction of every track, each "
                 "answered under the track's `filters.<name>` and in `filters.parquet` (a "
                 "filter that cannot run on a track is a warning of that track). Default: none.")
+_METHOD_DOC = ("How every track is reconstructed, as the single-track request's `method`: "
+               "`refined` (default), one bounded piecewise-constant-control NLP over the whole "
+               "track; `sliding`, the seed's sliding windows.")
 _SAMPLES_DOC = ("Keep every track's state every this many seconds (s, > 0; from its first plot "
                 "to its last, with the covariance): the track's `trajectory.samples` and "
                 "`samples.parquet`. A track that would have `max_samples` (a service setting) "
@@ -54,6 +58,7 @@ class JobOptions(_In):
         {"bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
          "filters": ["imm_smoother"], "sample_step_s": 1.0}]})
 
+    method: Method = Field("refined", description=_METHOD_DOC)
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
@@ -82,6 +87,7 @@ class JobTracksRequest(_In):
         min_length=1, description="Plots per aircraft key (the key is the track's name in "
         "every result). Plots of one sensor in time order; at least 3 plots per track (shorter "
         "tracks are reported in the job's problems).")
+    method: Method = Field("refined", description=_METHOD_DOC)
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
@@ -103,6 +109,7 @@ class ProblemsOut(_Out):
 class JobOptionsOut(_Out):
     """What every track of the job is reconstructed with."""
 
+    method: str = Field("refined", description="The method (`refined` or `sliding`).")
     bounds: dict[str, list[float]] = Field(description="The bounds `u`, `w` (m/s^2) and `v` "
                                            "(m/s), each [min, max].")
     filters: list[str] = Field(description="The recursive filters run beside.")

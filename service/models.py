@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from solver.estimation import FILTER_NAMES
 
 FilterName = Literal[FILTER_NAMES]  # type: ignore[valid-type]
+Method = Literal["refined", "sliding"]
 
 
 class _In(BaseModel):
@@ -211,7 +212,7 @@ class ReconstructionRequest(_In):
     criterion: Literal["R1", "R2"] = Field(
         "R2", description="Window fit criterion: `R1` plain least squares, `R2` residuals "
         "weighted by each plot's uncertainty ellipse (default).")
-    method: Literal["refined", "sliding"] = Field(
+    method: Method = Field(
         "refined", description="`refined` (default): one bounded piecewise-constant-control "
         "NLP over the whole track, which uses every plot before and after each point (started "
         "from a constant-velocity smoother; tracks of fewer than 3 plots take the sliding "

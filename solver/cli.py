@@ -812,9 +812,8 @@ def _inputs(ap: argparse.ArgumentParser) -> None:
 def _method(ap: argparse.ArgumentParser, default: str | None) -> None:
     ap.add_argument("--method", choices=("refined", "sliding"), default=default,
                     help="refined (the full-track NLP, default) or sliding (the seed's windows "
-                    "alone: one radar without a site, at the origin of a flat plane; other "
-                    "tracks fail with that reason)" + ("" if default else "; default: the "
-                                                       "run's in --out"))
+                    "alone, over every sensor's plots in time order; no covariance, no sensor "
+                    "offsets)" + ("" if default else "; default: the run's in --out"))
 
 
 def _bounds(ap: argparse.ArgumentParser, default: list[str] | None) -> None:

@@ -29,7 +29,8 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
     origin of a flat plane) or a :class:`PlotTable` of any sensors (``radar`` None).
 
     ``config.method == "sliding"``: the seed's sliding constant-control windows (spec section
-    6), for a single radar at the origin of a flat plane only. ``"refined"`` (default): one
+    6); over sensors on the earth (a table), over every plot's fix in the plane
+    (:func:`solver.sliding.reconstruct_sliding_table`). ``"refined"`` (default): one
     bounded full-track NLP over every plot of every sensor (``solver.refine``); single-radar
     tracks of fewer than 3 plots take the sliding path, which defines their behaviour.
     ``deadline`` (``time.monotonic()``): the refinement stops at its next IPOPT iteration after
@@ -53,15 +54,15 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
         result = _reconstruct_single(legacy_plots, legacy_radar, config, deadline)
     else:
         from .refine import refine_table
+        from .sliding import reconstruct_sliding_table
 
-        if config.method == "sliding":
-            raise InputError(("method",), "sliding takes the plots of one radar at the origin "
-                             "of a flat plane (the request's `radar`); use refined for sensors "
-                             "on the earth or several sensors")
         if len(table) < 3:
             raise InputError(("plots",), f"has {len(table)} plot(s); reconstructing from "
                              "`sensors` needs at least 3")
-        result = refine_table(table, config, deadline=deadline)
+        if config.method == "sliding":
+            result = reconstruct_sliding_table(table, config, deadline)
+        else:
+            result = refine_table(table, config, deadline=deadline)
     if table.frame is not None:
         result.frame = table.frame
         for s in (result.at_plots, result.samples):

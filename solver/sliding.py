@@ -51,6 +51,7 @@ from .geometry import uncertainty_ellipses
 from .guess import initial_guess
 from .inputs import FloatArray, InputError, Plots, Radar
 from .motion import propagate
+from .plots import PlotTable
 from .refine import DeadlineExceeded
 from .results import Diagnostics, Reconstruction, Segment, StateSeries
 from .trajectory import evaluate, sample_times
@@ -263,14 +264,86 @@ def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig
     ``deadline``: see :func:`slide`."""
     clock = time.perf_counter()
     diag = Diagnostics(method="sliding", criterion=config.criterion)
-    t = plots.t
-    n = len(t)
     cx, cz, abc, scale = criterion_data(plots, radar, config.criterion)
+    rec = _slide_track(plots.t, cx, cz, abc, scale, config, diag, deadline)
+    diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
+    return rec
+
+
+def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
+                              deadline: float | None = None) -> Reconstruction:
+    """The sliding windows over any plot table: several sensors at their sites on the earth,
+    position sensors (ADS-B) among them. Each plot is its fix in the table's plane
+    (:meth:`solver.plots.PlotTable.fixes`: its position and one-sigma ellipse from its sensor),
+    and the windows slide over the fixes of all sensors in time order, as over one radar's.
+
+    What the sliding windows do not estimate, the table's plots fix beforehand: radar plots
+    without an altitude, where another sensor sees the aircraft, are placed at the refinement's
+    starting height (:func:`solver.refine.nodes.altitude_guess`: the plots' altitudes
+    interpolated, else the constant height whose fixes a constant-velocity smoother fits
+    best), else at the radar's height (the seed's convention). Sensor offsets are not
+    estimated (a warning names the sensors that ask for it). R1 weighs every plot alike in
+    units of the median along-ray sigma. States at the plots come in table order, each plot
+    against the track (:func:`solver.refine.output.plot_residuals`) with its sensor's
+    statistics; no covariance (as the seed's method)."""
+    from .refine.layout import Variant
+    from .refine.nodes import NodeData, altitude_guess, node_grid
+    from .refine.output import plot_residuals, sensor_reports
+
+    clock = time.perf_counter()
+    diag = Diagnostics(method="sliding", criterion=config.criterion)
+    order = table.time_order()
+    t = table.t[order]
+    fixes = table.fixes()
+    heights = None
+    if table.estimate_altitude():
+        t_nodes, node_of_sorted = node_grid(t, config.refine.max_node_step_s)
+        plot_node = np.empty(len(table), dtype=int)
+        plot_node[order] = node_of_sorted
+        data = NodeData.assemble(table, fixes, t_nodes.size, plot_node,
+                                 Variant(altitude=True), [])
+        _, h_nodes = altitude_guess(table, data, plot_node, t_nodes, config.bounds)
+        heights = h_nodes[plot_node]
+        centres = fixes.centre_at(heights)
+        free = fixes.altitude_free
+        diag.warnings.append(
+            f"{int(free.sum())} radar plot(s) without an altitude placed at "
+            f"{float(np.median(heights[free])):.0f} m (median), the height the plots fit best; "
+            "the sliding windows do not estimate it (the refined method does)")
+    else:
+        centres = np.column_stack([fixes.ellipses.cx, fixes.ellipses.cz])
+    asked = [s.id for s in table.sensors if s.estimate_bias]
+    if asked:
+        diag.warnings.append(f"estimate_bias: the sliding windows do not estimate sensor "
+                             f"offsets ({', '.join(asked)}); the refined method does")
+    ell = fixes.ellipses
+    if config.criterion == "R2":
+        abc, scale = ell.weights(), 1.0
+    else:
+        scale = float(np.median(ell.B)) ** 2
+        abc = np.tile([1.0 / scale, 0.0, 1.0 / scale], (len(table), 1))
+    rec = _slide_track(t, centres[order, 0], centres[order, 1], abc[order], scale, config, diag,
+                       deadline, at=table.t)
+    if heights is not None:
+        rec.at_plots.h = heights
+    rec.residuals = plot_residuals(table, rec.at_plots, np.zeros(0, dtype=int),
+                                   np.zeros((0, 3)), [])
+    rec.sensors = sensor_reports(table, rec.residuals, np.zeros((0, 3)), np.zeros((0, 0)), [])
+    diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
+    return rec
+
+
+def _slide_track(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, scale: float,
+                 config: ReconstructionConfig, diag: Diagnostics, deadline: float | None,
+                 at: FloatArray | None = None) -> Reconstruction:
+    """The sliding windows over time-ordered fixes (centres, R2 weight entries, the factor of
+    the criterion's units); states at the times ``at`` (default ``t``)."""
+    at = t if at is None else at
+    n = len(t)
     if n == 1:
         diag.warnings.append("only one plot: no trajectory; the state at the plot is its "
                              "position with zero velocity")
         state = StateSeries(t.copy(), cx.copy(), cz.copy(), np.zeros(1), np.zeros(1))
-        diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
         samples = StateSeries(t.copy(), cx.copy(), cz.copy(), np.zeros(1), np.zeros(1))
         return Reconstruction([], state, samples, diag)
     start, clipped = initial_state(t, cx, cz, config.bounds.v)
@@ -290,8 +363,7 @@ def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig
             diag.warnings.append("initial speed from the first plots was outside the speed "
                                  "bounds and was clipped")
         segments = slide(t, cx, cz, abc, start, m, config, diag, scale, deadline=deadline)
-    at_plots = evaluate(segments, t)
+    at_plots = evaluate(segments, at)
     samples = evaluate(segments, sample_times(t[0], t[-1], config.sample_step_s))
     diag.extra["accepted_windows"] = len(diag.criterion_values)
-    diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
     return Reconstruction(segments, at_plots, samples, diag)

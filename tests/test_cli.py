@@ -357,6 +357,32 @@ def test_named_aircraft_alone_are_reconstructed(recording, tmp_path, capsys):
     assert summary["done"] == 1 and summary["aircraft_not_found"] == ["ABC123"]
 
 
+def test_sliding_windows_reconstruct_the_recording(recording, tmp_path):
+    """`--method sliding`: the seed's windows over every sensor's plots of each aircraft (two
+    radars and ADS-B on the earth, across midnight): every track within 60 m of its flight
+    (exact plots), no covariance, the method in the summary and each track's diagnostics."""
+    d, enc = recording
+    out = tmp_path / "sliding"
+    assert main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--workers", "1",
+                 "--no-progress", "--out", str(out), "--method", "sliding"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["method"] == "sliding" and summary["done"] == len(FLIGHTS)
+    table = pq.read_table(out / "tracks.parquet")
+    assert np.isnan(table.column("cov_x_x").to_numpy(zero_copy_only=False)).all()
+    keys = table.column("aircraft").to_numpy(zero_copy_only=False).astype(str)
+    t_all = table.column("t").to_numpy()
+    for k, f in enumerate(FLIGHTS):
+        sel = keys == f"{f.address:06X}"
+        t = t_all[sel]
+        lat, lon, _ = f.at(t - t.min() + _first_t(enc, k))
+        dy = (table.column("lat_deg").to_numpy()[sel] - lat) * 111_000
+        dx = (table.column("lon_deg").to_numpy()[sel] - lon) * 111_000 * np.cos(
+            np.deg2rad(lat))
+        assert np.hypot(dx, dy).max() < 60.0
+    lines = [json.loads(x) for x in (out / "progress.jsonl").read_text().splitlines()]
+    assert {x["diagnostics"]["method"] for x in lines if "diagnostics" in x} == {"sliding"}
+
+
 def test_a_selection_takes_a_keys_later_pieces():
     from types import SimpleNamespace
 

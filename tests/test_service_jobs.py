@@ -212,7 +212,8 @@ def test_job_options_run_the_filters_on_every_track(client):
     status = wait(client, loc)
     assert status["state"] == "done" and status["tracks_done"] == 2, status
     assert status["options"] == {"bounds": bounds, "filters": names,  # what it runs with
-                                 "sample_step_s": 5.0, "aircraft": None}
+                                 "sample_step_s": 5.0, "aircraft": None,
+                                 "method": "refined"}
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
@@ -266,6 +267,7 @@ def test_job_options_run_the_filters_on_every_track(client):
                                        ["samples"]) for k in tracks)
     summary = json.loads(client.get(loc + "/results/summary.json").content)
     assert summary["filters"] == names and summary["sample_step_s"] == 5.0
+    assert summary["method"] == "refined"
     archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
     assert {"filters.parquet", "samples.parquet"} <= set(archive.namelist())
 
@@ -280,7 +282,8 @@ def test_job_options_run_the_filters_on_every_track(client):
     done = wait(client, up)
     assert done["state"] == "done" and done["options"] == {
         "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
-        "filters": ["imm_smoother"], "sample_step_s": 1e-4, "aircraft": None}
+        "filters": ["imm_smoother"], "sample_step_s": 1e-4, "aircraft": None,
+        "method": "refined"}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
@@ -306,6 +309,57 @@ def test_job_options_run_the_filters_on_every_track(client):
     assert "ABC123 is not in the recording" in done["problems"]["examples"][0]
     assert [t["aircraft"] for t in client.get(one + "/tracks").json()] == [key]
     for job in (loc, up, one):
+        assert client.delete(job).status_code == 204
+
+
+def test_a_jobs_method_is_the_single_track_method(client):
+    """`method: sliding` (JSON body; an upload's `options`): every track is the seed's sliding
+    windows, the same as the single-track endpoint's `sliding` answer for its plots (segments
+    and states), not the refined default."""
+    enc = encode_recording(duration=30.0)
+    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
+    tracks: dict[str, list[dict]] = {"A": [], "B": []}
+    for p in enc.plots:
+        plot = {"t": p["tod"], "sensor": p["sensor"]}
+        plot |= ({"range_m": p["range_m"], "azimuth_deg": p["azimuth_deg"]} if "range_m" in p
+                 else {"lat_deg": p["lat"], "lon_deg": p["lon"]})
+        tracks["AB"[p["flight"]]].append(plot)
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks,
+                                      "method": "sliding"})
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    status = wait(client, loc)
+    assert status["state"] == "done" and status["tracks_done"] == 2, status
+    assert status["options"]["method"] == "sliding"
+    for key, plots in tracks.items():
+        body = client.get(f"{loc}/tracks/{key}").json()
+        want = {m: client.post("/v1/reconstructions", json={
+            "sensors": sensors, "plots": plots, "method": m}).json() for m in ("sliding",
+                                                                                "refined")}
+        assert body["diagnostics"]["method"] == "sliding"
+        assert body["diagnostics"]["windows_solved"] == want["sliding"]["diagnostics"][
+            "windows_solved"] > 0
+        got = body["trajectory"]["at_plots"]
+        for field in ("x", "z", "vx", "vz"):
+            np.testing.assert_allclose([s[field] for s in got], [
+                s[field] for s in want["sliding"]["trajectory"]["at_plots"]], rtol=0,
+                atol=1e-6, err_msg=f"{key} {field}")
+        refined = np.array([s["x"] for s in want["refined"]["trajectory"]["at_plots"]])
+        assert np.abs(np.array([s["x"] for s in got]) - refined).max() > 1e-3
+        assert [s["u"] for s in body["trajectory"]["segments"]] == pytest.approx(
+            [s["u"] for s in want["sliding"]["trajectory"]["segments"]], abs=1e-9)
+    summary = json.loads(client.get(loc + "/results/summary.json").content)
+    assert summary["method"] == "sliding"
+    r = client.post("/v1/jobs", files={"recording": ("day.ast", enc.data),
+                                       "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                    data={"options": json.dumps({"method": "sliding"})})
+    assert r.status_code == 202, r.text
+    up = wait(client, r.headers["location"])
+    assert up["state"] == "done" and up["options"]["method"] == "sliding"
+    for t in client.get(r.headers["location"] + "/tracks").json():
+        body = client.get(f"{r.headers['location']}/tracks/{t['aircraft']}").json()
+        assert body["diagnostics"]["method"] == "sliding"
+    for job in (loc, r.headers["location"]):
         assert client.delete(job).status_code == 204
 
 
@@ -371,6 +425,7 @@ def test_upload_over_the_limit_is_413(client):
         ('{"bounds": {"v": [300.0, 30.0]}}', "options.bounds.v"),
         ('{"filters": ["singer"], "colour": 1}', "options.colour"),
         ('{"sample_step_s": 0}', "options.sample_step_s"),
+        ('{"method": "kalman"}', "options.method"),
         ('{"aircraft": []}', "options.aircraft"),
         ('{"aircraft": [""]}', "options.aircraft[0]"),
         ('{"filters": [', "options is not valid JSON"))),
@@ -400,6 +455,7 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
          "filters[0]"),
         ({"sensors": sensors, "tracks": {"A": [plot]}, "sample_step_s": -1.0},
          "sample_step_s"),
+        ({"sensors": sensors, "tracks": {"A": [plot]}, "method": "imm"}, "method"),
     ]
     for body, field in cases:
         r = client.post("/v1/jobs", json=body)

@@ -110,6 +110,28 @@ def test_two_radars_and_adsb_answer_on_the_earth(client):
                 "_deg", "_rms_deg")], rel=1e-9)
 
 
+def test_sliding_windows_take_the_sensors_too(client):
+    """`method: sliding` over two radars and ADS-B on the earth: the seed's windows over every
+    sensor's plots, answered on the earth with each plot's residuals and the sensors'
+    statistics (no covariance), within reach of the refined answer."""
+    body = _body()
+    answers = {m: client.post("/v1/reconstructions", json={**body, "method": m})
+               for m in ("sliding", "refined")}
+    assert all(r.status_code == 200 for r in answers.values()), answers["sliding"].text
+    out = answers["sliding"].json()
+    assert out["diagnostics"]["method"] == "sliding"
+    assert out["diagnostics"]["windows_solved"] > 0
+    at, ref = out["trajectory"]["at_plots"], answers["refined"].json()["trajectory"]["at_plots"]
+    assert len(at) == len(body["plots"]) and all(s["cov"] is None for s in at)
+    assert {"lat_deg", "lon_deg"} <= set(at[0])
+    apart = np.hypot([s["x"] - r["x"] for s, r in zip(at, ref, strict=True)],
+                     [s["z"] - r["z"] for s, r in zip(at, ref, strict=True)])
+    assert np.sqrt(np.mean(apart**2)) < 60.0, np.sqrt(np.mean(apart**2))  # 42 m measured
+    assert [s["id"] for s in out["sensors"]] == ["LJLJ", "SSR2", "ADSB"]
+    assert 30.0 < out["sensors"][2]["position_residual_rms_m"] < 80.0  # sigma 30 m; 58 m
+    assert any("without an altitude placed at" in w for w in out["diagnostics"]["warnings"])
+
+
 def test_filters_take_every_sensor_and_answer_on_the_earth(client):
     body = _body()
     body["filters"] = ["cv_rts", "imm"]
@@ -180,7 +202,6 @@ LAST = len(_body()["plots"]) - 1  # an ADS-B plot
     (lambda b: b["plots"][0].pop("azimuth_deg"), ["plots", 0, "azimuth_deg"]),
     (lambda b: b["plots"][0].pop("sensor"), ["plots", 0, "sensor"]),
     (lambda b: b.update(radar={"range_error_m": 1.0, "azimuth_error_deg": 1.0}), ["sensors"]),
-    (lambda b: b.update(method="sliding"), ["method"]),
     (lambda b: b["sensors"].append({"id": "SPARE", "kind": "position",
                                     "position_sigma_m": 10.0}), ["sensors", 3, "id"]),
     (lambda b: b["sensors"][1].update(id="LJLJ"), ["sensors", 1, "id"]),
