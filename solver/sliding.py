@@ -275,7 +275,9 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
     """The sliding windows over any plot table: several sensors at their sites on the earth,
     position sensors (ADS-B) among them. Each plot is its fix in the table's plane
     (:meth:`solver.plots.PlotTable.fixes`: its position and one-sigma ellipse from its sensor),
-    and the windows slide over the fixes of all sensors in time order, as over one radar's.
+    and the windows slide over the fixes of all sensors in time order, as over one radar's;
+    plots of several sensors at one instant are one fix (information-weighted,
+    :func:`solver.refine.nodes.fused_points`), so a window's plots are distinct instants.
 
     What the sliding windows do not estimate, the table's plots fix beforehand: radar plots
     without an altitude, where another sensor sees the aircraft, are placed at the refinement's
@@ -287,17 +289,16 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
     against the track (:func:`solver.refine.output.plot_residuals`) with its sensor's
     statistics; no covariance (as the seed's method)."""
     from .refine.layout import Variant
-    from .refine.nodes import NodeData, altitude_guess, node_grid
+    from .refine.nodes import NodeData, altitude_guess, fused_points, info_matrices, node_grid
     from .refine.output import plot_residuals, sensor_reports
 
     clock = time.perf_counter()
     diag = Diagnostics(method="sliding", criterion=config.criterion)
     order = table.time_order()
-    t = table.t[order]
     fixes = table.fixes()
     heights = None
     if table.estimate_altitude():
-        t_nodes, node_of_sorted = node_grid(t, config.refine.max_node_step_s)
+        t_nodes, node_of_sorted = node_grid(table.t[order], config.refine.max_node_step_s)
         plot_node = np.empty(len(table), dtype=int)
         plot_node[order] = node_of_sorted
         data = NodeData.assemble(table, fixes, t_nodes.size, plot_node,
@@ -322,7 +323,13 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
     else:
         scale = float(np.median(ell.B)) ** 2
         abc = np.tile([1.0 / scale, 0.0, 1.0 / scale], (len(table), 1))
-    rec = _slide_track(t, centres[order, 0], centres[order, 1], abc[order], scale, config, diag,
+    # the criterion's sum of simultaneous plots' quadratic forms is the fused fix's + a constant
+    times, fused, info = fused_points(table.t, centres, info_matrices(abc),
+                                      min_gap_s=np.finfo(float).tiny)
+    if times.size < len(table):
+        diag.extra["fused_plots"] = len(table) - times.size
+    fused_abc = np.column_stack([info[:, 0, 0], info[:, 0, 1], info[:, 1, 1]])
+    rec = _slide_track(times, fused[:, 0], fused[:, 1], fused_abc, scale, config, diag,
                        deadline, at=table.t)
     if heights is not None:
         rec.at_plots.h = heights

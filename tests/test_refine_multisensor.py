@@ -287,6 +287,23 @@ def test_sliding_places_plots_without_altitude_at_the_fitted_height():
     assert np.hypot(far.at_plots.x - x, far.at_plots.z - z).max() > 1000.0
 
 
+def test_sliding_fuses_plots_of_one_instant():
+    """Two radars reporting at the same instants (and ADS-B at every other): the simultaneous
+    plots are one fix each, the windows run over distinct instants (a window of equal times
+    once indexed past the table's end), and noise-free plots still give the track exactly."""
+    adsb = PositionSensor("ADSB", 30.0)
+    table, x, z, _ = _simulate((SSR_A, SSR_B, adsb), ((4.0, 0.0), (4.0, 0.0), (2.0, 0.0)),
+                               noise=0.0, mode_c=True, t_end=400.0)
+    rec = reconstruct(table, config=SLIDING)
+    assert rec.diagnostics.extra["fused_plots"] == 200  # 200 instants hold the 400 plots
+    assert np.hypot(rec.at_plots.x - x, rec.at_plots.z - z).max() < 1.0
+    noisy, x, z, _ = _simulate((SSR_A, SSR_B, adsb), ((4.0, 0.0), (4.0, 0.0), (2.0, 0.0)),
+                               noise=1.0, seed=3, mode_c=True, t_end=400.0)
+    at = reconstruct(noisy, config=SLIDING).at_plots
+    rms = float(np.sqrt(np.mean((at.x - x) ** 2 + (at.z - z) ** 2)))
+    assert rms < 35.0, rms  # 24 m; ADS-B alone: 30 m per axis, 42 m horizontal per plot
+
+
 def test_short_tables_are_refused():
     table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=0.0, t_end=30.0)
     rows = [0, 7]

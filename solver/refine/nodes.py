@@ -190,14 +190,16 @@ hundredths of a second (seen with two radars' asynchronous scans); the merged po
 most half a second of flight, which the NLP removes."""
 
 
-def fused_points(t: FloatArray, centre: FloatArray, info: FloatArray
+def fused_points(t: FloatArray, centre: FloatArray, info: FloatArray,
+                 min_gap_s: float = GUESS_MIN_GAP_S
                  ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Plots within ``GUESS_MIN_GAP_S`` of each other (e.g. several sensors at one instant)
-    fused into one point (information-weighted, at the group's mean time): times, centres
-    ``(m, 2)`` and information ``(m, 2, 2)``."""
+    """Plots within ``min_gap_s`` of each other (e.g. several sensors at one instant) fused
+    into one point (information-weighted, at the group's mean time): times, centres ``(m, 2)``
+    and information ``(m, 2, 2)``. The sum of the plots' quadratic forms ``d^T I d`` is the
+    fused point's plus a constant, for any position at that time."""
     order = np.argsort(t, kind="stable")
     ts = t[order]
-    group_sorted = np.concatenate([[0], np.cumsum(np.diff(ts) >= GUESS_MIN_GAP_S)])
+    group_sorted = np.concatenate([[0], np.cumsum(np.diff(ts) >= min_gap_s)])
     inverse = np.empty(t.size, dtype=int)
     inverse[order] = group_sorted
     m = int(group_sorted[-1]) + 1
