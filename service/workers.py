@@ -47,14 +47,15 @@ class Outcome:
 
 def warm_up(window_sizes: list[int], nlp_solver: str) -> None:
     """Build and run every solver a request may need: the refinement's block solvers of every
-    size, the sliding windows' NLPs once per window size, and the IMM smoother's compiled
+    size, the sliding windows' NLPs once per window size, and the IMM filters' compiled
     steps (``filters``)."""
-    from solver.estimation import imm_step
+    from solver.estimation import imm_ct_step, imm_step
     from solver.reconstruct import reconstruct
     from solver.refine import build_solvers
 
     build_solvers()
     imm_step.build()
+    imm_ct_step.build()
     for m in window_sizes:
         plots, radar = synthetic_track(max(2 * m + 2, 8))
         for method in ("sliding", "refined"):

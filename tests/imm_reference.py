@@ -1,12 +1,15 @@
-"""The IMM smoother's passes in plain numpy, as they were before the steps moved to compiled
-CasADi functions (``solver.estimation.imm_step``): the reference the tests compare those with
-(and the future-mode likelihood's own tests run on). Equations in
-``solver.estimation.imm_smoother``."""
+"""The IMM smoother's passes and the causal IMM in plain numpy, as they were before their steps
+moved to compiled CasADi functions (``solver.estimation.imm_step``, ``imm_ct_step``): the
+reference the tests compare those with (and the future-mode likelihood's own tests run on).
+Equations in ``solver.estimation.imm_smoother`` and ``imm_ct_step``."""
 
 import numpy as np
 
+from solver.estimation.common import SIGMA_V0, estimate
+from solver.estimation.imm import OMEGA_MAX, Q_CT, Q_CV, Q_OMEGA, SIGMA_OMEGA0, TAU_CT, TAU_CV
 from solver.estimation.imm_smoother import N_MODES, ForwardPass, _prior, pair_terms
 from solver.estimation.kalman import position_update
+from solver.estimation.models import ct_predict
 
 _POS = (0, 1)
 _EYE4 = np.eye(4)
@@ -112,3 +115,83 @@ def future_weights(W, xs, Ps, xp, white, xpair, Ppair):
     if good.all():
         return b / tot
     return np.where(good[None], b / np.where(good, tot, 1.0)[None], W)
+
+
+# ---- the causal IMM (solver.estimation.imm) as it was before its step was compiled ----
+
+
+def switching_matrix(T: float, tau_cv: float, tau_ct: float):
+    """``Pi(T) = expm(G T)`` of the two-state chain with leaving rates ``1/tau``."""
+    a, b = 1 / tau_cv, 1 / tau_ct
+    s = a + b
+    e = np.exp(-s * T)
+    return np.array([[(b + a * e) / s, a * (1 - e) / s], [b * (1 - e) / s, (a + b * e) / s]])
+
+
+def _cv_noise(T: float, q: float):
+    Q = np.zeros((5, 5))
+    for p, v in ((0, 2), (1, 3)):
+        Q[p, p], Q[p, v], Q[v, p], Q[v, v] = q * T**3 / 3, q * T**2 / 2, q * T**2 / 2, q * T
+    return Q
+
+
+def run_imm(meas, q_cv=Q_CV, q_ct=Q_CT, q_omega=Q_OMEGA, tau_cv=TAU_CV, tau_ct=TAU_CT,
+            omega_max=OMEGA_MAX, measurement: str = "ekf"):
+    """``solver.estimation.imm.run_imm`` in numpy: one ``position_update`` per mode."""
+    n = len(meas)
+    t = meas.t
+    x0 = np.zeros(5)
+    x0[:2] = meas.points()[0]
+    P0 = np.zeros((5, 5))
+    P0[:2, :2] = meas.converted_cov()[0]
+    P0[2, 2] = P0[3, 3] = SIGMA_V0**2
+    P0[4, 4] = SIGMA_OMEGA0**2
+    xs = np.stack([x0, x0])
+    Ps = np.stack([P0, P0])
+    P0[4, 4] = 1e-12  # the CV model's omega is 0
+    Ps[0] = P0
+    xs[0, 4] = 0.0
+    mu = np.array([tau_cv, tau_ct]) / (tau_cv + tau_ct)
+    out_x, out_P = np.empty((n, 4)), np.empty((n, 4, 4))
+    probs, omega = np.empty((n, 2)), np.zeros(n)
+    F_cv = np.eye(5)
+    F_cv[4, 4] = 0.0
+
+    def combine(k: int) -> None:
+        x = mu @ xs
+        d = xs - x
+        P = np.einsum("i,ijk->jk", mu, Ps + d[:, :, None] * d[:, None, :])
+        out_x[k], out_P[k] = x[:4], P[:4, :4]
+        probs[k], omega[k] = mu, x[4]
+
+    combine(0)
+    for k in range(1, n):
+        T = t[k] - t[k - 1]
+        Pi = switching_matrix(T, tau_cv, tau_ct)
+        c = mu @ Pi  # predicted model probabilities
+        w = Pi * mu[:, None] / c[None, :]  # w[i, j] = P(was i | now j)
+        xm = w.T @ xs
+        Pm = np.empty_like(Ps)
+        for j in range(2):
+            d = xs - xm[j]
+            Pm[j] = np.einsum("i,ijk->jk", w[:, j], Ps + d[:, :, None] * d[:, None, :])
+        loglik = np.empty(2)
+        F_cv[0, 2] = F_cv[1, 3] = T
+        Q_cv = _cv_noise(T, q_cv)
+        Q_cv[4, 4] = 1e-12
+        xp, Pp = F_cv @ xm[0], F_cv @ Pm[0] @ F_cv.T + Q_cv
+        xs[0], Ps[0], nis, logdet = position_update(xp, Pp, meas, k, (0, 1), measurement)
+        loglik[0] = -0.5 * (nis + logdet)
+        fx, J = ct_predict(xm[1], T)
+        Q_ct = _cv_noise(T, q_ct)
+        Q_ct[4, 4] = q_omega * T
+        xs[1], Ps[1], nis, logdet = position_update(fx, J @ Pm[1] @ J.T + Q_ct, meas, k, (0, 1),
+                                                    measurement)
+        xs[1, 4] = np.clip(xs[1, 4], -omega_max, omega_max)  # projection on the bound
+        loglik[1] = -0.5 * (nis + logdet)
+        lik = np.exp(loglik - loglik.max())
+        mu = c * lik
+        mu = np.maximum(mu / mu.sum(), 1e-12)
+        mu /= mu.sum()
+        combine(k)
+    return estimate("imm", t, out_x, out_P, model_probabilities=probs, turn_rate=omega)

@@ -16,12 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..inputs import FloatArray
 from ..results import FilterEstimate
+from . import imm_ct_step, imm_step
 from .common import SIGMA_V0, estimate
-from .kalman import position_update
-from .measurements import PolarPlots
-from .models import ct_predict
+from .measurements import MEASUREMENT_MODES, PolarPlots
 
 Q_CV, Q_CT, Q_OMEGA, TAU_CV, TAU_CT = 0.5, 30.0, 1e-5, 120.0, 40.0
 SIGMA_OMEGA0 = np.deg2rad(3.0)
@@ -30,24 +28,14 @@ OMEGA_MAX = np.deg2rad(6.0)
 model explain cross-range noise by spinning (aliasing ``omega T`` beyond pi): seen at 19 s scans."""
 
 
-def switching_matrix(T: float, tau_cv: float, tau_ct: float) -> FloatArray:
-    """``Pi(T) = expm(G T)`` of the two-state chain with leaving rates ``1/tau``."""
-    a, b = 1 / tau_cv, 1 / tau_ct
-    s = a + b
-    e = np.exp(-s * T)
-    return np.array([[(b + a * e) / s, a * (1 - e) / s], [b * (1 - e) / s, (a + b * e) / s]])
-
-
-def _cv_noise(T: float, q: float) -> FloatArray:
-    Q = np.zeros((5, 5))
-    for p, v in ((0, 2), (1, 3)):
-        Q[p, p], Q[p, v], Q[v, p], Q[v, v] = q * T**3 / 3, q * T**2 / 2, q * T**2 / 2, q * T
-    return Q
-
-
 def run_imm(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT, q_omega: float = Q_OMEGA,
             tau_cv: float = TAU_CV, tau_ct: float = TAU_CT, omega_max: float = OMEGA_MAX,
             measurement: str = "ekf") -> FilterEstimate:
+    """The filter over ``meas`` (polar plots, or several sensors' :class:`.SensorPlots`): each
+    step one call of a compiled function (:mod:`.imm_ct_step`, the equations there), the
+    combined estimate moment-matched over the modes at every plot."""
+    if measurement not in MEASUREMENT_MODES:
+        raise ValueError(f"unknown measurement mode {measurement!r} (use 'converted' or 'ekf')")
     n = len(meas)
     t = meas.t
     x0 = np.zeros(5)
@@ -56,52 +44,27 @@ def run_imm(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT, q_omega: f
     P0[:2, :2] = meas.converted_cov()[0]
     P0[2, 2] = P0[3, 3] = SIGMA_V0**2
     P0[4, 4] = SIGMA_OMEGA0**2
-    xs = np.stack([x0, x0])
-    Ps = np.stack([P0, P0])
-    P0[4, 4] = 1e-12  # the CV model's omega is 0
-    Ps[0] = P0
-    xs[0, 4] = 0.0
-    mu = np.array([tau_cv, tau_ct]) / (tau_cv + tau_ct)
-    out_x, out_P = np.empty((n, 4)), np.empty((n, 4, 4))
-    probs, omega = np.empty((n, 2)), np.zeros(n)
-    F_cv = np.eye(5)
-    F_cv[4, 4] = 0.0
-
-    def combine(k: int) -> None:
-        x = mu @ xs
-        d = xs - x
-        P = np.einsum("i,ijk->jk", mu, Ps + d[:, :, None] * d[:, None, :])
-        out_x[k], out_P[k] = x[:4], P[:4, :4]
-        probs[k], omega[k] = mu, x[4]
-
-    combine(0)
-    for k in range(1, n):
-        T = t[k] - t[k - 1]
-        Pi = switching_matrix(T, tau_cv, tau_ct)
-        c = mu @ Pi  # predicted model probabilities
-        w = Pi * mu[:, None] / c[None, :]  # w[i, j] = P(was i | now j)
-        xm = w.T @ xs
-        Pm = np.empty_like(Ps)
-        for j in range(2):
-            d = xs - xm[j]
-            Pm[j] = np.einsum("i,ijk->jk", w[:, j], Ps + d[:, :, None] * d[:, None, :])
-        loglik = np.empty(2)
-        F_cv[0, 2] = F_cv[1, 3] = T
-        Q_cv = _cv_noise(T, q_cv)
-        Q_cv[4, 4] = 1e-12
-        xp, Pp = F_cv @ xm[0], F_cv @ Pm[0] @ F_cv.T + Q_cv
-        xs[0], Ps[0], nis, logdet = position_update(xp, Pp, meas, k, (0, 1), measurement)
-        loglik[0] = -0.5 * (nis + logdet)
-        fx, J = ct_predict(xm[1], T)
-        Q_ct = _cv_noise(T, q_ct)
-        Q_ct[4, 4] = q_omega * T
-        xs[1], Ps[1], nis, logdet = position_update(fx, J @ Pm[1] @ J.T + Q_ct, meas, k, (0, 1),
-                                                    measurement)
-        xs[1, 4] = np.clip(xs[1, 4], -omega_max, omega_max)  # projection on the bound
-        loglik[1] = -0.5 * (nis + logdet)
-        lik = np.exp(loglik - loglik.max())
-        mu = c * lik
-        mu = np.maximum(mu / mu.sum(), 1e-12)
-        mu /= mu.sum()
-        combine(k)
-    return estimate("imm", t, out_x, out_P, model_probabilities=probs, turn_rate=omega)
+    P_cv = P0.copy()
+    P_cv[4, 4] = 1e-12  # the CV model's omega is 0
+    x_cv = x0.copy()
+    x_cv[4] = 0.0
+    S = np.empty((n, imm_step.size(imm_ct_step.STATE)))  # row k: the state after plot k
+    S[:1] = imm_step.pack(imm_ct_step.STATE, 1, x=np.stack([x_cv, x0]),
+                             P=np.stack([P_cv, P0]),
+                             mu=np.array([tau_cv, tau_ct]) / (tau_cv + tau_ct))
+    if n > 1:
+        A = imm_step.pack(imm_ct_step.STEP, n - 1, T=np.diff(t),
+                             plot=imm_step.plot_rows(meas)[1:], q_cv=q_cv, q_ct=q_ct,
+                             q_omega=q_omega, tau_cv=tau_cv, tau_ct=tau_ct, omega_max=omega_max)
+        buf, evaluate = imm_ct_step.step(measurement).buffer()
+        for k in range(1, n):  # each step reads and writes the arrays' rows in place
+            buf.set_arg(0, memoryview(S[k - 1]))
+            buf.set_arg(1, memoryview(A[k - 1]))
+            buf.set_res(0, memoryview(S[k]))
+            evaluate()
+    xs, Ps, mu = imm_ct_step.unpack(S)
+    x = np.einsum("ni,nij->nj", mu, xs)
+    d = xs - x[:, None, :]
+    P = np.einsum("ni,nijk->njk", mu, Ps + d[..., :, None] * d[..., None, :])
+    return estimate("imm", t, x[:, :4], P[:, :4, :4], model_probabilities=mu,
+                    turn_rate=x[:, 4])

@@ -113,10 +113,10 @@ def _flat(m: ca.SX) -> ca.SX:
     return ca.vec(m.T)
 
 
-def _update(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
-            ) -> tuple[ca.SX, ca.SX, ca.SX]:
-    """Position update of one mode's ``(4,)``, ``(4, 4)`` prediction: updated state, covariance,
-    ``-(nu^T S^-1 nu + log det S) / 2``."""
+def update_terms(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
+                 ) -> tuple[ca.SX, ca.SX, ca.SX]:
+    """Position update of one mode's ``(m,)``, ``(m, m)`` prediction (the position first):
+    updated state, covariance, ``-(nu^T S^-1 nu + log det S) / 2``."""
     polar, d, psi, sigma_d, sigma_psi = (plot[i] for i in range(5))
     centre, cov = plot[5:7], _mat(plot[7:11], 2, 2)
     px, pz = xp[0], xp[1]
@@ -144,7 +144,8 @@ def _update(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
     det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
     Sinv = ca.vertcat(ca.horzcat(S[1, 1], -S[0, 1]), ca.horzcat(-S[1, 0], S[0, 0])) / det
     K = ca.mtimes(PHt, Sinv)
-    IKH = ca.SX.eye(4) - ca.horzcat(ca.mtimes(K, Hp), ca.SX.zeros(4, 2))
+    m = xp.shape[0]
+    IKH = ca.SX.eye(m) - ca.horzcat(ca.mtimes(K, Hp), ca.SX.zeros(m, m - 2))
     P = ca.mtimes([IKH, Pp, IKH.T]) + ca.mtimes([K, R, K.T])
     nis = ca.mtimes([nu.T, Sinv, nu])
     return xp + ca.mtimes(K, nu), P, -0.5 * (nis + ca.log(det))
@@ -165,7 +166,7 @@ def _step(measurement: str) -> ca.Function:
         Pm = sum(W[i, j] * (P[i] + ca.mtimes(x[i] - xm, (x[i] - xm).T)) for i in range(N_MODES))
         xp = ca.mtimes(Phi[j], xm)
         Pp = ca.mtimes([Phi[j], Pm, Phi[j].T]) + Q[j]
-        xj, Pj, lj = _update(xp, Pp, plot, measurement)
+        xj, Pj, lj = update_terms(xp, Pp, plot, measurement)
         xn.append(xj)
         Pn.append(Pj)
         XP.append(xp)
