@@ -288,7 +288,7 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
     units of the median along-ray sigma. States at the plots come in table order, each plot
     against the track (:func:`solver.refine.output.plot_residuals`) with its sensor's
     statistics; no covariance (as the seed's method)."""
-    from .refine.layout import Variant
+    from .refine.layout import BIAS_TERMS, Variant
     from .refine.nodes import NodeData, altitude_guess, fused_points, info_matrices, node_grid
     from .refine.output import plot_residuals, sensor_reports
 
@@ -333,9 +333,9 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
                        deadline, at=table.t)
     if heights is not None:
         rec.at_plots.h = heights
-    rec.residuals = plot_residuals(table, rec.at_plots, np.zeros(0, dtype=int),
-                                   np.zeros((0, 3)), [])
-    rec.sensors = sensor_reports(table, rec.residuals, np.zeros((0, 3)), np.zeros((0, 0)), [])
+    none = np.zeros((0, BIAS_TERMS))  # no offsets estimated
+    rec.residuals = plot_residuals(table, rec.at_plots, np.zeros(0, dtype=int), none, [])
+    rec.sensors = sensor_reports(table, rec.residuals, none, np.zeros((0, 0)), [])
     diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
     return rec
 
@@ -350,7 +350,9 @@ def _slide_track(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray,
     if n == 1:
         diag.warnings.append("only one plot: no trajectory; the state at the plot is its "
                              "position with zero velocity")
-        state = StateSeries(t.copy(), cx.copy(), cz.copy(), np.zeros(1), np.zeros(1))
+        k = len(at)  # several sensors' plots of that one instant
+        state = StateSeries(at.copy(), np.full(k, cx[0]), np.full(k, cz[0]), np.zeros(k),
+                            np.zeros(k))
         samples = StateSeries(t.copy(), cx.copy(), cz.copy(), np.zeros(1), np.zeros(1))
         return Reconstruction([], state, samples, diag)
     start, clipped = initial_state(t, cx, cz, config.bounds.v)

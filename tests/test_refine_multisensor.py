@@ -302,6 +302,18 @@ def test_sliding_fuses_plots_of_one_instant():
     at = reconstruct(noisy, config=SLIDING).at_plots
     rms = float(np.sqrt(np.mean((at.x - x) ** 2 + (at.z - z) ** 2)))
     assert rms < 35.0, rms  # 24 m; ADS-B alone: 30 m per axis, 42 m horizontal per plot
+    # three sensors' plots of one instant: one fix, its state at every plot; of two instants:
+    # one straight segment
+    for rows, warning in (([0, 100, 200], "only one plot"), ([0, 1, 100, 101, 200, 202],
+                                                             "only two plots")):
+        few = PlotTable.build(noisy.sensors, noisy.t[rows], noisy.sensor[rows],
+                              noisy.range_m[rows], noisy.azimuth_rad[rows], noisy.lat_deg[rows],
+                              noisy.lon_deg[rows], noisy.altitude_m[rows], reference=FRAME)
+        assert len(np.unique(few.t)) == len(rows) // 3
+        rec = reconstruct(few, config=SLIDING)
+        assert rec.at_plots.x.shape == (len(rows),) and np.isfinite(rec.at_plots.x).all()
+        assert [r.plots for r in rec.sensors] == [len(rows) // 3] * 3
+        assert any(w.startswith(warning) for w in rec.diagnostics.warnings)
 
 
 def test_short_tables_are_refused():
