@@ -700,7 +700,8 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
     """The end-of-run summary: counts, rate, problems, failures, the sensors' table."""
     file = file or sys.stdout
     p = result
-    print(f"tracks: {p['tracks']} ({p['done']} reconstructed, {p['failed']} failed, "
+    print(f"tracks: {p['tracks']} ({p['done']} reconstructed by {p.get('method', 'refined')}, "
+          f"{p['failed']} failed, "
           f"{p['skipped']} finished before); plots: {p['plots']}; "
           f"{p['plots_per_s']:.0f} plots/s; {p['elapsed_s']:.1f} s in all", file=file)
     if p["problems"]:

@@ -126,7 +126,7 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
     assert (out / "map.png").stat().st_size > 10_000
     assert len(list((out / "figures").glob("*.png"))) == len(FLIGHTS)
     printed = capsys.readouterr().out
-    assert "tracks: 2 (2 reconstructed, 0 failed" in printed and "R1" in printed
+    assert "tracks: 2 (2 reconstructed by refined, 0 failed" in printed and "R1" in printed
     assert "ADSB: along the track " in printed
 
     # a rerun with other settings would mix two runs' tracks: refused, nothing touched
@@ -357,7 +357,7 @@ def test_named_aircraft_alone_are_reconstructed(recording, tmp_path, capsys):
     assert summary["done"] == 1 and summary["aircraft_not_found"] == ["ABC123"]
 
 
-def test_sliding_windows_reconstruct_the_recording(recording, tmp_path):
+def test_sliding_windows_reconstruct_the_recording(recording, tmp_path, capsys):
     """`--method sliding`: the seed's windows over every sensor's plots of each aircraft (two
     radars and ADS-B on the earth, across midnight): every track within 60 m of its flight
     (exact plots), no covariance, the method in the summary and each track's diagnostics."""
@@ -367,6 +367,7 @@ def test_sliding_windows_reconstruct_the_recording(recording, tmp_path):
                  "--no-progress", "--out", str(out), "--method", "sliding"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == "sliding" and summary["done"] == len(FLIGHTS)
+    assert f"({len(FLIGHTS)} reconstructed by sliding, 0 failed" in capsys.readouterr().out
     table = pq.read_table(out / "tracks.parquet")
     assert np.isnan(table.column("cov_x_x").to_numpy(zero_copy_only=False)).all()
     keys = table.column("aircraft").to_numpy(zero_copy_only=False).astype(str)
