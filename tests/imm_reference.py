@@ -5,8 +5,8 @@ Equations in ``solver.estimation.imm_smoother`` and ``imm_ct_step``."""
 
 import numpy as np
 
-from solver.estimation.common import SIGMA_V0, estimate
-from solver.estimation.imm import OMEGA_MAX, Q_CT, Q_CV, Q_OMEGA, SIGMA_OMEGA0, TAU_CT, TAU_CV
+from solver.estimation.common import estimate
+from solver.estimation.imm import OMEGA_MAX, Q_CT, Q_CV, Q_OMEGA, TAU_CT, TAU_CV, prior
 from solver.estimation.imm_smoother import N_MODES, ForwardPass, _prior, pair_terms
 from solver.estimation.kalman import position_update
 from solver.estimation.models import ct_predict
@@ -140,12 +140,7 @@ def run_imm(meas, q_cv=Q_CV, q_ct=Q_CT, q_omega=Q_OMEGA, tau_cv=TAU_CV, tau_ct=T
     """``solver.estimation.imm.run_imm`` in numpy: one ``position_update`` per mode."""
     n = len(meas)
     t = meas.t
-    x0 = np.zeros(5)
-    x0[:2] = meas.points()[0]
-    P0 = np.zeros((5, 5))
-    P0[:2, :2] = meas.converted_cov()[0]
-    P0[2, 2] = P0[3, 3] = SIGMA_V0**2
-    P0[4, 4] = SIGMA_OMEGA0**2
+    x0, P0 = prior(meas)
     xs = np.stack([x0, x0])
     Ps = np.stack([P0, P0])
     P0[4, 4] = 1e-12  # the CV model's omega is 0

@@ -16,7 +16,7 @@ from solver.estimation import FILTER_NAMES, run_filter
 from solver.estimation import imm_smoother as ims
 from solver.estimation.cv_rts import run_cv_rts
 from solver.estimation.kalman import filter_track, rts_smoother
-from solver.estimation.measurements import PolarPlots
+from solver.estimation.measurements import PolarPlots, SensorPlots
 from solver.estimation.models import ct_predict
 
 SIGMA_R, SIGMA_PSI = 120.0, np.deg2rad(0.3)
@@ -316,29 +316,35 @@ def test_benchmark_baseline_is_the_smoother_with_its_profile_tuning():
 
 
 
+def mixed_sensor_plots(polar: PolarPlots, simultaneous: bool = False) -> SensorPlots:
+    """Every third plot a position fix (ADS-B-like, a full covariance); with ``simultaneous``
+    every fifth radar plot also repeated at its own time (a zero-length step)."""
+    n = len(polar)
+    fix = np.arange(n) % 3 == 2
+    centre, cov = polar.points(), polar.converted_cov()
+    rng = np.random.default_rng(4)
+    L = rng.normal(0, 20, (n, 2, 2))
+    cov[fix] = (L @ np.swapaxes(L, -1, -2) + 100 * np.eye(2))[fix]
+    rows = np.arange(n)
+    if simultaneous:
+        rows = np.sort(np.concatenate([rows, rows[(rows % 5 == 0) & ~fix]]))
+    return SensorPlots(t=polar.t[rows], rows=np.arange(rows.size), sensor=fix[rows].astype(int),
+                       n_sensors=2, polar=~fix[rows], d=np.where(fix, np.nan, polar.d)[rows],
+                       sigma_d=np.where(fix, np.nan, polar.sigma_d)[rows],
+                       psi=np.where(fix, np.nan, polar.psi)[rows],
+                       sigma_psi=np.where(fix, np.nan, polar.sigma_psi)[rows],
+                       centre=centre[rows], cov=cov[rows])
+
+
 @pytest.mark.parametrize("case", ["ekf", "converted", "sensors", "kim"])
 def test_compiled_passes_equal_the_numpy_reference(case):
     """The passes' steps as compiled CasADi functions (``imm_step``) give what the plain-numpy
     passes they replaced give (``tests/imm_reference.py``: one ``kalman.position_update`` per
     mode, the future-mode weights as tested above): polar plots (EKF and converted), polar plots
     mixed with position fixes (``SensorPlots``), Kim's weights."""
-    from solver.estimation.measurements import SensorPlots
-
     measurement, future = ("converted" if case == "converted" else "ekf"), case != "kim"
-    if case == "sensors":  # every third plot a position fix (ADS-B-like) with a full covariance
-        polar = PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR)
-        n = len(polar)
-        fix = np.arange(n) % 3 == 2
-        centre, cov = polar.points(), polar.converted_cov()
-        rng = np.random.default_rng(4)
-        L = rng.normal(0, 20, (n, 2, 2))
-        cov[fix] = (L @ np.swapaxes(L, -1, -2) + 100 * np.eye(2))[fix]
-        meas = SensorPlots(t=polar.t, rows=np.arange(n), sensor=fix.astype(int), n_sensors=2,
-                           polar=~fix, d=np.where(fix, np.nan, polar.d),
-                           sigma_d=np.where(fix, np.nan, polar.sigma_d),
-                           psi=np.where(fix, np.nan, polar.psi),
-                           sigma_psi=np.where(fix, np.nan, polar.sigma_psi), centre=centre,
-                           cov=cov)
+    if case == "sensors":
+        meas = mixed_sensor_plots(PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR))
     else:
         meas = PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR)
     dt = np.diff(meas.t)

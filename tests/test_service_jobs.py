@@ -58,6 +58,19 @@ def wait(client: TestClient, location: str, states=("done", "failed", "cancelled
         time.sleep(0.2)
 
 
+def json_tracks(enc) -> tuple[list[dict], dict[str, list[dict]]]:
+    """A recording's sensors (without ASTERIX codes) and its two flights as a JSON body's
+    tracks "A" and "B"."""
+    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
+    tracks: dict[str, list[dict]] = {"A": [], "B": []}
+    for p in enc.plots:
+        plot = {"t": p["tod"], "sensor": p["sensor"]}
+        plot |= ({"range_m": p["range_m"], "azimuth_deg": p["azimuth_deg"]} if "range_m" in p
+                 else {"lat_deg": p["lat"], "lon_deg": p["lon"]})
+        tracks["AB"[p["flight"]]].append(plot)
+    return sensors, tracks
+
+
 def test_pcapng_capture_job_runs_to_done(client):
     """A pcapng capture (Wireshark's format; the file name says nothing) is a recording: every
     track done once; a packet cut by the snap length is counted, the rest read."""
@@ -195,13 +208,7 @@ def test_job_options_run_the_filters_on_every_track(client):
     reconstruction (a speed cap the flight is held under). A step that would give a track
     more than `max_samples` keeps none, with the track's warning."""
     enc = encode_recording(duration=40.0)
-    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
-    tracks: dict[str, list[dict]] = {"A": [], "B": []}
-    for p in enc.plots:
-        plot = {"t": p["tod"], "sensor": p["sensor"]}
-        plot |= ({"range_m": p["range_m"], "azimuth_deg": p["azimuth_deg"]} if "range_m" in p
-                 else {"lat_deg": p["lat"], "lon_deg": p["lon"]})
-        tracks["AB"[p["flight"]]].append(plot)
+    sensors, tracks = json_tracks(enc)
     names = ["imm_smoother", "cv_rts"]
     bounds = {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 150.0]}  # the flights fly 206 and 234
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks, "bounds": bounds,
@@ -317,13 +324,7 @@ def test_a_jobs_method_is_the_single_track_method(client):
     windows, the same as the single-track endpoint's `sliding` answer for its plots (segments
     and states), not the refined default."""
     enc = encode_recording(duration=30.0)
-    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
-    tracks: dict[str, list[dict]] = {"A": [], "B": []}
-    for p in enc.plots:
-        plot = {"t": p["tod"], "sensor": p["sensor"]}
-        plot |= ({"range_m": p["range_m"], "azimuth_deg": p["azimuth_deg"]} if "range_m" in p
-                 else {"lat_deg": p["lat"], "lon_deg": p["lon"]})
-        tracks["AB"[p["flight"]]].append(plot)
+    sensors, tracks = json_tracks(enc)
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks,
                                       "method": "sliding"})
     assert r.status_code == 202, r.text

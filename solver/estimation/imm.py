@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..inputs import FloatArray
 from ..results import FilterEstimate
 from . import imm_ct_step, imm_step
 from .common import SIGMA_V0, estimate
-from .measurements import MEASUREMENT_MODES, PolarPlots
+from .measurements import MEASUREMENT_MODES, PolarPlots, SensorPlots
 
 Q_CV, Q_CT, Q_OMEGA, TAU_CV, TAU_CT = 0.5, 30.0, 1e-5, 120.0, 40.0
 SIGMA_OMEGA0 = np.deg2rad(3.0)
@@ -28,9 +29,21 @@ OMEGA_MAX = np.deg2rad(6.0)
 model explain cross-range noise by spinning (aliasing ``omega T`` beyond pi): seen at 19 s scans."""
 
 
-def run_imm(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT, q_omega: float = Q_OMEGA,
-            tau_cv: float = TAU_CV, tau_ct: float = TAU_CT, omega_max: float = OMEGA_MAX,
-            measurement: str = "ekf") -> FilterEstimate:
+def prior(meas: PolarPlots | SensorPlots) -> tuple[FloatArray, FloatArray]:
+    """The turn model's state at the first plot: its position and measurement covariance, an
+    unknown velocity (``SIGMA_V0``) and turn rate (``SIGMA_OMEGA0``)."""
+    x0 = np.zeros(5)
+    x0[:2] = meas.points()[0]
+    P0 = np.zeros((5, 5))
+    P0[:2, :2] = meas.converted_cov()[0]
+    P0[2, 2] = P0[3, 3] = SIGMA_V0**2
+    P0[4, 4] = SIGMA_OMEGA0**2
+    return x0, P0
+
+
+def run_imm(meas: PolarPlots | SensorPlots, q_cv: float = Q_CV, q_ct: float = Q_CT,
+            q_omega: float = Q_OMEGA, tau_cv: float = TAU_CV, tau_ct: float = TAU_CT,
+            omega_max: float = OMEGA_MAX, measurement: str = "ekf") -> FilterEstimate:
     """The filter over ``meas`` (polar plots, or several sensors' :class:`.SensorPlots`): each
     step one call of a compiled function (:mod:`.imm_ct_step`, the equations there), the
     combined estimate moment-matched over the modes at every plot."""
@@ -38,12 +51,7 @@ def run_imm(meas: PolarPlots, q_cv: float = Q_CV, q_ct: float = Q_CT, q_omega: f
         raise ValueError(f"unknown measurement mode {measurement!r} (use 'converted' or 'ekf')")
     n = len(meas)
     t = meas.t
-    x0 = np.zeros(5)
-    x0[:2] = meas.points()[0]
-    P0 = np.zeros((5, 5))
-    P0[:2, :2] = meas.converted_cov()[0]
-    P0[2, 2] = P0[3, 3] = SIGMA_V0**2
-    P0[4, 4] = SIGMA_OMEGA0**2
+    x0, P0 = prior(meas)
     P_cv = P0.copy()
     P_cv[4, 4] = 1e-12  # the CV model's omega is 0
     x_cv = x0.copy()
