@@ -180,7 +180,7 @@ def remedy(job: Job) -> str:
 def _too_long(job: Job, time_limit_s: float) -> Outcome:
     return Outcome(None, error_loc=("plots",), error_message=(
         f"needs more than this service's solve time limit of {time_limit_s:g} s "
-        f"({len(job.plots)} plots over {float(job.plots.t[-1] - job.plots.t[0]):g} s); "
+        f"({len(job.table)} plots over {float(job.table.t.max() - job.table.t.min()):g} s); "
         f"{remedy(job)}"))
 
 

@@ -97,6 +97,30 @@ def test_solve_time_limit_stops_a_sliding_solve_with_a_422():
     asyncio.run(scenario())
 
 
+def test_solve_time_limit_stops_sliding_windows_over_sensors():
+    """The same over several sensors (the windows over their fixes check the deadline too);
+    the message spans the plots' times although the request lists them sensor by sensor."""
+    from test_service_sensors import _body
+
+    body = _body()
+    body["plots"].sort(key=lambda p: p["sensor"] != "ADSB")  # ADS-B's (1 s on) first
+    body.update(method="sliding", window={"plots": 3, "trial_step_s": 0.01})
+    times = [p["t"] for p in body["plots"]]
+    job = job_of(body)
+
+    async def scenario() -> None:
+        pool = SolverPool(Settings(workers=1, warmup=False, solve_time_limit_s=0.5), Metrics())
+        pool.start()
+        await ready(pool)
+        out = await pool.run(job)
+        assert out.body is None and out.error_loc == ("plots",), out
+        assert f"({len(times)} plots over {max(times) - min(times):g} s)" in out.error_message
+        assert times[-1] - times[0] != max(times) - min(times)
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
 def test_trial_step_that_asks_for_billions_of_windows_is_a_422_naming_it():
     body = copy.deepcopy(SEED_BATCH)
     body["plots"] = body["plots"][:20]
