@@ -20,6 +20,7 @@ from .models import (
     SensorIn,
     SensorOut,
     StateOut,
+    WindowIn,
     _In,
     _optional,
     _Out,
@@ -44,6 +45,9 @@ _FILTERS_DOC = ("Recursive estimators run beside the reconstruction of every tra
 _METHOD_DOC = ("How every track is reconstructed, as the single-track request's `method`: "
                "`refined` (default), one bounded piecewise-constant-control NLP over the whole "
                "track; `sliding`, the seed's sliding windows.")
+_WINDOW_DOC = ("The sliding windows' settings (`method: sliding`), as the single-track "
+               "request's `window`; a track shorter than `plots` is one window, with a warning.")
+_CRITERION_DOC = "The sliding windows' fit criterion, as the single-track request's `criterion`."
 _SAMPLES_DOC = ("Keep every track's state every this many seconds (s, > 0; from its first plot "
                 "to its last, with the covariance): the track's `trajectory.samples` and "
                 "`samples.parquet`. A track that would have `max_samples` (a service setting) "
@@ -59,6 +63,8 @@ class JobOptions(_In):
          "filters": ["imm_smoother"], "sample_step_s": 1.0}]})
 
     method: Method = Field("refined", description=_METHOD_DOC)
+    window: WindowIn = Field(default_factory=WindowIn, description=_WINDOW_DOC)
+    criterion: Literal["R1", "R2"] = Field("R2", description=_CRITERION_DOC)
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
@@ -88,6 +94,8 @@ class JobTracksRequest(_In):
         "every result). Plots of one sensor in time order; at least 3 plots per track (shorter "
         "tracks are reported in the job's problems).")
     method: Method = Field("refined", description=_METHOD_DOC)
+    window: WindowIn = Field(default_factory=WindowIn, description=_WINDOW_DOC)
+    criterion: Literal["R1", "R2"] = Field("R2", description=_CRITERION_DOC)
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
@@ -110,6 +118,9 @@ class JobOptionsOut(_Out):
     """What every track of the job is reconstructed with."""
 
     method: str = Field("refined", description="The method (`refined` or `sliding`).")
+    window: dict[str, int | float] = Field(default_factory=dict, description="The sliding windows' "
+                                     "`plots` and `trial_step_s`.")
+    criterion: str = Field("R2", description="The sliding windows' criterion.")
     bounds: dict[str, list[float]] = Field(description="The bounds `u`, `w` (m/s^2) and `v` "
                                            "(m/s), each [min, max].")
     filters: list[str] = Field(description="The recursive filters run beside.")

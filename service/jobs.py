@@ -639,7 +639,8 @@ class JobRunner:
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None,
-                   "method": settings.method, "filters": list(settings.filters),
+                   "method": settings.method, "window": settings.as_json()["window"],
+                   "criterion": settings.criterion, "filters": list(settings.filters),
                    "sample_step_s": settings.sample_step_s}
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")

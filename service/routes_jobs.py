@@ -36,7 +36,7 @@ from .job_models import (
     SensorSummaryOut,
 )
 from .jobs import FINISHED, RESULT_FILES, Full, JobRecord, JobRunner
-from .models import BoundsIn, ErrorResponse
+from .models import ErrorResponse
 from .settings import Settings
 
 JOBS_PATH = "/v1/jobs"
@@ -259,15 +259,17 @@ def _options(text: str | None) -> JobOptions:
                                       for err in errors]) from None
 
 
-def _params(method: str, bounds: BoundsIn, filters: list[str], sample_step_s: float | None,
-            aircraft: list[str] | None = None) -> str:
+def _params(options: JobOptions | JobTracksRequest, aircraft: list[str] | None = None) -> str:
     """``params.json``: the job's :class:`solver.run_settings.RunSettings` (what its run reads,
     :meth:`service.jobs.JobRunner.options`) and the aircraft asked for
-    (:meth:`service.jobs.JobRunner.aircraft`); the bounds are checked here as the
-    reconstruction would (422 at ``bounds.<name>``)."""
-    box = Bounds(u=tuple(bounds.u), w=tuple(bounds.w), v=tuple(bounds.v))  # type: ignore[arg-type]
-    settings = RunSettings(method=method, bounds=box, filters=tuple(filters),
-                           sample_step_s=sample_step_s)
+    (:meth:`service.jobs.JobRunner.aircraft`); the bounds and windows are checked here as the
+    reconstruction would (422 at ``bounds.<name>``, ``window.<name>``)."""
+    b, w = options.bounds, options.window
+    box = Bounds(u=tuple(b.u), w=tuple(b.w), v=tuple(b.v))  # type: ignore[arg-type]
+    settings = RunSettings(method=options.method, bounds=box, filters=tuple(options.filters),
+                           sample_step_s=options.sample_step_s,
+                           window_plots=RunSettings.window_plots if w.plots is None else w.plots,
+                           trial_step_s=w.trial_step_s, criterion=options.criterion)
     settings.config().validate()
     doc = settings.as_json()
     if aircraft:
@@ -279,8 +281,7 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
                   inputs: Path) -> None:
     parse_sensors(sensors_text)  # 422 at sensors[j].field for a bad sensor file
     try:
-        params = _params(options.method, options.bounds, options.filters, options.sample_step_s,
-                         options.aircraft)
+        params = _params(options, options.aircraft)
     except InputError as e:
         raise InputError(("options", *e.loc), e.message) from None
     src = recording.file
@@ -318,7 +319,7 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
     if req.reference is not None:
         doc["reference"] = req.reference.model_dump()
     sensors = parse_sensors(doc)
-    params = _params(req.method, req.bounds, req.filters, req.sample_step_s)
+    params = _params(req)
     radar = {s.id: isinstance(s, RadarSensor) for s in sensors.sensors}
     cols: dict[str, list[Any]] = {k: [] for k in ("t", "sensor", "range_m", "azimuth_deg",
                                                   "lat_deg", "lon_deg", "altitude_m",
@@ -374,7 +375,8 @@ def _status(runner: JobRunner, job: JobRecord) -> JobStatus:
 
 def _options_out(settings: RunSettings, aircraft: list[str] | None) -> dict[str, Any]:
     doc = settings.as_json()
-    return {"method": doc["method"], "bounds": doc["bounds"], "filters": doc["filters"],
+    return {"method": doc["method"], "window": doc["window"], "criterion": doc["criterion"],
+            "bounds": doc["bounds"], "filters": doc["filters"],
             "sample_step_s": doc["sample_step_s"], "aircraft": aircraft}
 
 

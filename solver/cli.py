@@ -570,7 +570,7 @@ def _normal_key(key: str) -> str:
 
 def _settings(args: argparse.Namespace) -> RunSettings:
     return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters),
-                       args.samples)
+                       args.samples, **_windows(args, RunSettings()))
 
 
 def _check_out(out: Path, sensors: Path) -> None:
@@ -815,6 +815,26 @@ def _method(ap: argparse.ArgumentParser, default: str | None) -> None:
                     help="refined (the full-track NLP, default) or sliding (the seed's windows "
                     "alone, over every sensor's plots in time order; no covariance, no sensor "
                     "offsets)" + ("" if default else "; default: the run's in --out"))
+    d = ReconstructionConfig()
+    run = "" if default else "; default: the run's in --out"
+    ap.add_argument("--window-plots", type=int, default=None, metavar="M",
+                    help=f"sliding: plots per window (>= 2; default {d.window_plots}{run})")
+    ap.add_argument("--trial-step", type=float, default=None, metavar="S",
+                    help="sliding: spacing of the extra trial start points between plots (s, "
+                    f"> 0; default {d.trial_step_s:g}{run})")
+    ap.add_argument("--criterion", choices=("R1", "R2"), default=None,
+                    help="sliding: window fit criterion, R1 plain least squares or R2 weighted "
+                    f"by each plot's ellipse (default {d.criterion}{run})")
+
+
+def _windows(args: argparse.Namespace, run: RunSettings) -> dict[str, Any]:
+    """The sliding windows' settings given on the command line, else ``run``'s; checked
+    (:class:`InputError` at ``window.plots`` / ``window.trial_step_s``)."""
+    out = {"window_plots": run.window_plots if args.window_plots is None else args.window_plots,
+           "trial_step_s": run.trial_step_s if args.trial_step is None else args.trial_step,
+           "criterion": args.criterion or run.criterion}
+    ReconstructionConfig(**out).validate()
+    return out
 
 
 def _bounds(ap: argparse.ArgumentParser, default: list[str] | None) -> None:
@@ -843,8 +863,8 @@ def plot(args: argparse.Namespace) -> list[Path]:
     if wanted:
         run = stored_settings(out) or RunSettings()
         config = RunSettings(args.method or run.method,
-                             run.bounds if args.bounds is None else parse_bounds(args.bounds)
-                             ).config()
+                             run.bounds if args.bounds is None else parse_bounds(args.bounds),
+                             **_windows(args, run)).config()
         for track in loaded.tracks:
             if track.key not in wanted:
                 continue

@@ -25,31 +25,47 @@ RUN_FILE = "run.json"
 class RunSettings:
     """The settings every track of a run shares (``filters`` as a set: their order changes
     no output); ``sample_step_s``: the regular samples kept (``samples.parquet``), none when
-    None."""
+    None; the sliding windows' ``window_plots``, ``trial_step_s`` and ``criterion`` (the
+    defaults of :class:`solver.config.ReconstructionConfig`; the refined method does not use
+    them)."""
 
     method: str = "refined"
     bounds: Bounds = field(default_factory=Bounds)
     filters: tuple[str, ...] = ()
     sample_step_s: float | None = None
+    window_plots: int = ReconstructionConfig.window_plots
+    trial_step_s: float = ReconstructionConfig.trial_step_s
+    criterion: str = ReconstructionConfig.criterion
 
     def config(self) -> ReconstructionConfig:
         more = {} if self.sample_step_s is None else {"sample_step_s": self.sample_step_s}
-        return ReconstructionConfig(method=self.method, bounds=self.bounds, **more)  # type: ignore[arg-type]
+        return ReconstructionConfig(method=self.method, bounds=self.bounds,  # type: ignore[arg-type]
+                                    window_plots=self.window_plots,
+                                    trial_step_s=self.trial_step_s,
+                                    criterion=self.criterion, **more)  # type: ignore[arg-type]
 
     def as_json(self) -> dict[str, Any]:
         return {"method": self.method, "filters": list(dict.fromkeys(self.filters)),
                 "bounds": {k: list(getattr(self.bounds, k)) for k in ("u", "w", "v")},
-                "sample_step_s": self.sample_step_s}
+                "sample_step_s": self.sample_step_s,
+                "window": {"plots": self.window_plots, "trial_step_s": self.trial_step_s},
+                "criterion": self.criterion}
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> RunSettings:
+        """A run's settings (those a file written before a field existed lacks: the
+        defaults, which such a run used)."""
         b = doc.get("bounds") or {}
+        w = doc.get("window") or {}
         defaults = Bounds()
         return cls(str(doc.get("method", "refined")),
                    Bounds(**{k: tuple(float(x) for x in b.get(k, getattr(defaults, k)))
                              for k in ("u", "w", "v")}),
                    tuple(doc.get("filters") or ()),
-                   None if doc.get("sample_step_s") is None else float(doc["sample_step_s"]))
+                   None if doc.get("sample_step_s") is None else float(doc["sample_step_s"]),
+                   int(w.get("plots", cls.window_plots)),
+                   float(w.get("trial_step_s", cls.trial_step_s)),
+                   str(doc.get("criterion", cls.criterion)))
 
 
 def parse_bounds(items: Sequence[str]) -> Bounds:

@@ -363,10 +363,12 @@ def test_sliding_windows_reconstruct_the_recording(recording, tmp_path, capsys):
     (exact plots), no covariance, the method in the summary and each track's diagnostics."""
     d, enc = recording
     out = tmp_path / "sliding"
-    assert main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--workers", "1",
-                 "--no-progress", "--out", str(out), "--method", "sliding"]) == 0
+    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--workers", "1",
+            "--no-progress", "--out", str(out), "--method", "sliding"]
+    assert main([*args, "--window-plots", "4", "--criterion", "R1"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == "sliding" and summary["done"] == len(FLIGHTS)
+    assert summary["window"] == {"plots": 4, "trial_step_s": 5.0} and summary["criterion"] == "R1"
     assert f"({len(FLIGHTS)} reconstructed by sliding, 0 failed" in capsys.readouterr().out
     table = pq.read_table(out / "tracks.parquet")
     assert np.isnan(table.column("cov_x_x").to_numpy(zero_copy_only=False)).all()
@@ -382,6 +384,13 @@ def test_sliding_windows_reconstruct_the_recording(recording, tmp_path, capsys):
         assert np.hypot(dx, dy).max() < 60.0
     lines = [json.loads(x) for x in (out / "progress.jsonl").read_text().splitlines()]
     assert {x["diagnostics"]["method"] for x in lines if "diagnostics" in x} == {"sliding"}
+    assert {x["diagnostics"]["criterion"] for x in lines if "diagnostics" in x} == {"R1"}
+    # a rerun resumes only the same windows; bad ones are named
+    capsys.readouterr()
+    assert main([*args, "--window-plots", "3", "--criterion", "R1"]) == 2
+    assert "window {'plots': 4" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "bad"), "--window-plots", "1"]) == 2
+    assert "window.plots" in capsys.readouterr().err
 
 
 def test_a_selection_takes_a_keys_later_pieces():

@@ -35,7 +35,11 @@ def test_a_run_keeps_its_settings_and_resumes_only_the_same(tmp_path):
                          (RunSettings("refined", Bounds(), first.filters), "bounds"),
                          (RunSettings("refined", first.bounds, ("cv_rts",)), "filters"),
                          (RunSettings("refined", first.bounds, first.filters, 2.0),
-                          "sample_step_s")):
+                          "sample_step_s"),
+                         (RunSettings("refined", first.bounds, first.filters, window_plots=4),
+                          "window"),
+                         (RunSettings("refined", first.bounds, first.filters, criterion="R1"),
+                          "criterion")):
         with pytest.raises(InputError) as e:
             keep(tmp_path, other)
         assert f"holds a run made with {named} " in str(e.value)
@@ -44,7 +48,13 @@ def test_a_run_keeps_its_settings_and_resumes_only_the_same(tmp_path):
     keep(tmp_path / "sampled", sampled)
     assert stored(tmp_path / "sampled") == sampled
     assert sampled.config().sample_step_s == 2.0
-    # a run.json written before the sample step was kept is a run without samples
+    windows = RunSettings("sliding", window_plots=5, trial_step_s=2.5, criterion="R1")
+    keep(tmp_path / "windows", windows)
+    assert stored(tmp_path / "windows") == windows
+    config = windows.config()
+    assert (config.window_plots, config.trial_step_s, config.criterion) == (5, 2.5, "R1")
+    # a run.json written before the sample step and the windows were kept: a run without
+    # samples, with the default windows
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / RUN_FILE).write_text(json.dumps(
         {"method": "refined", "filters": [], "bounds": {"v": [30.0, 330.0]}}))

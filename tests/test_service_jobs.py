@@ -220,7 +220,8 @@ def test_job_options_run_the_filters_on_every_track(client):
     assert status["state"] == "done" and status["tracks_done"] == 2, status
     assert status["options"] == {"bounds": bounds, "filters": names,  # what it runs with
                                  "sample_step_s": 5.0, "aircraft": None,
-                                 "method": "refined"}
+                                 "method": "refined", "criterion": "R2",
+                                 "window": {"plots": 3, "trial_step_s": 5.0}}
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
@@ -290,7 +291,7 @@ def test_job_options_run_the_filters_on_every_track(client):
     assert done["state"] == "done" and done["options"] == {
         "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
         "filters": ["imm_smoother"], "sample_step_s": 1e-4, "aircraft": None,
-        "method": "refined"}
+        "method": "refined", "criterion": "R2", "window": {"plots": 3, "trial_step_s": 5.0}}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
@@ -320,23 +321,27 @@ def test_job_options_run_the_filters_on_every_track(client):
 
 
 def test_a_jobs_method_is_the_single_track_method(client):
-    """`method: sliding` (JSON body; an upload's `options`): every track is the seed's sliding
-    windows, the same as the single-track endpoint's `sliding` answer for its plots (segments
-    and states), not the refined default."""
+    """`method: sliding` with its `window` and `criterion` (JSON body; an upload's
+    `options`): every track is the seed's sliding windows, the same as the single-track
+    endpoint's `sliding` answer with those settings for its plots (segments and states), not
+    the refined default."""
     enc = encode_recording(duration=30.0)
     sensors, tracks = json_tracks(enc)
+    windows = {"window": {"plots": 4, "trial_step_s": 3.0}, "criterion": "R1"}
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks,
-                                      "method": "sliding"})
+                                      "method": "sliding", **windows})
     assert r.status_code == 202, r.text
     loc = r.headers["location"]
     status = wait(client, loc)
     assert status["state"] == "done" and status["tracks_done"] == 2, status
     assert status["options"]["method"] == "sliding"
+    assert {k: status["options"][k] for k in windows} == windows
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         want = {m: client.post("/v1/reconstructions", json={
-            "sensors": sensors, "plots": plots, "method": m}).json() for m in ("sliding",
-                                                                                "refined")}
+            "sensors": sensors, "plots": plots, "method": m, **windows}).json()
+            for m in ("sliding", "refined")}
+        assert body["diagnostics"]["criterion"] == "R1"
         assert body["diagnostics"]["method"] == "sliding"
         assert body["diagnostics"]["windows_solved"] == want["sliding"]["diagnostics"][
             "windows_solved"] > 0
@@ -427,6 +432,9 @@ def test_upload_over_the_limit_is_413(client):
         ('{"filters": ["singer"], "colour": 1}', "options.colour"),
         ('{"sample_step_s": 0}', "options.sample_step_s"),
         ('{"method": "kalman"}', "options.method"),
+        ('{"window": {"plots": 1}}', "options.window.plots"),
+        ('{"window": {"trial_step_s": 0}}', "options.window.trial_step_s"),
+        ('{"criterion": "R3"}', "options.criterion"),
         ('{"aircraft": []}', "options.aircraft"),
         ('{"aircraft": [""]}', "options.aircraft[0]"),
         ('{"filters": [', "options is not valid JSON"))),
@@ -457,6 +465,8 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
         ({"sensors": sensors, "tracks": {"A": [plot]}, "sample_step_s": -1.0},
          "sample_step_s"),
         ({"sensors": sensors, "tracks": {"A": [plot]}, "method": "imm"}, "method"),
+        ({"sensors": sensors, "tracks": {"A": [plot]}, "window": {"plots": 1}},
+         "window.plots"),
     ]
     for body, field in cases:
         r = client.post("/v1/jobs", json=body)
