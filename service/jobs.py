@@ -638,10 +638,7 @@ class JobRunner:
                    "problems": dict(loaded.problems.counts),
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
-                   "runs": record.runs if record else None,
-                   "method": settings.method, "window": settings.as_json()["window"],
-                   "criterion": settings.criterion, "filters": list(settings.filters),
-                   "sample_step_s": settings.sample_step_s}
+                   "runs": record.runs if record else None, **settings.as_json()}
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")
 

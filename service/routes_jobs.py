@@ -374,10 +374,7 @@ def _status(runner: JobRunner, job: JobRecord) -> JobStatus:
 
 
 def _options_out(settings: RunSettings, aircraft: list[str] | None) -> dict[str, Any]:
-    doc = settings.as_json()
-    return {"method": doc["method"], "window": doc["window"], "criterion": doc["criterion"],
-            "bounds": doc["bounds"], "filters": doc["filters"],
-            "sample_step_s": doc["sample_step_s"], "aircraft": aircraft}
+    return {**settings.as_json(), "aircraft": aircraft}
 
 
 def _job(runner: JobRunner, job_id: str) -> JobRecord:

@@ -811,12 +811,13 @@ def _inputs(ap: argparse.ArgumentParser) -> None:
 
 
 def _method(ap: argparse.ArgumentParser, default: str | None) -> None:
+    """``--method`` and the sliding windows' settings (``default`` None: the run's in --out)."""
+    d = ReconstructionConfig()
+    run = "" if default else "; default: the run's in --out"
     ap.add_argument("--method", choices=("refined", "sliding"), default=default,
                     help="refined (the full-track NLP, default) or sliding (the seed's windows "
                     "alone, over every sensor's plots in time order; no covariance, no sensor "
-                    "offsets)" + ("" if default else "; default: the run's in --out"))
-    d = ReconstructionConfig()
-    run = "" if default else "; default: the run's in --out"
+                    f"offsets){run}")
     ap.add_argument("--window-plots", type=int, default=None, metavar="M",
                     help=f"sliding: plots per window (>= 2; default {d.window_plots}{run})")
     ap.add_argument("--trial-step", type=float, default=None, metavar="S",

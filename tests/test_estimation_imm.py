@@ -20,6 +20,7 @@ from tracks import make_track
 from solver.estimation import imm_ct_step
 from solver.estimation.imm import OMEGA_MAX, run_imm
 from solver.estimation.measurements import PolarPlots
+from solver.estimation.models import TURN_SERIES_WT
 
 
 def _polar(seed: int, scan_s: float = 4.0, legs=LEGS) -> PolarPlots:
@@ -53,7 +54,7 @@ def test_compiled_step_equals_the_numpy_reference(case):
     if case == "bound":  # 2 deg/s turns against a bound of 0.5 deg/s: projected on it
         assert 0.9 * omega_max < omega.max() <= omega_max * (1 + 1e-12)
     if case == "straight":  # most steps in the turn terms' series (|omega T| < 1e-3)
-        assert np.median(omega) * 4.0 < imm_ct_step.SERIES_WT
+        assert np.median(omega) * 4.0 < TURN_SERIES_WT
 
 
 def test_the_step_is_compiled_when_a_compiler_is_at_hand():

@@ -25,6 +25,7 @@ import numpy as np
 
 from .. import compiled
 from .imm_step import _blocks, _flat, _mat, size, update_terms
+from .models import TURN_SERIES_WT
 
 N_MODES = 2
 """CV, coordinated turn with unknown rate."""
@@ -32,8 +33,6 @@ N_X = 5
 """``(x, z, vx, vz, omega)``."""
 MU_FLOOR = 1e-12
 """A mode's probability never falls below this (neither model is ever ruled out)."""
-SERIES_WT = 1e-3
-"""Below this ``|omega T|`` the turn terms are their series (:func:`.models._turn_terms`)."""
 
 STATE = _blocks(x=N_MODES * N_X, P=N_MODES * N_X * N_X, mu=N_MODES)
 """The filter's state after a plot: each mode's mean and covariance, the probabilities."""
@@ -53,7 +52,7 @@ def _turn(x: ca.SX, T: ca.SX) -> tuple[ca.SX, ca.SX]:
     """:func:`.models.ct_predict`: ``f(x)`` and its Jacobian."""
     px, pz, vx, vz, w = (x[i] for i in range(N_X))
     wT = w * T
-    small = ca.fabs(wT) < SERIES_WT
+    small = ca.fabs(wT) < TURN_SERIES_WT
     safe = ca.if_else(small, 1.0, w)  # the exact terms are not evaluated at w = 0
     sn, cs = ca.sin(wT), ca.cos(wT)
     s = ca.if_else(small, T * (1 - wT**2 / 6), sn / safe)

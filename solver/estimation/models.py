@@ -90,10 +90,14 @@ def quasi_optimal(dt: FloatArray, lam: float, alpha: float, sigma_m: float,
 
 # --- coordinated turn with unknown rate (state x, z, vx, vz, omega) --------------------------
 
+TURN_SERIES_WT = 1e-3
+"""Below this ``|omega T|`` the turn terms are their series (the exact forms divide by ``w``)."""
+
+
 def _turn_terms(w: float, T: float) -> tuple[float, float, float, float]:
     """``s = sin(wT)/w``, ``c = (1 - cos wT)/w`` and their derivatives in ``w`` (series near 0)."""
     wT = w * T
-    if abs(wT) < 1e-3:
+    if abs(wT) < TURN_SERIES_WT:
         s = T * (1 - wT**2 / 6)
         c = T * (wT / 2 - wT**3 / 24)
         ds = -T**2 * (wT / 3 - wT**3 / 30)
