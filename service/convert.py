@@ -15,6 +15,7 @@ from solver.config import ReconstructionConfig
 from solver.estimation import FUSION_NAMES
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar
+from solver.manoeuvres import from_segments
 from solver.plots import PlotTable
 from solver.results import (
     FilterEstimate,
@@ -242,6 +243,7 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
     ]
     trajectory: dict = {
         "segments": segments,
+        "manoeuvres": [m.as_dict() for m in from_segments(rec.segments)],
         "at_plots": _with_residuals(_states(rec.at_plots, True), rec.residuals),
         "samples": [] if "samples" in omit else _states(rec.samples, True),
     }

@@ -12,6 +12,7 @@ from .models import (
     DiagnosticsOut,
     FilterName,
     FilterOut,
+    ManoeuvreOut,
     Method,
     PlotIn,
     PlotStateOut,
@@ -189,6 +190,8 @@ class JobTrajectoryOut(_Out):
     keeps them, the regular samples."""
 
     segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
+    manoeuvres: list[ManoeuvreOut] = Field(
+        default_factory=list, description="Turns and speed changes, by start time.")
     at_plots: list[JobStateOut] = Field(description="State at every plot, in time order.")
     altitude_m: float | None = Field(
         None, description="Where the altitude was estimated from several sensors: the "

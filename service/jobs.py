@@ -7,8 +7,9 @@ Layout of the data directory (``Settings.data_dir``)::
     DATA/jobs/<id>/out/            solver.batch's out_dir: tracks.parquet/, segments.parquet/,
                                    progress.jsonl (the commit log of finished tracks),
                                    sensor_stats.jsonl, figures/<digest>/<key>.png; when done:
-                                   tracks.csv, tracks.geojsonl, sensors.json, map.png,
-                                   problems.txt, summary.json, export/ (single-file downloads)
+                                   tracks.csv, tracks.geojsonl, manoeuvres.csv, sensors.json,
+                                   map.png, problems.txt, summary.json, export/ (single-file
+                                   downloads)
 
 Durability: an accepted job's inputs are written (and synced) under a temporary name, renamed,
 and only then its record is inserted (committed) before the 202; a track is finished exactly
@@ -52,10 +53,12 @@ from solver.cli import (
     assess_track,
     load,
     write_csv_and_geojson,
+    write_manoeuvres,
     write_map,
 )
 from solver.config import ReconstructionConfig
 from solver.inputs import InputError, format_loc
+from solver.io.split import recording_frame
 from solver.run_settings import RunSettings
 
 from .logs import LOGGER
@@ -66,8 +69,9 @@ FINISHED: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 ACTIVE: frozenset[str] = frozenset({"queued", "running"})
 PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet", "samples.parquet")
 """Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
-RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "sensors.json",
-                "problems.txt", "summary.json", "map.png", "sensors.png", "results.zip")
+RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "manoeuvres.csv",
+                "sensors.json", "problems.txt", "summary.json", "map.png", "sensors.png",
+                "results.zip")
 PROBLEM_EXAMPLES = 20  # problems listed in a job's status (every kind is counted)
 
 _SCHEMA = """
@@ -621,7 +625,9 @@ class JobRunner:
         (out / "sensors.json").write_text(json.dumps(stats.rows(), indent=1) + "\n",
                                           encoding="utf-8")
         write_csv_and_geojson(out)
-        write_map(out, loaded.sensors, loaded.rows)
+        frame = recording_frame(loaded.sensors, loaded.rows)
+        write_manoeuvres(out, frame)
+        write_map(out, loaded.sensors, frame=frame)
         write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
         (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
         export = out / "export"

@@ -14,6 +14,12 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from solver.estimation import FILTER_NAMES
+from solver.manoeuvres import (
+    ACCELERATION,
+    MIN_HEADING_CHANGE_DEG,
+    MIN_SPEED_CHANGE,
+    TURN_RATE_DEG_S,
+)
 
 FilterName = Literal[FILTER_NAMES]  # type: ignore[valid-type]
 Method = Literal["refined", "sliding"]
@@ -300,10 +306,45 @@ class SegmentOut(_Out):
     speed: float = Field(description="Ground speed at `t_start` (m/s).")
 
 
+class ManoeuvreOut(_Out):
+    """A turn or a speed change read off the segments (:mod:`solver.manoeuvres`)."""
+
+    model_config = ConfigDict(allow_inf_nan=False, json_schema_extra={"description": (
+        "A turn or a speed change read off the segments: a run of segments turning one way at "
+        f"{TURN_RATE_DEG_S / 2:g} deg/s or more, one of them at {TURN_RATE_DEG_S:g} deg/s or "
+        f"more, {MIN_HEADING_CHANGE_DEG:g} deg in all; or changing speed one way at "
+        f"{ACCELERATION / 2:g} m/s^2 or more, one at {ACCELERATION:g} m/s^2 or more, "
+        f"{MIN_SPEED_CHANGE:g} m/s in all (as ASTERIX I062/200's right / left turn, increasing "
+        "/ decreasing ground speed).")})
+
+    kind: Literal["turn", "speed_change"] = Field(description="What changed.")
+    direction: Literal["right", "left", "increase", "decrease"] = Field(
+        description="`right` / `left` for a turn, `increase` / `decrease` for a speed change.")
+    t_start: float = Field(description="Start time (s): the first segment's start.")
+    t_end: float = Field(description="End time (s): the last segment's end.")
+    x_start: float = Field(description="North position at `t_start` (m).")
+    z_start: float = Field(description="East position at `t_start` (m).")
+    x_end: float = Field(description="North position at `t_end` (m).")
+    z_end: float = Field(description="East position at `t_end` (m).")
+    heading_start_deg: float = Field(description="Heading at `t_start` (deg clockwise from "
+                                     "north).")
+    heading_end_deg: float = Field(description="Heading at `t_end` (deg).")
+    heading_change_deg: float = Field(description="Heading change over the manoeuvre (deg, "
+                                      "positive to the right; may exceed 360).")
+    speed_start: float = Field(description="Ground speed at `t_start` (m/s).")
+    speed_end: float = Field(description="Ground speed at `t_end` (m/s).")
+    speed_change: float = Field(description="`speed_end - speed_start` (m/s).")
+    peak_rate: float = Field(description="The largest rate of its segments, signed: mean turn "
+                             "rate (deg/s) for a turn, longitudinal acceleration (m/s^2) for a "
+                             "speed change.")
+
+
 class TrajectoryOut(_Out):
     """The reconstructed trajectory."""
 
     segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
+    manoeuvres: list[ManoeuvreOut] = Field(
+        default_factory=list, description="Turns and speed changes, by start time.")
     at_plots: list[PlotStateOut] = Field(description="State at every plot time, in input "
                                          "order, one per plot.")
     samples: list[StateOut] = Field(description="States every `sample_step_s` over the track.")

@@ -24,6 +24,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from solver.inputs import Bounds, InputError
 from solver.io.sensors_file import parse_sensors
 from solver.io.tables import PlotRows, write_table
+from solver.manoeuvres import find_manoeuvres
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
@@ -477,6 +478,7 @@ def get_job_track(job_id: str, aircraft: str, request: Request,
     return JobTrackResult.model_validate({
         "aircraft": aircraft,
         "trajectory": {"segments": _segment_rows(segments),
+                       "manoeuvres": _manoeuvre_rows(segments),
                        "at_plots": _state_rows(states, cov),
                        "samples": [] if sampled is None else _sample_rows(sampled, cov),
                        **_altitude(entry.get("altitude"))},
@@ -564,6 +566,15 @@ def _segment_rows(t: Any) -> list[dict[str, Any]]:
     return rows
 
 
+def _manoeuvre_rows(t: Any) -> list[dict[str, Any]]:
+    """The turns and speed changes of one track's ``segments.parquet`` rows."""
+    c = {k: t.column(k).to_numpy() for k in ("t_start", "t_end", "x", "z", "heading_deg",
+                                             "speed", "u", "w")}
+    return [m.as_dict() for m in find_manoeuvres(
+        c["t_start"], c["t_end"], c["x"], c["z"], np.deg2rad(c["heading_deg"]), c["speed"],
+        c["u"], c["w"])]
+
+
 def _sensor_out(r: dict[str, Any]) -> dict[str, Any]:
     """A sensor report in degrees (the worker's dict carries radians)."""
     out = {k: v for k, v in r.items() if not k.endswith("_rad")}
@@ -635,7 +646,9 @@ def get_job_result(job_id: str, name: str, request: Request) -> Response:
     """`tracks.parquet` (states at every plot), `segments.parquet`, `filters.parquet` (the
     job's `filters`' states at every plot, when it asked for any), `samples.parquet` (every
     track's state every `sample_step_s`, when it asked for them), `tracks.csv`,
-    `tracks.geojsonl` (one LineString per aircraft), `sensors.json`, `sensors.png`,
+    `tracks.geojsonl` (one LineString per aircraft), `manoeuvres.csv` (every track's turns and
+    speed changes, as the track's `trajectory.manoeuvres`, with latitude and longitude at both
+    ends), `sensors.json`, `sensors.png`,
     `problems.txt`, `summary.json`, `map.png`, or all of them as `results.zip`."""
     runner = _runner(request)
     if name not in RESULT_FILES:

@@ -14,7 +14,9 @@ cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
 - ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
   with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
   resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
-  ``tracks.geojsonl`` (one GeoJSON LineString feature per aircraft, for maps);
+  ``tracks.geojsonl`` (one GeoJSON LineString feature per aircraft, for maps) and
+  ``manoeuvres.csv`` (every track's turns and speed changes, :mod:`solver.manoeuvres`, with
+  latitude and longitude at their start and end);
 - ``sensors.json`` and ``sensors.csv``: per sensor, against the reconstruction
   (SASS-C/TRES-style assessment): plots, detection rate (plots over expected scans at the
   estimated scan period), wild plots, bias and sigma of the range and azimuth residuals,
@@ -448,6 +450,46 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
     return rows, tracks
 
 
+def write_manoeuvres(out: Path, frame: LocalFrame | None) -> int:
+    """``manoeuvres.csv`` from the segments' Parquet parts (:mod:`solver.manoeuvres`), one part
+    at a time, with latitude and longitude at both ends in the recording's plane ``frame``
+    (empty without one); returns the rows written."""
+    from .manoeuvres import Manoeuvre, find_manoeuvres
+
+    fields = list(Manoeuvre.__dataclass_fields__)
+    schema = pa.schema([("aircraft", pa.string())] + [
+        (k, pa.string() if k in ("kind", "direction") else pa.float64()) for k in fields] + [
+        (k, pa.float64()) for k in ("lat_start_deg", "lon_start_deg", "lat_end_deg",
+                                    "lon_end_deg")])
+    rows = 0
+    with pacsv.CSVWriter(out / "manoeuvres.csv", schema) as writer:
+        for part in sorted((out / "segments.parquet").glob("part-*.parquet")):
+            table = pq.read_table(part)
+            keys = table.column("aircraft").to_numpy(zero_copy_only=False)
+            c = {k: table.column(k).to_numpy() for k in (
+                "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")}
+            found: list[tuple[str, Manoeuvre]] = []
+            for key, sel in _key_groups(keys):
+                found += [(key, m) for m in find_manoeuvres(
+                    c["t_start"][sel], c["t_end"][sel], c["x"][sel], c["z"][sel],
+                    np.deg2rad(c["heading_deg"][sel]), c["speed"][sel], c["u"][sel],
+                    c["w"][sel])]
+            if not found:
+                continue
+            cols: dict[str, Any] = {"aircraft": [k for k, _ in found]}
+            cols.update({f: [getattr(m, f) for _, m in found] for f in fields})
+            for end in ("start", "end"):
+                x, z = np.array(cols[f"x_{end}"]), np.array(cols[f"z_{end}"])
+                lat, lon = frame.to_geodetic(x, z) if frame is not None else (None, None)
+                cols[f"lat_{end}_deg"], cols[f"lon_{end}_deg"] = lat, lon
+            writer.write_table(pa.table({f.name: pa.nulls(len(found), f.type)
+                                         if cols[f.name] is None else
+                                         pa.array(cols[f.name], f.type) for f in schema},
+                                        schema=schema))
+            rows += len(found)
+    return rows
+
+
 def _key_groups(keys: np.ndarray) -> Iterator[tuple[Any, np.ndarray]]:
     """``(key, rows)`` of every distinct key of a part, in order of first appearance, rows in
     order: what ``keys == key`` selects for each key, by one sort instead of a scan of the part
@@ -645,6 +687,7 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
     (out / "sensors.json").write_text(json.dumps(sensor_rows, indent=1) + "\n",
                                       encoding="utf-8")
     csv_rows, geo_tracks = write_csv_and_geojson(out)
+    manoeuvres = write_manoeuvres(out, loaded.frame)
     write_map(out, loaded.sensors, frame=loaded.frame)
     write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
@@ -656,7 +699,8 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
         "time_to_first_result_s": first_result_s,
         "problems": dict(loaded.problems.counts), "failures": summary.failures,
-        "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "sensors": sensor_rows}
+        "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "manoeuvres": manoeuvres,
+        "sensors": sensor_rows}
     if chosen is not None and chosen.keys is not None:
         result.update(aircraft=sorted(chosen.keys), aircraft_not_found=chosen.missing())
     (out / "summary.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")

@@ -71,6 +71,9 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
                                                                 ["coordinates"]) > 10
     csv_rows = (out / "tracks.csv").read_text().count("\n") - 1
     assert csv_rows == table.num_rows
+    # straight, level flights: no manoeuvre (the job test has a turning track's)
+    assert summary["manoeuvres"] == 0
+    assert (out / "manoeuvres.csv").read_text().startswith('"aircraft","kind","direction"')
     sensors = {r["sensor"]: r for r in summary["sensors"]}
     assert set(sensors) == {"R1", "R2", "ADSB"}
     assert sensors["R1"]["scan_period_s"] == pytest.approx(4.0)  # from CAT034 I041

@@ -6,6 +6,7 @@ import asyncio
 import copy
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from benchmarks.truth import SEED_LIKE_CONTROLS
 from service.app import create_app
 from service.convert import to_job
 from service.logs import LOGGER, JsonFormatter
@@ -101,6 +103,33 @@ def test_reconstruction_matches_in_process_solver(client):
     assert d["windows_solved"] == ref.diagnostics.windows_solved
     assert d["extra"].keys() == ref.diagnostics.extra.keys()
     assert d["elapsed_ms"] > 0 and d["queue_ms"] >= 0
+
+
+def test_the_sample_requests_manoeuvres_are_the_ones_it_flew(client):
+    """examples/seed_track.json (19-s scans, 167 m / 0.5 deg, plots thinned in the turns):
+    164 segments, and the five manoeuvres of benchmarks.truth.SEED_LIKE_CONTROLS among them,
+    each within three scans of its true start and end, its heading change within 15 deg
+    and its speed change within 5 m/s."""
+    r = post(client, SEED_BATCH)
+    assert r.status_code == 200, r.text
+    found = r.json()["trajectory"]["manoeuvres"]
+    ends = np.cumsum([0.0] + [d for d, _, _ in SEED_LIKE_CONTROLS])
+    true = [(k, SEED_LIKE_CONTROLS[k]) for k in range(len(SEED_LIKE_CONTROLS))
+            if SEED_LIKE_CONTROLS[k][1:] != (0.0, 0.0)]
+    assert [(m["kind"], m["direction"]) for m in found] == [
+        ("speed_change", "decrease"), ("turn", "right"), ("speed_change", "increase"),
+        ("turn", "left"), ("speed_change", "decrease")]
+    speed = 220.0
+    for m, (k, (dur, u, w)) in zip(found, true, strict=True):
+        # the request's times start at its first plot, less than a scan after the truth's
+        assert abs(m["t_start"] - ends[k]) <= 3 * 19.0, (m, ends[k])
+        assert abs(m["t_end"] - ends[k + 1]) <= 3 * 19.0, (m, ends[k + 1])
+        if u:
+            assert m["heading_change_deg"] == pytest.approx(math.degrees(u * dur / speed),
+                                                            abs=15.0)
+        else:
+            assert m["speed_change"] == pytest.approx(w * dur, abs=5.0)
+        speed += w * dur
 
 
 def test_truth_is_recovered_on_a_noiseless_turn(client):

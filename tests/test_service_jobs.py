@@ -6,10 +6,12 @@ accepted and failed with the reason)."""
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import time
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -27,6 +29,7 @@ from test_io_asterix import (
 from service.app import create_app
 from service.settings import Settings
 
+ROOT = Path(__file__).resolve().parents[1]
 UPLOAD_LIMIT = 200_000
 MANY = tuple(Flight(0x400000 + k, 5_000.0 * k, -20_000.0 + 4_000.0 * k, 180.0, 60.0 - 20 * k,
                     300.0, (110 + k, 210 + k)) for k in range(6))
@@ -127,6 +130,7 @@ def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
         assert len(states) == plots and [s["plot"] for s in states] == list(range(plots))
         assert body["trajectory"]["segments"] and {s["id"] for s in body["sensors"]} == {
             "R1", "R2", "ADSB"}
+        assert body["trajectory"]["manoeuvres"] == []  # straight and level: none
         t = np.array([s["t"] for s in states])
         lat, lon, _ = f.at(t - t.min() + _first_t(enc, k))
         dy = (np.array([s["lat_deg"] for s in states]) - lat) * 111_000
@@ -150,8 +154,8 @@ def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
     assert set(sensors) == {"R1", "R2", "ADSB"} and sensors["R1"]["scan_period_s"] == 4.0
     archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
     assert {"tracks.parquet", "segments.parquet", "tracks.csv", "tracks.geojsonl",
-            "sensors.json", "summary.json", "problems.txt", "map.png", "sensors.png"} <= set(
-                archive.namelist())
+            "manoeuvres.csv", "sensors.json", "summary.json", "problems.txt", "map.png",
+            "sensors.png"} <= set(archive.namelist())
     lines = client.get(loc + "/results/tracks.geojsonl").text.splitlines()
     assert sorted(json.loads(x)["properties"]["aircraft"] for x in lines) == sorted(keys)
     assert client.get(f"{loc}/tracks/NOPE").status_code == 404
@@ -559,3 +563,39 @@ def test_a_stopped_service_resumes_its_running_job(client, tmp_path):
     pairs = list(zip(table.column("aircraft").to_pylist(), table.column("plot").to_pylist(),
                      strict=True))
     assert len(pairs) == len(set(pairs)) == sum(t["plots"] for t in tracks)
+
+
+def test_a_jobs_track_has_the_manoeuvres_of_the_single_track_answer(client):
+    """The seed-like sample track (examples/seed_track.json) as a job's JSON track on the
+    earth: its `trajectory.manoeuvres` (read back from `segments.parquet`) are those of
+    `POST /v1/reconstructions` for the same sensor and plots, and `manoeuvres.csv` lists them
+    with latitude and longitude."""
+    seed = json.loads((ROOT / "examples" / "seed_track.json").read_text())
+    sensors = [{"id": "R", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0, "height_m": 0.0,
+                "range_error_m": seed["radar"]["range_error_m"],
+                "azimuth_error_deg": seed["radar"]["azimuth_error_deg"]}]
+    plots = [{"sensor": "R", **p} for p in seed["plots"]]
+    want = client.post("/v1/reconstructions", json={"sensors": sensors, "plots": plots})
+    assert want.status_code == 200, want.text
+    expected = want.json()["trajectory"]["manoeuvres"]
+    assert [(m["kind"], m["direction"]) for m in expected] == [
+        ("speed_change", "decrease"), ("turn", "right"), ("speed_change", "increase"),
+        ("turn", "left"), ("speed_change", "decrease")]
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"SEED": plots}})
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    assert wait(client, loc)["state"] == "done"
+    got = client.get(f"{loc}/tracks/SEED").json()["trajectory"]["manoeuvres"]
+    assert len(got) == len(expected)
+    for g, e in zip(got, expected, strict=True):
+        assert g == {k: v if isinstance(v, str) else pytest.approx(v, rel=1e-9, abs=1e-6)
+                     for k, v in e.items()}
+    table = list(csv.DictReader(io.StringIO(client.get(loc + "/results/manoeuvres.csv").text)))
+    assert [(m["aircraft"], m["kind"], m["direction"]) for m in table] == [
+        ("SEED", e["kind"], e["direction"]) for e in expected]
+    for m, e in zip(table, expected, strict=True):
+        assert float(m["t_start"]) == pytest.approx(e["t_start"])
+        # the plane is centred on the radar: 1 deg of latitude is 111 km north
+        assert float(m["lat_start_deg"]) == pytest.approx(46.0 + e["x_start"] / 111_200,
+                                                          abs=0.02)
+    assert client.delete(loc).status_code == 204
