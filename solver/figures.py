@@ -3,7 +3,8 @@
 - :func:`track_figure`: one aircraft, in the style of seed 000's figures 4-8: the plots of
   every sensor with their 3-sigma ellipses (the a priori maximum errors of a radar whose sigmas
   are a third of them), the reconstructed trajectory with its switch points and 95 % ellipses,
-  and beside it the controls ``u(t)``, ``w(t)``, the speed and, where estimated, the altitude.
+  and beside it the controls ``u(t)``, ``w(t)``, the speed and, where estimated, the altitude;
+  the manoeuvres (:mod:`solver.manoeuvres`) numbered on the map and shaded on the controls.
 - :func:`recording_map`: every track of a recording on one map, with the radar sites.
 - :func:`residuals_figure`: each radar's plots against the reconstruction over a run, by
   range and by azimuth (:mod:`solver.assessment`).
@@ -30,6 +31,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 
 from .inputs import FloatArray
+from .manoeuvres import Manoeuvre, from_segments
 from .plots import PlotTable
 from .results import Reconstruction
 from .sensors import RadarSensor
@@ -113,11 +115,14 @@ def track_figure(table: PlotTable, rec: Reconstruction, title: str = "") -> Figu
     t = np.array([seg.t_start for seg in rec.segments] + [rec.segments[-1].t_end])
     panels = [("u (m/s^2)", [seg.u for seg in rec.segments]),
               ("w (m/s^2)", [seg.w for seg in rec.segments])]
+    control_axes = []
     for i, (label, values) in enumerate(panels):
         axc = fig.add_subplot(grid[i, 1])
         axc.step(t, [*values, values[-1]], where="post", color="tab:red", lw=1)
         axc.set_ylabel(label)
         axc.grid(True, lw=0.3)
+        control_axes.append(axc)
+    _mark_manoeuvres(ax, control_axes, from_segments(rec.segments))
     axv = fig.add_subplot(grid[2, 1])
     axv.plot(s.t, s.speed, color="tab:red", lw=1)
     axv.set_ylabel("speed (m/s)")
@@ -138,6 +143,30 @@ def track_figure(table: PlotTable, rec: Reconstruction, title: str = "") -> Figu
     fig.axes[-1].set_xlabel("t (s)")
     fig.tight_layout()
     return fig
+
+
+MANOEUVRE_COLOURS = {"right": "tab:orange", "left": "tab:blue", "increase": "tab:green",
+                     "decrease": "tab:purple"}
+
+
+def _mark_manoeuvres(ax: Axes, control_axes: list[Axes], found: list[Manoeuvre]) -> None:
+    """Number the manoeuvres where they start on the map and shade their spans on the ``u``
+    (turns) and ``w`` (speed changes) panels, labelled with the number and the change (deg,
+    m/s)."""
+    for i, m in enumerate(found, 1):
+        colour = MANOEUVRE_COLOURS[m.direction]
+        ax.annotate(str(i), (m.z_start / 1e3, m.x_start / 1e3), xytext=(4, 4),
+                    textcoords="offset points", fontsize=7, color=colour, weight="bold",
+                    bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none",
+                          "alpha": 0.8})
+        turn = m.kind == "turn"
+        axc = control_axes[0 if turn else 1]
+        axc.axvspan(m.t_start, m.t_end, color=colour, alpha=0.15, lw=0)
+        change = f"{m.heading_change_deg:+.0f}" if turn else f"{m.speed_change:+.0f}"
+        # staggered over three rows: neighbours' labels do not overprint
+        axc.text((m.t_start + m.t_end) / 2, 0.98 - 0.09 * (i % 3), f"{i}: {change}",
+                 color=colour, fontsize=6, ha="center", va="top",
+                 transform=axc.get_xaxis_transform())
 
 
 def recording_map(tracks: Sequence[tuple[str, FloatArray, FloatArray]],
