@@ -37,3 +37,26 @@ def test_track_figure_of_the_seed_radar_and_a_recording_map():
     fig = recording_map(tracks, sensor_sites(table))
     assert len(fig.axes[0].lines) == 3  # two tracks and the radar
     assert png(fig).startswith(PNG_MAGIC)
+
+
+def test_track_figure_marks_the_manoeuvres():
+    """The seed-like sample's five manoeuvres: numbered on the map, the two turns shaded and
+    labelled on the u panel, the three speed changes on the w panel."""
+    import json
+    from pathlib import Path
+
+    from service.convert import to_job
+    from service.models import ReconstructionRequest
+    from solver.plots import PlotTable
+
+    body = json.loads((Path(__file__).resolve().parents[1] / "examples" / "seed_track.json")
+                      .read_text())
+    job = to_job(ReconstructionRequest.model_validate(body), "sqpmethod", 500, 20_000)
+    rec = reconstruct(job.plots, job.radar, job.config)
+    fig = track_figure(PlotTable.from_plots(job.plots, job.radar), rec)
+    assert sorted(t.get_text() for t in fig.axes[0].texts) == ["1", "2", "3", "4", "5"]
+    u_labels = [t.get_text() for t in fig.axes[1].texts]
+    w_labels = [t.get_text() for t in fig.axes[2].texts]
+    assert [s.split(":")[0] for s in u_labels] == ["2", "4"]
+    assert [s.split(":")[0] for s in w_labels] == ["1", "3", "5"]
+    assert len(fig.axes[1].patches) == 2 and len(fig.axes[2].patches) == 3
