@@ -14,6 +14,14 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 MAX_RANGE_M = 1e7  # 10 000 km: beyond any radar's horizon
+# Accuracies and bounds no sensor or aircraft has; far beyond them the solvers' weights and
+# scaling break down (a range sigma of 1e200 m, a speed bound of 1e9 m/s made them fail).
+MAX_RANGE_ERROR_M = 1e5  # a radar's range error or sigma, and a position sensor's sigma
+MAX_AZIMUTH_ERROR_RAD = float(np.deg2rad(30.0))
+MAX_ALTITUDE_M = 1e5  # a radar's max_altitude_m
+MAX_ACCELERATION = 100.0  # m/s^2 (10 g): the bounds on u and w
+MAX_SPEED = 2000.0  # m/s: the bound on v
+MAX_AZIMUTH_DEG = 1e6  # a plot's azimuth: normalised to [0, 360) to 1e-10 degrees
 
 
 class InputError(ValueError):
@@ -75,17 +83,19 @@ class Radar:
         return self.azimuth_error_rad / 3
 
     def validate(self) -> None:
-        """Raise :class:`InputError` for non-finite, negative or zero accuracies."""
+        """Raise :class:`InputError` for non-finite, negative or zero accuracies, and for
+        accuracies no radar has (beyond :data:`MAX_RANGE_ERROR_M`, :data:`MAX_AZIMUTH_ERROR_RAD`:
+        the weights they give are below the solvers' precision)."""
         # smallest accuracy a radar can claim: 1 mm in range, 1 nrad in azimuth
-        checks: list[tuple[str, float | None, float]] = [
-            ("range_error_m", self.range_error_m, 1e-3),
-            ("azimuth_error_rad", self.azimuth_error_rad, 1e-9),
-            ("range_sigma_m", self.range_sigma_m, 1e-3),
-            ("azimuth_sigma_rad", self.azimuth_sigma_rad, 1e-9),
-            ("max_altitude_m", self.max_altitude_m, 0.0),
-            ("max_elevation_rad", self.max_elevation_rad, 0.0),
+        checks: list[tuple[str, float | None, float, float]] = [
+            ("range_error_m", self.range_error_m, 1e-3, MAX_RANGE_ERROR_M),
+            ("azimuth_error_rad", self.azimuth_error_rad, 1e-9, MAX_AZIMUTH_ERROR_RAD),
+            ("range_sigma_m", self.range_sigma_m, 1e-3, MAX_RANGE_ERROR_M),
+            ("azimuth_sigma_rad", self.azimuth_sigma_rad, 1e-9, MAX_AZIMUTH_ERROR_RAD),
+            ("max_altitude_m", self.max_altitude_m, 0.0, MAX_ALTITUDE_M),
+            ("max_elevation_rad", self.max_elevation_rad, 0.0, np.inf),
         ]
-        for name, value, least in checks:
+        for name, value, least, most in checks:
             if value is None:
                 continue
             if not np.isfinite(value):
@@ -93,8 +103,26 @@ class Radar:
             if value < least or (least == 0 and value < 0):
                 raise InputError(("radar", name), f"must be positive (at least {least:g})"
                                  if least > 0 else "must not be negative")
+            if value > most:
+                limit = (f"{np.rad2deg(most):g} degrees" if name.endswith("_rad")
+                         else f"{most:g} m")
+                raise InputError(("radar", name), f"must be at most {limit}")
         if self.max_elevation_rad >= np.pi / 2:
             raise InputError(("radar", "max_elevation_rad"), "must be below 90 degrees")
+
+
+def wrap_azimuth(azimuth_rad: ArrayLike, loc: tuple[str | int, ...] = ("plots",)
+                 ) -> FloatArray:
+    """Azimuths (any real value, spec api.md) normalised to [0, 2 pi); :class:`InputError` at
+    the first one beyond :data:`MAX_AZIMUTH_DEG` degrees, where the normalisation loses
+    precision (at 1e300 degrees nothing of the angle is left)."""
+    a = np.asarray(azimuth_rad, dtype=float)
+    bad = np.flatnonzero(np.abs(a) > np.deg2rad(MAX_AZIMUTH_DEG))
+    if bad.size:
+        raise InputError((*loc, int(bad[0]), "azimuth_rad"), "must be within "
+                         f"+-{MAX_AZIMUTH_DEG:g} degrees ({np.rad2deg(a[bad[0]]):g}); it is "
+                         "normalised to [0, 360)")
+    return np.mod(a, 2 * np.pi)
 
 
 @dataclass(frozen=True)
@@ -107,13 +135,19 @@ class Bounds:
     v: tuple[float, float] = (30.0, 330.0)
 
     def validate(self) -> None:
-        """Raise :class:`InputError` unless ``lo < hi``, ``w_lo <= 0 <= w_hi``, ``v_lo > 0``."""
+        """Raise :class:`InputError` unless ``lo < hi``, ``w_lo <= 0 <= w_hi``, ``v_lo > 0``,
+        and the bounds lie within :data:`MAX_ACCELERATION` and :data:`MAX_SPEED` (no aircraft
+        goes beyond; far beyond, the NLPs' scaling fails)."""
         for name in ("u", "w", "v"):
             lo, hi = getattr(self, name)
             if not (np.isfinite(lo) and np.isfinite(hi)):
                 raise InputError(("bounds", name), "must be finite numbers")
             if not lo < hi:
                 raise InputError(("bounds", name), f"is inverted or empty: [{lo}, {hi}]")
+            most, unit = (MAX_SPEED, "m/s") if name == "v" else (MAX_ACCELERATION, "m/s^2")
+            if max(abs(lo), abs(hi)) > most:
+                raise InputError(("bounds", name), f"must lie within [-{most:g}, {most:g}] "
+                                 f"{unit}: [{lo:g}, {hi:g}]")
         if not self.u[0] <= 0 <= self.u[1]:
             raise InputError(("bounds", "u"), "must contain 0 (straight flight)")
         if not self.w[0] <= 0 <= self.w[1]:
@@ -153,7 +187,7 @@ class Plots:
         plots = cls(
             t=np.asarray(t, dtype=float).copy(),
             range_m=np.asarray(range_m, dtype=float).copy(),
-            azimuth_rad=np.mod(np.asarray(azimuth_rad, dtype=float), 2 * np.pi),
+            azimuth_rad=wrap_azimuth(azimuth_rad),
             altitude_m=alt,
         )
         plots.validate()

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .frames import LocalFrame, check_lat_lon
-from .inputs import MAX_RANGE_M, FloatArray, InputError, Plots, Radar
+from .inputs import MAX_RANGE_M, FloatArray, InputError, Plots, Radar, wrap_azimuth
 from .sensors import PlaneFixes, PositionSensor, RadarSensor, Sensor
 
 IntArray = np.ndarray
@@ -79,7 +79,7 @@ class PlotTable:
                 first = int(pos[0])
                 frame = LocalFrame(float(lat[first]), float(lon[first]))
         table = cls(sensors, t_arr, idx, _column(range_m, n),
-                    np.mod(_column(azimuth_rad, n), 2 * np.pi), lat, lon, _column(altitude_m, n),
+                    wrap_azimuth(_column(azimuth_rad, n)), lat, lon, _column(altitude_m, n),
                     frame)
         table.validate()
         return table

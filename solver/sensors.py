@@ -24,7 +24,7 @@ import numpy as np
 
 from .frames import LocalFrame, check_lat_lon, radar_plot_position, slant_and_azimuth
 from .geometry import Ellipses, ground_range_error
-from .inputs import FloatArray, InputError, Radar
+from .inputs import MAX_RANGE_ERROR_M, FloatArray, InputError, Radar
 
 ALTITUDE_RANGE_M = (-500.0, 15_000.0)
 """Heights above the ellipsoid an unknown altitude may take (m) when it is estimated."""
@@ -241,8 +241,9 @@ class PositionSensor:
     def validate_at(self, loc: tuple[str | int, ...]) -> None:
         for name in ("position_sigma_m", "altitude_sigma_m"):
             value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 1e-3):
-                raise InputError((*loc, name), "must be a finite number of at least 0.001 m")
+            if not (np.isfinite(value) and 1e-3 <= value <= MAX_RANGE_ERROR_M):
+                raise InputError((*loc, name), "must be a finite number from 0.001 to "
+                                 f"{MAX_RANGE_ERROR_M:g} m")
 
     def measure(self, frame: LocalFrame, x: FloatArray, z: FloatArray
                 ) -> tuple[FloatArray, FloatArray]:

@@ -50,6 +50,15 @@ progress is possible at that point (its projected gradients measure like converg
 KKT_TOL = 1e-6
 """Relative projected-gradient tolerance of a converged window solve (converged solves measure
 below 1e-9, stalled ones above 1e-6)."""
+def return_status(solver: ca.Function) -> str | None:
+    """The last solve's ``return_status``; None when CasADi cannot tell (it raised "construction
+    from null" on a window of junk plots)."""
+    try:
+        return solver.stats().get("return_status")
+    except RuntimeError:
+        return None
+
+
 HESSIAN = "exact"  # sqpmethod Hessian of newly built solvers; see use_hessian
 
 
@@ -229,7 +238,7 @@ def solve_free_start(ref: FloatArray, uw: FloatArray, t: FloatArray, cx: FloatAr
     t0 = time.perf_counter()
     sol = solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=bounds.v[0], ubg=bounds.v[1])
     ms = (time.perf_counter() - t0) * 1e3
-    failed = solver.stats()["return_status"] not in CONVERGED
+    failed = return_status(solver) not in CONVERGED
     x = np.asarray(sol["x"]).ravel()
     start = np.array([ref[0], ref[1], ref[2], 0.0]) + FREE_START_SCALE * x[:4]
     u, w = float(np.clip(x[4], *bounds.u)), float(np.clip(x[5], *bounds.w))

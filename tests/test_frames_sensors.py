@@ -149,6 +149,15 @@ def test_table_allows_equal_times_across_sensors_and_sets_the_frame():
     (dict(sensors=(RADAR_A, RadarSensor(1.0, 0.01, id="A"), ADSB)), ("sensors", 1, "id")),
     (dict(sensors=(RadarSensor(150.0, 0.004, id="A", site=Site(95.0, 14.0)), RADAR_B, ADSB)),
      ("sensors", 0, "lat_deg")),
+    # beyond any sensor (a range sigma of 1e200 m made the solvers fail with a 500)
+    (dict(sensors=(RadarSensor(150.0, 0.004, id="A", range_sigma_m=1e200), RADAR_B, ADSB)),
+     ("sensors", 0, "range_sigma_m")),
+    (dict(sensors=(RadarSensor(150.0, 0.6, id="A"), RADAR_B, ADSB)),
+     ("sensors", 0, "azimuth_error_rad")),
+    (dict(sensors=(RADAR_A, RADAR_B, PositionSensor("ADSB", 1e10))),
+     ("sensors", 2, "position_sigma_m")),
+    # any real azimuth is normalised (spec api.md), until it has no precision left
+    (dict(azimuth_rad=[1.0, 1e300, 1.01, np.nan]), ("plots", 1, "azimuth_rad")),
 ])
 def test_table_rejects_bad_input_naming_the_field(change, loc):
     with pytest.raises(InputError) as e:
@@ -173,3 +182,21 @@ def test_a_position_sensor_may_ask_for_its_time_offset():
     with pytest.raises(InputError) as e:
         parse_sensors([radar, {**adsb, "estimate_bias": "yes"}])
     assert e.value.loc == ("sensors", 1, "estimate_bias")
+
+
+def test_bounds_and_accuracies_at_and_beyond_their_limits():
+    """The largest bounds and accuracies are accepted, beyond them an InputError names the
+    field; azimuths of any practical size wrap."""
+    from solver.inputs import MAX_ACCELERATION, MAX_SPEED, Bounds
+
+    Bounds(u=(-MAX_ACCELERATION, MAX_ACCELERATION), w=(-MAX_ACCELERATION, MAX_ACCELERATION),
+           v=(1.0, MAX_SPEED)).validate()
+    for name, value in (("u", (-1e12, 1.0)), ("w", (-7.0, 1e100)), ("v", (30.0, 1e7))):
+        with pytest.raises(InputError) as e:
+            Bounds(**{name: value}).validate()
+        assert e.value.loc == ("bounds", name) and "must lie within" in e.value.message
+    Radar(1e5, np.deg2rad(30.0), range_sigma_m=1e5, azimuth_sigma_rad=np.deg2rad(30.0)).validate()
+    with pytest.raises(InputError, match="must be at most 100000 m"):
+        Radar(1e5 * 1.01, 0.01).validate()
+    plots = Plots.from_arrays([0.0, 1.0], [1e4, 1e4], [np.deg2rad(-719.0), np.deg2rad(1e5 + 1)])
+    np.testing.assert_allclose(np.rad2deg(plots.azimuth_rad), [1.0, 281.0], atol=1e-9)

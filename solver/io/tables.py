@@ -52,7 +52,7 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from ..inputs import FloatArray, InputError
+from ..inputs import MAX_AZIMUTH_DEG, FloatArray, InputError
 from .problems import Problems
 
 DAY_S = 86_400.0
@@ -452,7 +452,8 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
     if neither.size:
         report(neither, "range_m", "the row has no measurement (range_m + azimuth_deg or "
                "lat_deg + lon_deg)")
-    for name, lo, hi in (("range_m", 0.0, 1e7), ("lat_deg", -90.0, 90.0),
+    for name, lo, hi in (("range_m", 0.0, 1e7), ("azimuth_deg", -MAX_AZIMUTH_DEG, MAX_AZIMUTH_DEG),
+                         ("lat_deg", -90.0, 90.0),
                          ("lon_deg", -180.0, 360.0), ("altitude_m", -1000.0, 100_000.0),
                          ("flight_level", -20.0, 1000.0)):
         v = cols[name]

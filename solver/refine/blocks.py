@@ -209,7 +209,10 @@ def solve_block(pb: Problem, start: int, stop: int, data: NodeData, guess: np.nd
     if duals is not None:
         args["lam_x0"], args["lam_g0"] = duals
     res = solver(**args)
-    stats = solver.stats()
+    try:
+        stats = solver.stats()
+    except RuntimeError:  # CasADi could not tell (see solver.window.return_status)
+        stats = {}
     status = stats.get("return_status")
     if status == "User_Requested_Stop":
         if time.monotonic() > nlp._deadline[0]:
