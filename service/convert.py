@@ -7,14 +7,15 @@ exists once; it renames the solver's radian fields back to the degree fields the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from solver.config import ReconstructionConfig
 from solver.estimation import FUSION_NAMES
 from solver.frames import LocalFrame
-from solver.inputs import Bounds, InputError, Plots, Radar
+from solver.inputs import Bounds, InputError, Plots, Radar, format_loc
 from solver.manoeuvres import from_segments
 from solver.plots import PlotTable
 from solver.results import (
@@ -24,9 +25,9 @@ from solver.results import (
     SensorReport,
     StateSeries,
 )
-from solver.sensors import PositionSensor, RadarSensor, Site
+from solver.sensors import PositionSensor, RadarSensor, Sensor, Site
 
-from .models import PositionSensorIn, RadarIn, ReconstructionRequest
+from .models import PlotIn, PositionSensorIn, RadarIn, ReconstructionRequest
 
 DEFAULT_WINDOW_PLOTS: int = ReconstructionConfig().window_plots
 
@@ -116,7 +117,9 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
         raise InputError(("window", "plots"),
                          f"({config.window_plots}) is longer than the track ({n} plots)")
     span = float(table.t.max() - table.t.min())
-    if span / config.sample_step_s >= max_samples:
+    if "samples" in req.omit:  # none answered: no limit, and a few computed (as solver.batch)
+        config = replace(config, sample_step_s=span / 2 or 1.0)
+    elif span / config.sample_step_s >= max_samples:
         raise InputError(("sample_step_s",), f"({config.sample_step_s:g} s) gives more than "
                          f"{max_samples} samples over the {span:g}-s track; this service's "
                          "limit is max_samples")
@@ -190,17 +193,54 @@ def _sensor_table(req: ReconstructionRequest) -> PlotTable:
     for i, p in enumerate(req.plots):
         if p.sensor is None:
             raise InputError(("plots", i, "sensor"), "is required with `sensors`")
-    def col(name: str, scale: float = 1.0) -> np.ndarray:
-        return np.array([np.nan if getattr(p, name) is None else getattr(p, name) * scale
-                         for p in req.plots], dtype=float)
-
     reference = None
     if req.reference is not None:
         reference = LocalFrame(req.reference.lat_deg, req.reference.lon_deg)
         reference.validate()
-    return PlotTable.build(sensors, col("t"), [p.sensor for p in req.plots], col("range_m"),
-                           col("azimuth_deg", np.pi / 180), col("lat_deg"), col("lon_deg"),
-                           col("altitude_m"), reference=reference)
+    try:
+        return plot_table(sensors, req.plots, reference)
+    except InputError as e:
+        if reference is not None or e.loc[:1] != ("reference",):
+            raise
+        position = {s.id for s in sensors if isinstance(s, PositionSensor)}
+        first = next((("plots", i) for i, p in enumerate(req.plots) if p.sensor in position),
+                     ("plots",))
+        raise unsent_reference(e, sensors, first) from None
+
+
+def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
+               reference: LocalFrame | None, loc: tuple[str | int, ...] = ("plots",)
+               ) -> PlotTable:
+    """The validated table of request plots, each naming one of ``sensors`` (every one
+    used); an error at a plot is named at ``loc`` (a job's track ``("tracks", key)``: the
+    plot's index within the track)."""
+    def col(name: str, scale: float = 1.0) -> np.ndarray:
+        return np.array([np.nan if getattr(p, name) is None else getattr(p, name) * scale
+                         for p in plots], dtype=float)
+
+    try:
+        return PlotTable.build(sensors, col("t"), [p.sensor for p in plots], col("range_m"),
+                               col("azimuth_deg", np.pi / 180), col("lat_deg"),
+                               col("lon_deg"), col("altitude_m"), reference=reference)
+    except InputError as e:
+        if loc == ("plots",) or e.loc[:1] != ("plots",):
+            raise
+        # the message may name another plot too ("is not after plots[4].t")
+        raise InputError((*loc, *e.loc[1:]), e.message.replace("plots[", f"{format_loc(loc)}[")
+                         ) from None
+
+
+def unsent_reference(e: InputError, sensors: Sequence[Sensor],
+                     first_position: tuple[str | int, ...]) -> InputError:
+    """``e``, an error of the plane's default tangent point (the client sent no `reference`),
+    at the field it came from: the first radar's site, else the first position plot (at
+    ``first_position``), with the way out."""
+    j = next((j for j, s in enumerate(sensors)
+              if isinstance(s, RadarSensor) and s.site is not None), None)
+    loc, what = ((first_position, "the first position plot") if j is None
+                 else (("sensors", j), "the first radar's site"))
+    return InputError((*loc, *e.loc[1:]), f"{e.message}: the plane's `reference` defaults to "
+                      f"{what}; pass a `reference` away from the pole")
 
 
 # ----------------------------------------------------------------------------------- results

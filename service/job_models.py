@@ -92,8 +92,9 @@ class JobTracksRequest(_In):
         "Default: the first radar's site, else the first position plot.")
     tracks: dict[str, list[PlotIn]] = Field(
         min_length=1, description="Plots per aircraft key (the key is the track's name in "
-        "every result). Plots of one sensor in time order; at least 3 plots per track (shorter "
-        "tracks are reported in the job's problems).")
+        "every result). Plots of one sensor in time order, checked as the single-track "
+        "request's `plots` (a bad one is a 422 at `tracks.<key>[i]`); at least 3 plots per "
+        "track (shorter tracks are reported in the job's problems, an empty one is a 422).")
     method: Method = Field("refined", description=_METHOD_DOC)
     window: WindowIn = Field(default_factory=WindowIn, description=_WINDOW_DOC)
     criterion: Literal["R1", "R2"] = Field("R2", description=_CRITERION_DOC)

@@ -501,7 +501,8 @@ class JobRunner:
                 if self._stopping:  # e.g. the store closed under it: resumed at next start
                     return
                 LOGGER.error("job runner error", exc_info=e)
-                self._db().finish(job.id, "failed", f"internal error: {type(e).__name__}: {e}")
+                self._db().finish(job.id, "failed", self._public(
+                    job.id, f"internal error: {type(e).__name__}: {e}"))
             finally:
                 with self._wake:
                     self._running.pop(job.id, None)
@@ -547,8 +548,9 @@ class JobRunner:
                                     f"{key} is not in the recording (or its track is too "
                                     "short: see short_track)")
         except (InputError, ValueError, OSError, StopIteration) as e:
-            reason = (f"{format_loc(e.loc)} {e.message}" if isinstance(e, InputError)
-                      else f"the recording could not be read: {type(e).__name__}: {e}")
+            reason = self._public(job.id, (
+                f"{format_loc(e.loc)} {e.message}" if isinstance(e, InputError)
+                else f"the recording could not be read: {type(e).__name__}: {e}"))
             self._db().finish(job.id, "failed", reason)
             LOGGER.info("job failed", extra={"fields": {"job": job.id, "error": reason[:300]}})
             return
@@ -561,7 +563,7 @@ class JobRunner:
             first = "; ".join(str(e) for e in list(loaded.problems.entries)[:3])
             reason = "no plot could be read from the recording" + (f" ({first})" if first
                                                                      else "")
-            self._db().finish(job.id, "failed", reason)
+            self._db().finish(job.id, "failed", self._public(job.id, reason))
             return
         if self._stop_requested(job.id):
             return
@@ -611,6 +613,15 @@ class JobRunner:
         LOGGER.info("job done", extra={"fields": {
             "job": job.id, "seconds": round(time.monotonic() - began, 3),
             "outputs_s": round(time.monotonic() - solved, 3)}})
+
+    def _public(self, job_id: str, reason: str) -> str:
+        """A failed job's ``reason`` without this server's paths (a reader's message may hold
+        them): the job's inputs by their names (``recording.parquet``), other files relative
+        to the job's or the data directory."""
+        d = self.job_dir(job_id)
+        for prefix in (d / "inputs", d, self.root):
+            reason = reason.replace(f"{prefix}{os.sep}", "")
+        return reason
 
     def _stop_requested(self, job_id: str) -> bool:
         return self._stopping or job_id in self._cancelled
@@ -725,6 +736,14 @@ class JobRunner:
 
     def track_plots(self, job_id: str, aircraft: str) -> int | None:
         return self._db().track(job_id, aircraft)
+
+    def track_keys(self, job_id: str, aircraft: str) -> list[str]:
+        """``[aircraft]`` when the job has that track, else its keys equal to it but for case
+        (``4ca2d1`` is the Mode S address ``4CA2D1``), in track order."""
+        if self.track_plots(job_id, aircraft) is not None:
+            return [aircraft]
+        folded = aircraft.casefold()
+        return [k for k, _ in self.tracks(job_id) if k.casefold() == folded]
 
     def track_rows(self, job_id: str, aircraft: str, samples: bool = True
                    ) -> tuple[pa.Table, pa.Table, pa.Table | None, pa.Table | None] | None:

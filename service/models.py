@@ -233,7 +233,8 @@ class ReconstructionRequest(_In):
         examples=[1.0])
     omit: list[Literal["samples", "covariances"]] = Field(
         default_factory=list, max_length=2, description="Parts of the answer to leave out: "
-        "`samples` (an empty `trajectory.samples`) and/or `covariances` (every `cov` null); "
+        "`samples` (an empty `trajectory.samples`, not computed: the service's `max_samples` "
+        "does not apply) and/or `covariances` (every `cov` null); "
         "a 5000-s track's answer is 2.6 MB with both, a tenth without samples.")
 
 

@@ -22,12 +22,14 @@ from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from solver.inputs import Bounds, InputError
-from solver.io.sensors_file import parse_sensors
+from solver.io.sensors_file import SensorSet, parse_sensors
+from solver.io.split import recording_frame
 from solver.io.tables import PlotRows, write_table
 from solver.manoeuvres import find_manoeuvres
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
+from .convert import plot_table, unsent_reference
 from .job_models import (
     JobOptions,
     JobStatus,
@@ -222,6 +224,9 @@ async def _save_upload(request: Request, inputs: Path, limit: int) -> None:
         if unknown:
             raise InputError((unknown[0],), "is not a part of a job upload (parts: recording, "
                              "sensors, options)")
+        twice = next((name for name in form if len(form.getlist(name)) > 1), None)
+        if twice is not None:  # otherwise the last one would win, unseen
+            raise InputError((twice,), "is given twice: send one part of each name")
         recording, sensors = form.get("recording"), form.get("sensors")
         if not isinstance(recording, UploadFile):
             raise InputError(("recording",), "is required: a file part with the recording "
@@ -328,6 +333,8 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
     for key, plots in req.tracks.items():
         if not key.strip():
             raise InputError(("tracks",), "has an empty key: every track needs a name")
+        if not plots:
+            raise InputError(("tracks", key), "has no plots (a track needs at least 3)")
         for i, p in enumerate(plots):
             loc: tuple[str | int, ...] = ("tracks", key, i)
             if p.sensor is None:
@@ -345,9 +352,29 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
     n = len(cols["t"])
     rows = PlotRows.from_columns(n, **{k: np.asarray(v, dtype=object if k in (
         "sensor", "aircraft") else float) for k, v in cols.items()})
+    _check_tracks(req, sensors, rows)
     write_table(rows, inputs / "recording.parquet")
     (inputs / "sensors.json").write_text(json.dumps(doc), encoding="utf-8")
     (inputs / "params.json").write_text(params + "\n", encoding="utf-8")
+
+
+def _check_tracks(req: JobTracksRequest, sensors: SensorSet, rows: PlotRows) -> None:
+    """Each track's plots checked as the single-track endpoint checks its plots, in the
+    plane the job reconstructs them in (422 at ``tracks.<key>[i].<field>``): the job's reading
+    would leave the bad ones out, reported at a row of all tracks joined."""
+    frame = recording_frame(sensors, rows)
+    if frame is not None and sensors.reference is None:
+        try:
+            frame.validate()
+        except InputError as e:
+            first = next((("tracks", key, i) for key, plots in req.tracks.items()
+                          for i, p in enumerate(plots)
+                          if p.lat_deg is not None and p.lon_deg is not None), ("tracks",))
+            raise unsent_reference(e, sensors.sensors, first) from None
+    index = sensors.index()
+    for key, plots in req.tracks.items():
+        used = sorted({index[p.sensor] for p in plots if p.sensor is not None})
+        plot_table([sensors.sensors[k] for k in used], plots, frame, ("tracks", key))
 
 
 # ------------------------------------------------------------------------------------- read
@@ -430,16 +457,22 @@ def list_job_tracks(job_id: str, request: Request) -> list[JobTrack]:
 # ``{aircraft:path}``: a key may hold "/" (a user's own key); the figure's route comes first
 
 
-def _track_entry(runner: JobRunner, job_id: str, aircraft: str) -> dict[str, Any]:
+def _track_entry(runner: JobRunner, job_id: str, aircraft: str) -> tuple[str, dict[str, Any]]:
+    """The key of the done track ``aircraft`` (exactly, else the one key equal to it but for
+    case) and its ledger entry; 404 (no such track), 409 (pending or failed)."""
     _job(runner, job_id)
-    if runner.track_plots(job_id, aircraft) is None:
-        raise HTTPException(404, f"job {job_id} has no track {aircraft!r}")
-    entry = runner.progress(job_id).entries.get(aircraft)
+    keys = runner.track_keys(job_id, aircraft)
+    if len(keys) != 1:
+        similar = (f" ({len(keys)} tracks differ from it only in case: "
+                   f"{', '.join(map(repr, keys[:5]))})" if keys else "")
+        raise HTTPException(404, f"job {job_id} has no track {aircraft!r}{similar}")
+    key = keys[0]
+    entry = runner.progress(job_id).entries.get(key)
     if entry is None:
-        raise HTTPException(409, f"track {aircraft!r} is not reconstructed yet (pending)")
+        raise HTTPException(409, f"track {key!r} is not reconstructed yet (pending)")
     if entry["status"] != "done":
-        raise HTTPException(409, f"track {aircraft!r} failed: {entry['error']}")
-    return entry
+        raise HTTPException(409, f"track {key!r} failed: {entry['error']}")
+    return key, entry
 
 
 @router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft:path}/figure.png", response_class=Response,
@@ -448,10 +481,10 @@ def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> Respon
     """The track's plots with their ellipses, the reconstruction and its controls over time
     (drawn on the worker when the track was solved)."""
     runner = _runner(request)
-    _track_entry(runner, job_id, aircraft)
-    path = runner.figure(job_id, aircraft)
+    key, _ = _track_entry(runner, job_id, aircraft)
+    path = runner.figure(job_id, key)
     if path is None:
-        raise HTTPException(404, f"no figure was drawn for track {aircraft!r} (figures are "
+        raise HTTPException(404, f"no figure was drawn for track {key!r} (figures are "
                             "off, or its worker's disk is not this service's)")
     return FileResponse(path, media_type="image/png")
 
@@ -467,22 +500,23 @@ def get_job_track(job_id: str, aircraft: str, request: Request,
                   ) -> JobTrackResult:
     """The track's segments and its state at every plot (with latitude and longitude), the
     regular samples when the job keeps them, the filters' states, its sensors' statistics and
-    the reconstruction's diagnostics; available as soon as the track is done."""
+    the reconstruction's diagnostics; available as soon as the track is done. `aircraft`: the
+    track's key, exactly, else in another case when only one key matches (`4ca2d1`)."""
     runner = _runner(request)
-    entry = _track_entry(runner, job_id, aircraft)
-    got = runner.track_rows(job_id, aircraft, samples="samples" not in omit)
+    key, entry = _track_entry(runner, job_id, aircraft)
+    got = runner.track_rows(job_id, key, samples="samples" not in omit)
     if got is None:  # pragma: no cover - a done entry always names its part
-        raise HTTPException(409, f"track {aircraft!r} has no stored rows")
+        raise HTTPException(409, f"track {key!r} has no stored rows")
     states, segments, filtered, sampled = got
     cov = "covariances" not in omit
     return JobTrackResult.model_validate({
-        "aircraft": aircraft,
+        "aircraft": key,
         "trajectory": {"segments": _segment_rows(segments),
                        "manoeuvres": _manoeuvre_rows(segments),
                        "at_plots": _state_rows(states, cov),
                        "samples": [] if sampled is None else _sample_rows(sampled, cov),
                        **_altitude(entry.get("altitude"))},
-        "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, aircraft)],
+        "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, key)],
         "filters": _filter_rows(filtered, cov),
         "diagnostics": _track_diagnostics(entry)})
 

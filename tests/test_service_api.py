@@ -70,6 +70,14 @@ def test_readyz_waits_for_warm_solvers(client):
     assert client.get("/healthz").json()["status"] == "ok"
 
 
+def test_health_answers_head_as_get_without_a_body(client):
+    """Load balancers probe with HEAD."""
+    for path in ("/healthz", "/readyz"):
+        r = client.head(path)
+        assert r.status_code == client.get(path).status_code == 200, path
+        assert r.content == b""
+
+
 def test_reconstruction_matches_in_process_solver(client):
     body = batch(600.0)
     r = post(client, body)
@@ -246,6 +254,20 @@ def test_invalid_input_is_422_naming_the_field(client, case, body, message):
     assert r.json()["detail"]
 
 
+def test_omitted_samples_are_neither_limited_nor_computed(client):
+    """`omit: [samples]` lifts `max_samples`; the worker computes three samples (the cost of
+    a request stays bounded), not one every `sample_step_s`."""
+    body = _with("sample_step_s", 1e-3)  # 3e5 samples over the 300-s track: over the limit
+    assert post(client, body).status_code == 422
+    body["omit"] = ["samples"]
+    job = to_job(ReconstructionRequest.model_validate(body), "sqpmethod", 500, 20_000)
+    t = [p["t"] for p in body["plots"]]
+    assert job.config.sample_step_s == pytest.approx((max(t) - min(t)) / 2)
+    r = post(client, body)
+    assert r.status_code == 200, r.text
+    assert r.json()["trajectory"]["samples"] == []
+
+
 @pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity", "1e999"])
 def test_non_finite_numbers_are_422(client, token):
     text = json.dumps(BAD).replace('"range_m": ' + json.dumps(BAD["plots"][6]["range_m"]),
@@ -408,6 +430,7 @@ def test_failed_warm_up_leaves_service_alive_but_not_ready():
         assert r.status_code == 503 and r.json()["status"] == "failed"
         assert "window.plots" in r.json()["detail"]
         assert c.get("/healthz").status_code == 200
+        assert c.head("/readyz").status_code == 503 and c.head("/healthz").status_code == 200
 
 
 # ------------------------------------------------------ extreme values: 200 or 422, never 5xx
@@ -510,3 +533,18 @@ def test_metrics_label_every_route_by_its_template(client):
     assert 'route="/openapi.json",status="200"' in text
     assert 'route="/docs/assets",status="200"' in text
     assert "no-such-file" not in text
+
+
+@pytest.mark.parametrize("change, loc", [
+    ({"radar": {"range_error_m": 1e200, "azimuth_error_deg": 1.5}}, ["radar", "range_error_m"]),
+    ({"radar": {"range_error_m": 500.0, "azimuth_error_deg": 1.5, "azimuth_sigma_deg": 1e10}},
+     ["radar", "azimuth_sigma_deg"]),
+    ({"bounds": {"w": [-7.0, 1e100]}}, ["bounds", "w"]),
+    ({"bounds": {"u": [-1e12, 1.0]}}, ["bounds", "u"]),
+    ({"bounds": {"v": [30.0, 1e7]}}, ["bounds", "v"]),
+])
+def test_values_no_radar_or_aircraft_has_are_422_not_500(client, change, loc):
+    """An adversarial pass found these accepted and then failing in the solvers (500)."""
+    r = post(client, {**batch(200.0), **change})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"] == loc

@@ -6,6 +6,7 @@ accepted and failed with the reason)."""
 
 from __future__ import annotations
 
+import copy
 import csv
 import io
 import json
@@ -481,6 +482,75 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
     assert r.status_code == 422 and "not valid JSON" in r.json()["message"]
     r = client.post("/v1/jobs", content=b"x", headers={"content-type": "text/plain"})
     assert r.status_code == 415
+
+
+def test_json_tracks_plots_are_checked_as_a_single_tracks(client):
+    """A bad plot of a JSON track is a 422 naming it by its track and its index there, in the
+    single-track endpoint's words for the same plots (the job would leave it out, reported at
+    a row of all tracks joined); an empty track is a 422 too, and a default plane at a pole
+    names the radar it comes from."""
+    sensors, tracks = json_tracks(encode_recording(duration=60.0))
+    radar = next(i for i, p in enumerate(tracks["B"]) if i > 5 and "range_m" in p)
+    adsb = next(i for i, p in enumerate(tracks["B"]) if i > 5 and "lat_deg" in p)
+    cases = [
+        (lambda b: b[radar].update(range_m=-5.0), f"tracks.B[{radar}].range_m must be positive"),
+        (lambda b: b[adsb].update(lat_deg=95.0), f"tracks.B[{adsb}].lat_deg must be a finite"),
+        (lambda b: b.insert(radar + 1, dict(b[radar])),
+         f"tracks.B[{radar + 1}].t is not after tracks.B[{radar}].t"),
+    ]
+    for change, message in cases:
+        plots = copy.deepcopy(tracks["B"])
+        change(plots)
+        r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {**tracks, "B": plots}})
+        assert r.status_code == 422, r.text
+        assert r.json()["message"].startswith(message), r.json()
+        single = client.post("/v1/reconstructions", json={"sensors": sensors, "plots": plots})
+        assert single.status_code == 422, single.text
+        assert r.json()["message"] == single.json()["message"].replace("plots[", "tracks.B[")
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {**tracks, "A": []}})
+    assert r.status_code == 422 and r.json()["message"].startswith("tracks.A has no plots")
+    pole = [{**sensors[0], "lat_deg": 90.0}, *sensors[1:]]
+    r = client.post("/v1/jobs", json={"sensors": pole, "tracks": tracks})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["sensors", 0, "lat_deg"]
+    assert "defaults to the first radar's site" in r.json()["message"]
+
+
+@pytest.mark.parametrize("twice", ["recording", "sensors", "options"])
+def test_a_part_given_twice_is_422(client, twice):
+    """Not the last one silently."""
+    parts = {"recording": ("a.ast", b"\x30\x00\x03"),
+             "sensors": ("s.json", json.dumps(SENSOR_FILE)), "options": ("o.json", "{}")}
+    r = client.post("/v1/jobs", files=[*parts.items(), (twice, parts[twice])])
+    assert r.status_code == 422, r.text
+    assert r.json()["message"].startswith(f"{twice} is given twice"), r.json()
+
+
+def test_a_jobs_track_is_found_in_another_case_when_only_one_matches(client):
+    """`/tracks/4ca2d1` is the track `4CA2D1` (as `options.aircraft` takes it); an exact key
+    comes first, and keys that differ only in case are not guessed between."""
+    sensors, tracks = json_tracks(encode_recording(duration=40.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {
+        "4CA2D1": tracks["A"], "ab": tracks["B"], "AB": tracks["B"]}})
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    assert wait(client, loc)["state"] == "done"
+    for path, key in (("4ca2d1", "4CA2D1"), ("4Ca2d1", "4CA2D1"), ("ab", "ab"), ("AB", "AB")):
+        one = client.get(f"{loc}/tracks/{path}")
+        assert one.status_code == 200 and one.json()["aircraft"] == key, (path, one.text)
+    figure = client.get(f"{loc}/tracks/4ca2d1/figure.png")
+    assert figure.status_code == 200 and figure.content[:4] == b"\x89PNG"
+    r = client.get(f"{loc}/tracks/Ab")
+    assert r.status_code == 404 and "2 tracks differ from it only in case" in r.json()["message"]
+    assert client.get(f"{loc}/tracks/Ab/figure.png").status_code == 404
+    assert client.delete(loc).status_code == 204
+
+
+def test_a_failed_jobs_error_names_no_server_path(client):
+    r = upload(client, b"not a Parquet file", name="day.parquet")
+    assert r.status_code == 202
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "failed" and "'recording.parquet'" in status["error"], status
+    assert str(client.app.state.jobs.root) not in status["error"], status
 
 
 def test_unreadable_recording_is_accepted_and_fails_with_the_reason(client):

@@ -218,6 +218,30 @@ def test_bad_sensor_input_gets_a_422_naming_the_field(client, change, loc):
     assert err["detail"][0]["loc"] == loc, err
 
 
+def test_a_default_reference_at_a_pole_names_the_field_sent(client):
+    """Without `reference`, the plane is tangent at the first radar's site, else at the first
+    position plot: at a pole, the 422 names that field (not the `reference` never sent) and
+    the way out."""
+    body = copy.deepcopy(_body())
+    del body["reference"]
+    body["sensors"][0]["lat_deg"] = 90.0
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 422, res.text
+    assert res.json()["detail"][0]["loc"] == ["sensors", 0, "lat_deg"]
+    assert res.json()["message"].startswith("sensors[0].lat_deg must be within 89.9 degrees")
+    assert "defaults to the first radar's site; pass a `reference`" in res.json()["message"]
+
+    adsb = copy.deepcopy(_body())
+    del adsb["reference"]
+    adsb["sensors"] = adsb["sensors"][2:]
+    adsb["plots"] = [p for p in adsb["plots"] if p["sensor"] == "ADSB"]
+    adsb["plots"][0]["lat_deg"] = -90.0
+    res = client.post("/v1/reconstructions", json=adsb)
+    assert res.status_code == 422, res.text
+    assert res.json()["detail"][0]["loc"] == ["plots", 0, "lat_deg"]
+    assert "defaults to the first position plot" in res.json()["message"]
+
+
 def test_omit_samples_and_covariances(client):
     body = _body()
     body["filters"] = ["cv_rts"]
@@ -246,3 +270,28 @@ def test_a_long_gap_is_refused_before_solving(client):
     assert res.status_code == 422, res.text
     assert res.json()["detail"][0]["loc"] == ["plots"]
     assert "max_nodes" in res.json()["message"]
+
+
+def test_a_reference_far_from_the_track_warns_of_the_planes_scale():
+    """ADS-B plots at 10 N 100 E, 0.003 deg of longitude every 2 s (164.5 m/s on the ground):
+    with the reference at the track, that speed and no warning; 2000 km away the plane's
+    stereographic scale makes it 2.4 % larger (2.5 % at the farthest plot), and the answer
+    says so."""
+    from service.convert import to_job
+    from service.models import ReconstructionRequest
+    from solver.reconstruct import reconstruct
+
+    plots = [{"t": 2.0 * i, "sensor": "ADSB", "lat_deg": 10.0, "lon_deg": 100.0 + 0.003 * i}
+             for i in range(20)]
+    body = {"sensors": [{"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}],
+            "plots": plots, "omit": ["samples"]}
+    for reference, speed, warned in (((10.0, 100.03), 164.5, False),
+                                     ((10.0 + 2000 / 111.2, 100.03), 168.5, True)):
+        req = ReconstructionRequest.model_validate(
+            {**body, "reference": {"lat_deg": reference[0], "lon_deg": reference[1]}})
+        job = to_job(req, "sqpmethod", 20_000, 50_000)
+        rec = reconstruct(job.table, config=job.config)
+        assert np.median(rec.at_plots.speed) == pytest.approx(speed, abs=0.3)
+        far = [w for w in rec.diagnostics.warnings if "from the plane's reference" in w]
+        assert bool(far) == warned, rec.diagnostics.warnings
+    assert "up to 2.5 % too large" in far[0]  # at the farthest plot, 2007 km
