@@ -36,9 +36,11 @@ cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
 from __future__ import annotations
 
 import argparse
+import csv
 import gc
 import json
 import math
+import os
 import queue
 import re
 import signal
@@ -71,7 +73,7 @@ from .batch import (
 from .config import ReconstructionConfig
 from .frames import LocalFrame
 from .inputs import Bounds, InputError
-from .io.asterix import iter_recording, read_recording
+from .io.asterix import iter_recording, looks_like_recording, read_recording
 from .io.problems import Problems
 from .io.sensors_file import SensorSet, load_sensors
 from .io.split import AircraftTrack, recording_frame, split_aircraft, split_stream
@@ -93,6 +95,8 @@ SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "scan_peri
                   "time_bias_s")
 MAP_POINTS_PER_TRACK = 200  # a recording map draws each track with at most this many points
 STREAM_CHUNK_BYTES = 1 << 18  # ASTERIX decoded in units of this size when streaming
+RECORDING_HEAD_BYTES = (1 << 16) + 3  # the longest data block and the next one's header
+WARNING_EXAMPLES = 20  # tracks whose warnings summary.json repeats (warnings.csv has all)
 STREAM_BATCH_ROWS = 1 << 15  # a plot table read in batches of this many rows when streaming
 READ_AHEAD_TRACKS = 64  # complete tracks the reading thread may hold ahead of the cluster
 GC_YOUNG_THRESHOLD = 10_000
@@ -223,7 +227,10 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     sensors = load_sensors(sensors_path)
     out = Streamed(sensors, Problems(), iter(()))
     parts = _row_parts(recording, out, executor)
-    first = next(parts, None)  # the whole input's errors raise now
+    try:
+        first = next(parts, None)  # the whole input's errors raise now
+    except InputError as e:
+        raise InputError(e.loc, f"{e.message} (in {recording})") from None
 
     def rows() -> Iterator[PlotRows]:
         if first is not None:
@@ -239,6 +246,13 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
         for rows in iter_table(recording, batch_rows=STREAM_BATCH_ROWS, problems=out.problems):
             yield out._note(rows)
         return
+    with open(recording, "rb") as f:
+        head = f.read(RECORDING_HEAD_BYTES)
+    if not looks_like_recording(head):
+        raise InputError(("recording",), f"is not an ASTERIX recording (its first bytes "
+                         f"{head[:8].hex(' ')} are no data block header followed by another), "
+                         "nor a pcap/pcapng capture; a plot table's name ends in "
+                         + " or ".join(TABLE_SUFFIXES))
     out.times_of_day = True  # ASTERIX: times of day, t from the midnight before the first
     for part in iter_recording(recording, out.sensors, chunk_bytes=STREAM_CHUNK_BYTES,
                                executor=executor):
@@ -417,15 +431,17 @@ class _Sample:
 
 def write_csv_and_geojson(out: Path) -> tuple[int, int]:
     """``tracks.csv`` and ``tracks.geojsonl`` from the Parquet parts, one part at a time
-    (memory bounded by a part); returns (rows, tracks)."""
+    (memory bounded by a part), each written whole under another name and then renamed;
+    returns (rows, tracks)."""
     parts = sorted((out / "tracks.parquet").glob("part-*.parquet"))
     rows = tracks = 0
     writer: pacsv.CSVWriter | None = None
-    with open(out / "tracks.geojsonl", "w", encoding="utf-8") as geo:
+    csv_tmp, geo_tmp = out / ".tracks.csv.tmp", out / ".tracks.geojsonl.tmp"
+    with open(geo_tmp, "w", encoding="utf-8") as geo:
         for part in parts:
             table = read_part(part)
             if writer is None:
-                writer = pacsv.CSVWriter(out / "tracks.csv", table.schema)
+                writer = pacsv.CSVWriter(csv_tmp, table.schema)
             writer.write_table(table)
             rows += table.num_rows
             keys = table.column("aircraft").to_numpy(zero_copy_only=False)
@@ -447,6 +463,8 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
                 tracks += 1
     if writer is not None:
         writer.close()
+        os.replace(csv_tmp, out / "tracks.csv")  # whole files only: a stop leaves the old ones
+    os.replace(geo_tmp, out / "tracks.geojsonl")
     return rows, tracks
 
 
@@ -462,7 +480,8 @@ def write_manoeuvres(out: Path, frame: LocalFrame | None) -> int:
         (k, pa.float64()) for k in ("lat_start_deg", "lon_start_deg", "lat_end_deg",
                                     "lon_end_deg")])
     rows = 0
-    with pacsv.CSVWriter(out / "manoeuvres.csv", schema) as writer:
+    tmp = out / ".manoeuvres.csv.tmp"
+    with pacsv.CSVWriter(tmp, schema) as writer:
         for part in sorted((out / "segments.parquet").glob("part-*.parquet")):
             table = pq.read_table(part)
             keys = table.column("aircraft").to_numpy(zero_copy_only=False)
@@ -487,6 +506,7 @@ def write_manoeuvres(out: Path, frame: LocalFrame | None) -> int:
                                          pa.array(cols[f.name], f.type) for f in schema},
                                         schema=schema))
             rows += len(found)
+    os.replace(tmp, out / "manoeuvres.csv")
     return rows
 
 
@@ -611,12 +631,22 @@ def _normal_key(key: str) -> str:
 
 
 def _settings(args: argparse.Namespace) -> RunSettings:
+    given = [name for name, value in (("--window-plots", args.window_plots),
+                                      ("--trial-step", args.trial_step),
+                                      ("--criterion", args.criterion)) if value is not None]
+    if given and args.method != "sliding":
+        raise InputError(("method",), f"{', '.join(given)} set the sliding windows, which the "
+                         f"{args.method} method does not use: add --method sliding, or leave "
+                         "them out")
     return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters),
                        args.samples, **_windows(args, RunSettings()))
 
 
 def _check_out(out: Path, sensors: Path) -> None:
-    """The statistics' ``sensors.json`` must not overwrite the sensor file given."""
+    """``--out`` must be a directory (or not yet exist), and the statistics' ``sensors.json``
+    must not overwrite the sensor file given."""
+    if out.exists() and not out.is_dir():
+        raise InputError(("out",), f"{out} is a file, not a directory")
     target = out / "sensors.json"
     if target.exists() and sensors.exists() and target.samefile(sensors):
         raise InputError(("out",), f"{out} holds the sensor file {sensors}, which the run "
@@ -633,7 +663,12 @@ def _cluster(scheduler: str | None, workers: int | None) -> Iterator[Any]:
 
     with dask.config.set(dask_settings()):
         if scheduler is not None:
-            with Client(scheduler) as client:
+            try:
+                client = Client(scheduler)
+            except OSError as e:  # distributed's connection timeout is an OSError too
+                raise InputError(("scheduler",), f"no Dask scheduler answers at {scheduler} "
+                                 f"({e})") from None
+            with client:
                 yield client
             return
         with embedded_cluster(workers) as cluster, Client(cluster) as client:
@@ -686,8 +721,10 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
     _write_sensor_csv(out, sensor_rows)
     (out / "sensors.json").write_text(json.dumps(sensor_rows, indent=1) + "\n",
                                       encoding="utf-8")
+    (out / "summary.json").unlink(missing_ok=True)  # stale while the files below are written
     csv_rows, geo_tracks = write_csv_and_geojson(out)
     manoeuvres = write_manoeuvres(out, loaded.frame)
+    state = output_state(out)
     write_map(out, loaded.sensors, frame=loaded.frame)
     write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
     (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
@@ -700,11 +737,36 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
         "time_to_first_result_s": first_result_s,
         "problems": dict(loaded.problems.counts), "failures": summary.failures,
         "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "manoeuvres": manoeuvres,
-        "sensors": sensor_rows}
+        "output": state, "sensors": sensor_rows}
     if chosen is not None and chosen.keys is not None:
         result.update(aircraft=sorted(chosen.keys), aircraft_not_found=chosen.missing())
     (out / "summary.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
     return result
+
+
+def output_state(out: Path) -> dict[str, Any]:
+    """The whole output directory, this run and the earlier ones it resumed (each track's last
+    line of ``progress.jsonl``): tracks done and failed, their plots, the failures' reasons,
+    and the tracks whose reconstruction warned (listed one warning a line in ``warnings.csv``,
+    ``aircraft,warning``)."""
+    last: dict[str, dict[str, Any]] = {}
+    for entry in ledger_entries(out):
+        last[entry["aircraft"]] = entry
+    done = [e for e in last.values() if e["status"] == "done"]
+    warned = [e for e in done if e.get("warnings")]
+    tmp = out / ".warnings.csv.tmp"
+    with open(tmp, "w", encoding="utf-8", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["aircraft", "warning"])
+        for e in warned:
+            w.writerows([e["aircraft"], text] for text in e["warnings"])
+    os.replace(tmp, out / "warnings.csv")
+    return {"tracks_done": len(done),
+            "tracks_failed": len(last) - len(done),
+            "plots_done": sum(int(e["plots"]) for e in done),
+            "failures": {k: e["error"] for k, e in last.items() if e["status"] != "done"},
+            "tracks_with_warnings": len(warned),
+            "warnings": {e["aircraft"]: e["warnings"] for e in warned[:WARNING_EXAMPLES]}}
 
 
 def _iter_stats(path: Path) -> Iterator[list[dict[str, Any]]]:
@@ -753,6 +815,19 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
                                                    p["problems"].items()), file=file)
     for key, why in list(p["failures"].items())[:10]:
         print(f"failed {key}: {why}", file=file)
+    state = p.get("output")
+    if state:
+        earlier = {k: v for k, v in state["failures"].items() if k not in p["failures"]}
+        if earlier:
+            print(f"{len(earlier)} track(s) failed in an earlier run and were not retried "
+                  "(--retry-failed redoes them):", file=file)
+            for key, why in list(earlier.items())[:10]:
+                print(f"failed {key}: {why}", file=file)
+        if state["tracks_with_warnings"]:
+            print(f"{state['tracks_with_warnings']} of {state['tracks_done']} track(s) "
+                  "reconstructed with warnings (all of them in warnings.csv), e.g.:", file=file)
+            for key, texts in list(state["warnings"].items())[:5]:
+                print(f"  {key}: {texts[0][:200]}", file=file)
     print(f"{'sensor':<12}{'plots':>8}{'det.':>7}{'wild':>6}{'range bias':>12}{'sigma':>8}"
           f"{'az bias':>10}{'sigma':>8}", file=file)
     for r in p["sensors"]:
@@ -774,6 +849,8 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
 
 
 COMMANDS = ("reconstruct", "plot")
+UNUSABLE_PATH = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
+"""A path given that cannot be read or written: a one-line error, exit status 2."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -793,9 +870,9 @@ def parser() -> argparse.ArgumentParser:
     _inputs(rec)
     rec.add_argument("--scheduler", default=None, help="address of an existing Dask "
                      "scheduler (default: an embedded LocalCluster)")
-    rec.add_argument("--workers", type=int, default=None, help="embedded cluster's worker "
+    rec.add_argument("--workers", type=_count, default=None, help="embedded cluster's worker "
                      "processes (default: the usable cores)")
-    rec.add_argument("--time-limit", type=float, default=300.0, help="per-track limit (s; 0: "
+    rec.add_argument("--time-limit", type=_limit, default=300.0, help="per-track limit (s; 0: "
                      "none)")
     rec.add_argument("--decode", choices=("local", "cluster", "auto"), default="local",
                      help="where ASTERIX is decoded: in this process, a reading thread "
@@ -844,6 +921,28 @@ def _step(text: str) -> float:
         value = math.nan
     if not 0 < value < math.inf:
         raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return value
+
+
+def _count(text: str) -> int:
+    """``--workers``: a positive whole number."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive whole number")
+    return value
+
+
+def _limit(text: str) -> float:
+    """``--time-limit``: a finite number of seconds, 0 (no limit) or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds >= 0")
     return value
 
 
@@ -903,7 +1002,7 @@ def plot(args: argparse.Namespace) -> list[Path]:
     if not args.aircraft and not args.map:
         raise InputError(("aircraft",), "name at least one aircraft, or --map")
     written: list[Path] = []
-    wanted = set(args.aircraft)
+    wanted = {_normal_key(k) for k in args.aircraft}  # a Mode S address in either case
     loaded = stream(Path(args.recording), Path(args.sensors))  # its plane: after the first part
     if wanted:
         run = stored_settings(out) or RunSettings()
@@ -944,7 +1043,8 @@ def _stop_on_sigterm(signum: int, frame: Any) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Exit status: 0 all tracks done (or figures drawn), 1 some failed, 2 bad input, 130 /
+    """Exit status: 0 all tracks done (or figures drawn), 1 some failed (in this run, or in an
+    earlier one of the output directory and not retried), 2 bad input, 130 /
     143 stopped by SIGINT / SIGTERM (the cluster closed, the finished tracks kept: the same
     command resumes)."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -955,7 +1055,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             for path in plot(args):
                 print(path)
-        except (InputError, FileNotFoundError) as e:
+        except (InputError, *UNUSABLE_PATH) as e:
             print(f"trajrecon: {e}", file=sys.stderr)
             return 2
         return 0
@@ -964,7 +1064,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     quiet_interrupted_sync()
     try:
         result = run(args)
-    except (InputError, FileNotFoundError) as e:
+    except (InputError, *UNUSABLE_PATH) as e:
         print(f"trajrecon: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:
@@ -982,7 +1082,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{args.out}/problems.txt names those): "
               f"{', '.join(result['aircraft_not_found'])}", file=sys.stderr)
         return 2
-    return 1 if result["failed"] else 0
+    return 1 if result["output"]["tracks_failed"] else 0
 
 
 if __name__ == "__main__":

@@ -175,7 +175,7 @@ def test_embedded_local_cluster_by_default(tmp_path, tracks, monkeypatch):
     monkeypatch.setenv("TRAJRECON_COMPILE", "0")
     summary = reconstruct_many(tracks, tmp_path / "out", workers=2, time_limit_s=120.0,
                                task=_task_reporting_pid(tmp_path))
-    assert (summary.done, summary.failed) == (2, 1)
+    assert (summary.done, summary.failed) == (2, 1), summary.failures
     seen = [json.loads(p.read_text()) for p in tmp_path.glob("pid-*")]
     assert os.getpid() not in {w["pid"] for w in seen}
     assert len(seen) == 2  # two worker processes did the work

@@ -186,6 +186,8 @@ def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys):
     assert main(["plot", *args, "--aircraft", key]) == 0
     assert (out / "figures" / f"{key}.png").stat().st_size > 20_000
     assert capsys.readouterr().out.split() == [str(out / "figures" / f"{key}.png")]
+    assert main(["plot", *args, "--aircraft", key.lower()]) == 0  # an address in either case
+    capsys.readouterr()
     assert main(["plot", *args, "--aircraft", key, "ABC123"]) == 2
     assert "ABC123 not in the recording" in capsys.readouterr().err
     assert main(["plot", *args, "--map"]) == 2
@@ -219,6 +221,14 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
     assert summary["done"] == len(FLIGHTS) and summary["bounds"]["v"] == [30.0, 200.0]
     speed = pq.read_table(tmp_path / "out" / "tracks.parquet").column("speed").to_numpy()
     assert speed.max() <= 200.0 + 1e-3 and speed.max() > 199.0
+    # held at the bound: every track warns, and the user is told (warnings.csv has them all)
+    assert summary["output"]["tracks_with_warnings"] == len(FLIGHTS)
+    assert all(any("upper bound" in w for w in texts)
+               for texts in summary["output"]["warnings"].values())
+    printed = capsys.readouterr().out
+    assert f"{len(FLIGHTS)} of {len(FLIGHTS)} track(s) reconstructed with warnings" in printed
+    warned = (tmp_path / "out" / "warnings.csv").read_text().splitlines()
+    assert warned[0] == "aircraft,warning" and len(warned) > len(FLIGHTS)
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
                  str(tmp_path / "out3"), "--no-progress", "--bounds", "v=200,30"])
     assert code == 2 and "bounds.v is inverted" in capsys.readouterr().err
@@ -229,12 +239,38 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
         assert stop.value.code == 2
         assert f"--samples: {step!r} is not a positive number of seconds" in \
             capsys.readouterr().err
+    for option, value, why in (("--workers", "-1", "is not a positive whole number"),
+                               ("--workers", "0", "is not a positive whole number"),
+                               ("--time-limit", "-1", "is not a number of seconds >= 0")):
+        with pytest.raises(SystemExit) as stop:  # -1 workers waited for ever
+            main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
+                  str(tmp_path / "out3"), option, value])
+        assert stop.value.code == 2 and f"{option}: {value!r} {why}" in capsys.readouterr().err
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps([{**SENSOR_FILE[0], "lat_deg": 95.0}]))
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(bad), "--out",
                  str(tmp_path / "out2"), "--no-progress"])
     assert code == 2
-    assert "sensors[0].lat_deg" in capsys.readouterr().err
+    assert f"sensors[0].lat_deg must be a finite number in [-90, 90] (95.0) (in {bad})" in \
+        capsys.readouterr().err
+    # what is not a recording, a directory as the recording or a file as --out: one line each
+    text = tmp_path / "plots.txt"
+    text.write_text((tmp_path / "plots.csv").read_text())
+    for recording, out, message in (
+            (text, tmp_path / "out4", f"recording is not an ASTERIX recording (its first bytes "
+             f"{text.read_bytes()[:8].hex(' ')} are no data block header"),
+            (tmp_path, tmp_path / "out4", "Is a directory"),
+            (tmp_path / "plots.csv", text, f"out {text} is a file, not a directory")):
+        code = main([str(recording), "--sensors", str(d / "sensors.json"), "--out", str(out),
+                     "--workers", "1", "--no-progress"])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and "Traceback" not in err, err
+    # the sliding windows' settings with the refined method: refused, not stored
+    code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
+                 str(tmp_path / "out5"), "--window-plots", "5", "--no-progress"])
+    assert code == 2 and "--window-plots set the sliding windows, which the refined method " \
+        "does not use" in capsys.readouterr().err
+    assert not (tmp_path / "out5" / "run.json").exists()
     # the statistics' sensors.json would overwrite the sensor file: refused, file kept
     (tmp_path / "here").mkdir()
     own = tmp_path / "here" / "sensors.json"
@@ -424,3 +460,24 @@ def test_sensor_statistics_pool_a_position_sensors_time_offset():
     row = {r["sensor"]: r for r in stats.rows()}["ADSB"]
     assert row["time_bias_s"] == pytest.approx(1.0)
     assert row["range_bias_m"] is None and row["azimuth_bias_deg"] is None
+
+
+def test_a_rerun_reports_the_tracks_earlier_runs_failed(recording, tmp_path, capsys):
+    """A resumed run keeps earlier failures in view: exit status 1 and their reasons until
+    `--retry-failed` redoes them; `output` in summary.json is the whole directory's state."""
+    d, _ = recording
+    key = f"{FLIGHTS[0].address:06X}"
+    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out",
+            str(tmp_path / "out"), "--workers", "1", "--no-progress", "--aircraft", key]
+    assert main([*args, "--time-limit", "0.001"]) == 1
+    capsys.readouterr()
+    assert main(args) == 1  # nothing redone: the failure stays
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert (summary["failed"], summary["skipped"]) == (0, 1)
+    assert summary["output"]["tracks_failed"] == 1
+    assert summary["output"]["failures"][key].startswith("DeadlineExceeded")
+    assert "1 track(s) failed in an earlier run and were not retried" in capsys.readouterr().out
+    assert main([*args, "--retry-failed"]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert (summary["output"]["tracks_done"], summary["output"]["tracks_failed"]) == (1, 0)
+    assert summary["output"]["plots_done"] == summary["plots"] > 0

@@ -267,6 +267,19 @@ def _plausible(data: bytes, p: int) -> bool:
             and ((data[p + 1] << 8) | data[p + 2]) >= 3)
 
 
+def looks_like_recording(head: bytes) -> bool:
+    """Whether a file starting with ``head`` (its first 64 KiB and 3 bytes, or all of it) is a
+    capture or starts with a data block: a category libasterix knows, a length within the
+    file, followed by another such header or the end. Text, JSON, gzip or a script do not (a
+    Python file's ``\"\"\"`` reads as a CAT034 header, whose successor does not)."""
+    if is_capture(head) or not head:
+        return True
+    if not _fits(head, 0):
+        return False
+    nxt = (head[1] << 8) | head[2]
+    return nxt == len(head) or _plausible(head, nxt)
+
+
 def _fits(data: bytes, p: int) -> bool:
     """A whole block could start at ``p``: plausible and within the data."""
     return _plausible(data, p) and p + ((data[p + 1] << 8) | data[p + 2]) <= len(data)

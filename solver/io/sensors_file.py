@@ -66,7 +66,10 @@ class SensorSet:
 def load_sensors(path: str | Path) -> SensorSet:
     """Read and validate a sensor file (see the module docstring)."""
     text = Path(path).read_text(encoding="utf-8")
-    return parse_sensors(text)
+    try:
+        return parse_sensors(text)
+    except InputError as e:  # named by the file, as the command line knows it
+        raise InputError(e.loc, f"{e.message} (in {path})") from None
 
 
 def parse_sensors(text: str | object) -> SensorSet:
