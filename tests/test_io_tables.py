@@ -76,8 +76,17 @@ def test_missing_columns_are_named():
         read_csv(b"sensor,range_m,azimuth_deg\nR1,2,3\n")
     with pytest.raises(InputError, match=r"^range_m is missing"):
         read_csv(b"t,sensor\n1,R1\n")
+    with pytest.raises(InputError, match=r"^t is missing.*\(columns: time, sensor"):
+        read_csv(b"time,sensor,range_m,azimuth_deg\n1,R1,2,3\n")  # named as the file has them
+
+
+def test_a_users_own_columns_are_read_past_and_reported_once():
+    data = b"t,sensor,range_m,azimuth_deg,speed,comment\n1,R1,2,3,4,a\n2,R1,2,3,5,b\n"
+    rows, problems = read_csv(data)
+    assert len(rows) == 2 and problems.counts == {"unknown_column": 2}
+    assert [e.message.split(" is not")[0] for e in problems.entries] == ["`speed`", "`comment`"]
     with pytest.raises(InputError, match=r"^speed is not a column"):
-        read_csv(b"t,sensor,range_m,azimuth_deg,speed\n1,R1,2,3,4\n")
+        read_csv(data, strict=True)
 
 
 def test_missing_column_in_parquet_is_named(tmp_path):

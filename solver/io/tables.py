@@ -34,8 +34,9 @@ Empty cells (CSV) and nulls (Parquet) are missing values. A row needs a time, a 
 either ``range_m`` + ``azimuth_deg`` or ``lat_deg`` + ``lon_deg``. A missing required column
 raises :class:`solver.InputError` naming it; a bad value (unparsable, non-finite, out of range)
 is reported as a problem naming the row (1-based data row; in CSV files line = row + 1) and
-column, the row is skipped and counted, and the rest of the table is read (``strict=True``
-raises instead).
+column, the row is skipped and counted, and the rest of the table is read; other columns (a
+callsign, a comment) are read past and reported once as ``unknown_column`` (``strict=True``
+raises instead of either).
 """
 
 from __future__ import annotations
@@ -338,18 +339,26 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
     table = table.rename_columns(names)
     known = {"t", "time_of_day_s", *STR_COLUMNS, *FLOAT_COLUMNS, *INT_COLUMNS}
     unknown = [n for n in names if n not in known]
-    if unknown:
+    if unknown and strict:
         raise InputError((unknown[0],), f"is not a column of the plot table (columns: "
                          f"{', '.join(sorted(known))})")
+    if unknown:  # a user's own columns (a callsign, a comment): read past, said once
+        if first_row == 1:
+            for name in unknown:
+                problems.add("unknown_column", "header", f"`{name}` is not a column of the "
+                             f"plot table: ignored (columns: {', '.join(sorted(known))})")
+        table = table.drop_columns(unknown)
+    header = ", ".join(names)  # as the file has it, for the messages below
+    names = [n for n in names if n in known]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise InputError((dup,), "appears twice in the header")
     for group in (("t", "time_of_day_s"),):
         if not any(g in names for g in group):
             raise InputError(("t",), "is missing: the table needs a `t` or a `time_of_day_s` "
-                             f"column (columns: {', '.join(names)})")
+                             f"column (columns: {header})")
     if "sensor" not in names:
-        raise InputError(("sensor",), f"is missing (columns: {', '.join(names)})")
+        raise InputError(("sensor",), f"is missing (columns: {header})")
     radar_cols = [c for c in ("range_m", "azimuth_deg") if c in names]
     pos_cols = [c for c in ("lat_deg", "lon_deg") if c in names]
     if len(radar_cols) == 1 or len(pos_cols) == 1:
