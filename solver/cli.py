@@ -50,6 +50,7 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -695,7 +696,6 @@ def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loa
             bar.set_postfix(plots=o.plots, failed=o.status == "failed", refresh=False)
 
     figures = str(out / "figures") if args.figures else None
-    from functools import partial
 
     task = partial(assess_track, figures_dir=figures, filters=settings.filters,
                    times_of_day=bool(loaded.times_of_day),
@@ -872,8 +872,8 @@ def parser() -> argparse.ArgumentParser:
                      "scheduler (default: an embedded LocalCluster)")
     rec.add_argument("--workers", type=_count, default=None, help="embedded cluster's worker "
                      "processes (default: the usable cores)")
-    rec.add_argument("--time-limit", type=_limit, default=300.0, help="per-track limit (s; 0: "
-                     "none)")
+    rec.add_argument("--time-limit", type=partial(_seconds, zero=True), default=300.0,
+                     help="per-track limit (s; 0: none)")
     rec.add_argument("--decode", choices=("local", "cluster", "auto"), default="local",
                      help="where ASTERIX is decoded: in this process, a reading thread "
                      "overlapping the reconstruction (default; the faster on one machine, "
@@ -889,7 +889,7 @@ def parser() -> argparse.ArgumentParser:
                      "Mode S address 3C6DD4, in either case; a key takes its later pieces "
                      "KEY#2 ... too); the whole recording is still read, and a key it does not "
                      "hold makes the exit status 2 after the others are written")
-    rec.add_argument("--samples", type=_step, default=None, metavar="STEP",
+    rec.add_argument("--samples", type=_seconds, default=None, metavar="STEP",
                      help="also write every track's state every STEP seconds (from its first "
                      "plot to its last, with the covariance) into --out/samples.parquet")
     rec.add_argument("--figures", action="store_true", help="also draw every track's figure")
@@ -913,14 +913,16 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _step(text: str) -> float:
-    """``--samples``: a positive, finite number of seconds."""
+def _seconds(text: str, *, zero: bool = False) -> float:
+    """A finite number of seconds: positive (``--samples``), or 0 too (``zero``:
+    ``--time-limit``, where 0 is no limit)."""
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not 0 < value < math.inf:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    if not ((0 <= value) if zero else (0 < value)) or value == math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds >= 0" if zero
+                                         else f"{text!r} is not a positive number of seconds")
     return value
 
 
@@ -932,17 +934,6 @@ def _count(text: str) -> int:
         value = 0
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text!r} is not a positive whole number")
-    return value
-
-
-def _limit(text: str) -> float:
-    """``--time-limit``: a finite number of seconds, 0 (no limit) or more."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0 <= value < math.inf:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds >= 0")
     return value
 
 
