@@ -17,7 +17,7 @@ from solver.estimation import FUSION_NAMES
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar, format_loc
 from solver.manoeuvres import from_segments
-from solver.plots import PlotTable
+from solver.plots import PlotTable, validate_sensors
 from solver.results import (
     FilterEstimate,
     PlotResiduals,
@@ -55,6 +55,7 @@ class Job:
     config: ReconstructionConfig
     filters: tuple[str, ...]
     omit: frozenset[str] = frozenset()
+    notes: tuple[str, ...] = ()  # the request's own warnings (the answer's diagnostics)
 
     @property
     def plots(self) -> Plots | PlotTable:
@@ -101,7 +102,8 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
                          "as `radar` or every sensor in `sensors`")
     if req.radar is None and req.sensors is None:
         raise InputError(("radar",), "is required (or `sensors` for several sensors)")
-    table = _legacy_table(req) if req.radar is not None else _sensor_table(req)
+    notes: list[str] = []
+    table = _legacy_table(req) if req.radar is not None else _sensor_table(req, notes)
     b = req.bounds
     config = ReconstructionConfig(
         bounds=Bounds(u=(b.u[0], b.u[1]), w=(b.w[0], b.w[1]), v=(b.v[0], b.v[1])),
@@ -137,7 +139,8 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
                              f"solve {nodes} node intervals (gaps cut to "
                              f"{config.refine.max_node_step_s:g} s); this service's limit is "
                              f"max_nodes = {max_nodes}: split the track at its long gaps")
-    return Job(table, config, tuple(dict.fromkeys(req.filters)), frozenset(req.omit))
+    return Job(table, config, tuple(dict.fromkeys(req.filters)), frozenset(req.omit),
+               tuple(notes))
 
 
 def _radar(r: RadarIn) -> dict:
@@ -174,8 +177,10 @@ def _legacy_table(req: ReconstructionRequest) -> PlotTable:
     return PlotTable.from_plots(plots, radar)
 
 
-def _sensor_table(req: ReconstructionRequest) -> PlotTable:
-    """Several sensors on WGS-84: each plot names its sensor."""
+def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
+    """Several sensors on WGS-84: each plot names its sensor. Sensors without plots (a site
+    list shared by many requests) are checked and left out, with a note; the plane stays
+    where it would be with them (the first radar's site listed, when no `reference`)."""
     assert req.sensors is not None
     sensors: list[RadarSensor | PositionSensor] = []
     for j, s in enumerate(req.sensors):
@@ -197,6 +202,22 @@ def _sensor_table(req: ReconstructionRequest) -> PlotTable:
     if req.reference is not None:
         reference = LocalFrame(req.reference.lat_deg, req.reference.lon_deg)
         reference.validate()
+    used = {p.sensor for p in req.plots}
+    if used <= {s.id for s in sensors} and len(used) < len(sensors):
+        validate_sensors(tuple(sensors))  # every one, at its own index
+        idle = [s.id for s in sensors if s.id not in used]
+        notes.append(f"sensor{'s' * (len(idle) > 1)} {', '.join(map(repr, idle))} "
+                     f"ha{'ve' if len(idle) > 1 else 's'} no plots: left out")
+        sited = next((s for s in sensors if isinstance(s, RadarSensor) and s.site is not None),
+                     None)
+        if reference is None and sited is not None and sited.id not in used:
+            assert sited.site is not None
+            reference = LocalFrame(sited.site.lat_deg, sited.site.lon_deg)
+            try:
+                reference.validate()
+            except InputError as e:
+                raise unsent_reference(e, sensors, ("plots",)) from None
+        sensors = [s for s in sensors if s.id in used]
     try:
         return plot_table(sensors, req.plots, reference)
     except InputError as e:
@@ -269,7 +290,7 @@ def _states(s: StateSeries, with_heading: bool, frame: LocalFrame | None = None)
 
 
 def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
-                  omit: frozenset[str] = frozenset()) -> dict:
+                  omit: frozenset[str] = frozenset(), notes: tuple[str, ...] = ()) -> dict:
     """The JSON-ready body of a 200 (validated against ``ReconstructionResponse`` by the
     caller); ``omit``: ``samples`` (an empty list) and/or ``covariances`` (``cov`` null).
     Every filter's warning (e.g. a numerical fallback) joins ``diagnostics.warnings``."""
@@ -291,6 +312,7 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
         trajectory["altitude_m"] = rec.altitude_m
         trajectory["altitude_sigma_m"] = rec.altitude_sigma_m
     diagnostics = rec.diagnostics.as_dict()
+    diagnostics["warnings"] = [*notes, *diagnostics["warnings"]]
     diagnostics["warnings"] += [f"filters.{name}: {e.info['warning']}"
                                 for name, e in estimates.items() if e.info.get("warning")]
     return {

@@ -205,7 +205,9 @@ class ReconstructionRequest(_In):
         "one of `radar` and `sensors`.")
     sensors: list[SensorIn] | None = Field(  # type: ignore[valid-type]
         None, min_length=1, max_length=64, description="Several sensors on WGS-84 "
-        "(sensors.md): radars at their sites and position sensors; every plot names one.")
+        "(sensors.md): radars at their sites and position sensors; every plot names one. A "
+        "sensor no plot names is checked, then left out with a warning (a site list shared by "
+        "many requests); the plane stays where it would be with it.")
     reference: ReferenceIn | None = Field(
         None, description="Tangent point of the answer's local plane (with `sensors`). "
         "Default: the first radar's site, else the first position plot.")
@@ -440,8 +442,8 @@ class ReconstructionResponse(_Out):
     filters: dict[str, FilterOut] = Field(
         default_factory=dict, description="Estimates of the requested filters, by name.")
     sensors: list[SensorOut] = Field(
-        default_factory=list, description="With `sensors`: one entry per sensor, in request "
-        "order (empty for the single `radar`).")
+        default_factory=list, description="With `sensors`: one entry per sensor with plots, "
+        "in request order (empty for the single `radar`).")
     diagnostics: DiagnosticsOut
 
 

@@ -202,8 +202,9 @@ LAST = len(_body()["plots"]) - 1  # an ADS-B plot
     (lambda b: b["plots"][0].pop("azimuth_deg"), ["plots", 0, "azimuth_deg"]),
     (lambda b: b["plots"][0].pop("sensor"), ["plots", 0, "sensor"]),
     (lambda b: b.update(radar={"range_error_m": 1.0, "azimuth_error_deg": 1.0}), ["sensors"]),
+    # a sensor without plots is left out (below), but checked at its own index
     (lambda b: b["sensors"].append({"id": "SPARE", "kind": "position",
-                                    "position_sigma_m": 10.0}), ["sensors", 3, "id"]),
+                                    "position_sigma_m": 0.0}), ["sensors", 3, "position_sigma_m"]),
     (lambda b: b["sensors"][1].update(id="LJLJ"), ["sensors", 1, "id"]),
     (lambda b: b["sensors"][0].update(azimuth_error_deg=-1.0),
      ["sensors", 0, "azimuth_error_deg"]),
@@ -295,3 +296,25 @@ def test_a_reference_far_from_the_track_warns_of_the_planes_scale():
         far = [w for w in rec.diagnostics.warnings if "from the plane's reference" in w]
         assert bool(far) == warned, rec.diagnostics.warnings
     assert "up to 2.5 % too large" in far[0]  # at the farthest plot, 2007 km
+
+
+def test_sensors_without_plots_are_left_out_with_a_note(client):
+    """A site list shared by many requests: a radar (listed first, without `reference`: the
+    plane's tangent point) and an ADS-B receiver that saw nothing of this track are left out,
+    said in the warnings; the answer is the one without them, in the same plane."""
+    body = _body()
+    del body["reference"]
+    spare = [{"id": "SPARE", "kind": "radar", "lat_deg": 46.5, "lon_deg": 14.0,
+              "range_error_m": 150.0, "azimuth_error_deg": 0.24},
+             {"id": "SPARE2", "kind": "position", "position_sigma_m": 10.0}]
+    res = client.post("/v1/reconstructions", json={**body, "sensors": [spare[0], *body["sensors"],
+                                                                       spare[1]]})
+    assert res.status_code == 200, res.text
+    got = res.json()
+    assert "sensors 'SPARE', 'SPARE2' have no plots: left out" in got["diagnostics"]["warnings"]
+    assert {s["id"] for s in got["sensors"]} == {"LJLJ", "SSR2", "ADSB"}
+    want = client.post("/v1/reconstructions", json={
+        **body, "reference": {"lat_deg": 46.5, "lon_deg": 14.0}}).json()
+    for a, b in zip(got["trajectory"]["at_plots"], want["trajectory"]["at_plots"], strict=True):
+        assert (a["x"], a["z"], a["lat_deg"]) == pytest.approx((b["x"], b["z"], b["lat_deg"]),
+                                                               abs=1e-6)
