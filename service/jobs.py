@@ -7,9 +7,9 @@ Layout of the data directory (``Settings.data_dir``)::
     DATA/jobs/<id>/out/            solver.batch's out_dir: tracks.parquet/, segments.parquet/,
                                    progress.jsonl (the commit log of finished tracks),
                                    sensor_stats.jsonl, figures/<digest>/<key>.png; when done:
-                                   tracks.csv, tracks.geojsonl, manoeuvres.csv, sensors.json,
-                                   map.png, problems.txt, summary.json, export/ (single-file
-                                   downloads)
+                                   tracks.csv, tracks.geojsonl, manoeuvres.csv, warnings.csv,
+                                   sensors.json, map.png, problems.txt, summary.json, export/
+                                   (single-file downloads)
 
 Durability: an accepted job's inputs are written (and synced) under a temporary name, renamed,
 and only then its record is inserted (committed) before the 202; a track is finished exactly
@@ -52,6 +52,7 @@ from solver.cli import (
     SensorStats,
     assess_track,
     load,
+    output_state,
     write_csv_and_geojson,
     write_manoeuvres,
     write_map,
@@ -70,8 +71,8 @@ ACTIVE: frozenset[str] = frozenset({"queued", "running"})
 PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet", "samples.parquet")
 """Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
 RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "manoeuvres.csv",
-                "sensors.json", "problems.txt", "summary.json", "map.png", "sensors.png",
-                "results.zip")
+                "warnings.csv", "sensors.json", "problems.txt", "summary.json", "map.png",
+                "sensors.png", "results.zip")
 PROBLEM_EXAMPLES = 20  # problems listed in a job's status (every kind is counted)
 
 _SCHEMA = """
@@ -656,6 +657,9 @@ class JobRunner:
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None, **settings.as_json()}
+        warned = output_state(out)  # and warnings.csv: every track's warnings
+        summary.update(tracks_with_warnings=warned["tracks_with_warnings"],
+                       warnings=warned["warnings"])
         (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
                                           encoding="utf-8")
 

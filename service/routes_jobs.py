@@ -682,7 +682,8 @@ def get_job_result(job_id: str, name: str, request: Request) -> Response:
     track's state every `sample_step_s`, when it asked for them), `tracks.csv`,
     `tracks.geojsonl` (one LineString per aircraft), `manoeuvres.csv` (every track's turns and
     speed changes, as the track's `trajectory.manoeuvres`, with latitude and longitude at both
-    ends), `sensors.json`, `sensors.png`,
+    ends), `warnings.csv` (every track's reconstruction warnings; `summary.json` counts them),
+    `sensors.json`, `sensors.png`,
     `problems.txt`, `summary.json`, `map.png`, or all of them as `results.zip`."""
     runner = _runner(request)
     if name not in RESULT_FILES:

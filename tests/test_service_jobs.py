@@ -281,6 +281,12 @@ def test_job_options_run_the_filters_on_every_track(client):
     summary = json.loads(client.get(loc + "/results/summary.json").content)
     assert summary["filters"] == names and summary["sample_step_s"] == 5.0
     assert summary["method"] == "refined"
+    # held under the speed cap, every track warns: counted, and all of it in warnings.csv
+    assert summary["tracks_with_warnings"] == len(tracks) == len(summary["warnings"])
+    warned = client.get(loc + "/results/warnings.csv").text.splitlines()
+    assert warned[0] == "aircraft,warning"
+    assert {line.split(",")[0] for line in warned[1:]} == set(tracks)
+    assert any("upper bound" in line for line in warned)
     archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
     assert {"filters.parquet", "samples.parquet"} <= set(archive.namelist())
 
