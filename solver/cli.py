@@ -749,24 +749,27 @@ def output_state(out: Path) -> dict[str, Any]:
     line of ``progress.jsonl``): tracks done and failed, their plots, the failures' reasons,
     and the tracks whose reconstruction warned (listed one warning a line in ``warnings.csv``,
     ``aircraft,warning``)."""
+    # of each track's last line, the few fields needed (not its diagnostics)
     last: dict[str, dict[str, Any]] = {}
     for entry in ledger_entries(out):
-        last[entry["aircraft"]] = entry
+        last[entry["aircraft"]] = {k: entry.get(k) for k in ("status", "plots", "error",
+                                                               "warnings")}
     done = [e for e in last.values() if e["status"] == "done"]
-    warned = [e for e in done if e.get("warnings")]
+    warned = [(k, e["warnings"]) for k, e in last.items()
+              if e["status"] == "done" and e["warnings"]]
     tmp = out / ".warnings.csv.tmp"
     with open(tmp, "w", encoding="utf-8", newline="") as f:
         w = csv.writer(f)
         w.writerow(["aircraft", "warning"])
-        for e in warned:
-            w.writerows([e["aircraft"], text] for text in e["warnings"])
+        for key, texts in warned:
+            w.writerows([key, text] for text in texts)
     os.replace(tmp, out / "warnings.csv")
     return {"tracks_done": len(done),
             "tracks_failed": len(last) - len(done),
             "plots_done": sum(int(e["plots"]) for e in done),
             "failures": {k: e["error"] for k, e in last.items() if e["status"] != "done"},
             "tracks_with_warnings": len(warned),
-            "warnings": {e["aircraft"]: e["warnings"] for e in warned[:WARNING_EXAMPLES]}}
+            "warnings": dict(warned[:WARNING_EXAMPLES])}
 
 
 def _iter_stats(path: Path) -> Iterator[list[dict[str, Any]]]:
