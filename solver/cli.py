@@ -61,6 +61,7 @@ import pyarrow.parquet as pq
 
 from .assessment import write_sensors_figure
 from .batch import (
+    TRACK_COLUMNS,
     BatchSummary,
     TrackOutcome,
     dask_settings,
@@ -462,9 +463,12 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
                                           "plots": int(sel.size)}}
                 geo.write(json.dumps(feature) + "\n")
                 tracks += 1
-    if writer is not None:
-        writer.close()
-        os.replace(csv_tmp, out / "tracks.csv")  # whole files only: a stop leaves the old ones
+    if writer is None:  # no track: the header alone, as the other tables have theirs
+        writer = pacsv.CSVWriter(csv_tmp, pa.schema(
+            [(n, pa.string() if n in ("aircraft", "sensor") else pa.float64())
+             for n in TRACK_COLUMNS]))
+    writer.close()
+    os.replace(csv_tmp, out / "tracks.csv")  # whole files only: a stop leaves the old ones
     os.replace(geo_tmp, out / "tracks.geojsonl")
     return rows, tracks
 
@@ -1038,7 +1042,8 @@ def _stop_on_sigterm(signum: int, frame: Any) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Exit status: 0 all tracks done (or figures drawn), 1 some failed (in this run, or in an
-    earlier one of the output directory and not retried), 2 bad input, 130 /
+    earlier one of the output directory and not retried), 2 bad input (also a recording of
+    which no aircraft's track could be read), 130 /
     143 stopped by SIGINT / SIGTERM (the cluster closed, the finished tracks kept: the same
     command resumes)."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -1071,6 +1076,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     print_summary(result)
+    if not result["tracks"] and result.get("aircraft") is None:
+        print(f"trajrecon: no aircraft's track could be read from {args.recording} (what was "
+              f"left out, and why: {args.out}/problems.txt)", file=sys.stderr)
+        return 2
     if result.get("aircraft_not_found"):
         print(f"trajrecon: not in the recording (or too short to reconstruct: "
               f"{args.out}/problems.txt names those): "

@@ -265,6 +265,14 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
                      "--workers", "1", "--no-progress"])
         err = capsys.readouterr().err
         assert code == 2 and message in err and "Traceback" not in err, err
+    # a table of which no plot can be read: said, exit 2, and the outputs still complete
+    empty = tmp_path / "empty.csv"
+    empty.write_text("t,sensor,range_m,azimuth_deg\n1,NOPE,50000,10\n")
+    code = main([str(empty), "--sensors", str(d / "sensors.json"), "--out",
+                 str(tmp_path / "out6"), "--workers", "1", "--no-progress"])
+    assert code == 2 and "no aircraft's track could be read from" in capsys.readouterr().err
+    assert (tmp_path / "out6" / "tracks.csv").read_text().startswith('"aircraft","plot"')
+    assert "unknown_sensor" in (tmp_path / "out6" / "problems.txt").read_text()
     # the sliding windows' settings with the refined method: refused, not stored
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
                  str(tmp_path / "out5"), "--window-plots", "5", "--no-progress"])
