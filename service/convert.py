@@ -202,6 +202,7 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
     if req.reference is not None:
         reference = LocalFrame(req.reference.lat_deg, req.reference.lon_deg)
         reference.validate()
+    listed = list(sensors)  # the request's indexes, for the messages
     used = {p.sensor for p in req.plots}
     if used <= {s.id for s in sensors} and len(used) < len(sensors):
         validate_sensors(tuple(sensors))  # every one, at its own index
@@ -216,7 +217,7 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
             try:
                 reference.validate()
             except InputError as e:
-                raise unsent_reference(e, sensors, ("plots",)) from None
+                raise unsent_reference(e, listed, ("plots",)) from None
         sensors = [s for s in sensors if s.id in used]
     try:
         return plot_table(sensors, req.plots, reference)
@@ -226,7 +227,7 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
         position = {s.id for s in sensors if isinstance(s, PositionSensor)}
         first = next((("plots", i) for i, p in enumerate(req.plots) if p.sensor in position),
                      ("plots",))
-        raise unsent_reference(e, sensors, first) from None
+        raise unsent_reference(e, listed, first) from None
 
 
 def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],

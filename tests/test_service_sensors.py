@@ -318,3 +318,15 @@ def test_sensors_without_plots_are_left_out_with_a_note(client):
     for a, b in zip(got["trajectory"]["at_plots"], want["trajectory"]["at_plots"], strict=True):
         assert (a["x"], a["z"], a["lat_deg"]) == pytest.approx((b["x"], b["z"], b["lat_deg"]),
                                                                abs=1e-6)
+
+
+def test_a_pole_radar_after_an_unused_sensor_is_named_at_its_own_index(client):
+    """The pole error names the request's index of the radar even when a sensor before it,
+    without plots, is left out."""
+    body = _body()
+    del body["reference"]
+    body["sensors"][0].update(lat_deg=90.0, lon_deg=0.0)
+    spare = {"id": "SPARE", "kind": "position", "position_sigma_m": 10.0}
+    res = client.post("/v1/reconstructions", json={**body, "sensors": [spare, *body["sensors"]]})
+    assert res.status_code == 422, res.text
+    assert res.json()["detail"][0]["loc"] == ["sensors", 1, "lat_deg"]
