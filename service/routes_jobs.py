@@ -25,7 +25,7 @@ from solver.inputs import Bounds, InputError
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
 from solver.io.tables import PlotRows, write_table
-from solver.manoeuvres import find_manoeuvres
+from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
@@ -512,7 +512,7 @@ def get_job_track(job_id: str, aircraft: str, request: Request,
     return JobTrackResult.model_validate({
         "aircraft": key,
         "trajectory": {"segments": _segment_rows(segments),
-                       "manoeuvres": _manoeuvre_rows(segments),
+                       "manoeuvres": [m.as_dict() for m in from_segment_rows(segments)],
                        "at_plots": _state_rows(states, cov),
                        "samples": [] if sampled is None else _sample_rows(sampled, cov),
                        **_altitude(entry.get("altitude"))},
@@ -598,15 +598,6 @@ def _segment_rows(t: Any) -> list[dict[str, Any]]:
     for r in rows:
         r["heading_deg"] %= 360.0
     return rows
-
-
-def _manoeuvre_rows(t: Any) -> list[dict[str, Any]]:
-    """The turns and speed changes of one track's ``segments.parquet`` rows."""
-    c = {k: t.column(k).to_numpy() for k in ("t_start", "t_end", "x", "z", "heading_deg",
-                                             "speed", "u", "w")}
-    return [m.as_dict() for m in find_manoeuvres(
-        c["t_start"], c["t_end"], c["x"], c["z"], np.deg2rad(c["heading_deg"]), c["speed"],
-        c["u"], c["w"])]
 
 
 def _sensor_out(r: dict[str, Any]) -> dict[str, Any]:

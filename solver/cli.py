@@ -477,7 +477,7 @@ def write_manoeuvres(out: Path, frame: LocalFrame | None) -> int:
     """``manoeuvres.csv`` from the segments' Parquet parts (:mod:`solver.manoeuvres`), one part
     at a time, with latitude and longitude at both ends in the recording's plane ``frame``
     (empty without one); returns the rows written."""
-    from .manoeuvres import Manoeuvre, find_manoeuvres
+    from .manoeuvres import Manoeuvre, from_segment_rows
 
     fields = list(Manoeuvre.__dataclass_fields__)
     schema = pa.schema([("aircraft", pa.string())] + [
@@ -490,14 +490,9 @@ def write_manoeuvres(out: Path, frame: LocalFrame | None) -> int:
         for part in sorted((out / "segments.parquet").glob("part-*.parquet")):
             table = pq.read_table(part)
             keys = table.column("aircraft").to_numpy(zero_copy_only=False)
-            c = {k: table.column(k).to_numpy() for k in (
-                "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")}
             found: list[tuple[str, Manoeuvre]] = []
             for key, sel in _key_groups(keys):
-                found += [(key, m) for m in find_manoeuvres(
-                    c["t_start"][sel], c["t_end"][sel], c["x"][sel], c["z"][sel],
-                    np.deg2rad(c["heading_deg"][sel]), c["speed"][sel], c["u"][sel],
-                    c["w"][sel])]
+                found += [(key, m) for m in from_segment_rows(table.take(sel))]
             if not found:
                 continue
             cols: dict[str, Any] = {"aircraft": [k for k, _ in found]}

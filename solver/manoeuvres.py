@@ -99,6 +99,16 @@ def find_manoeuvres(t_start: FloatArray, t_end: FloatArray, x: FloatArray, z: Fl
     return sorted(found, key=lambda m: (m.t_start, m.kind))
 
 
+def from_segment_rows(table: Any,
+                      settings: ManoeuvreSettings = ManoeuvreSettings()) -> list[Manoeuvre]:
+    """:func:`find_manoeuvres` of one track's rows of ``segments.parquet`` (an Arrow table,
+    heading in degrees)."""
+    c = {k: table.column(k).to_numpy() for k in (
+        "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")}
+    return find_manoeuvres(c["t_start"], c["t_end"], c["x"], c["z"],
+                           np.deg2rad(c["heading_deg"]), c["speed"], c["u"], c["w"], settings)
+
+
 def from_segments(segments: list[Segment],
                   settings: ManoeuvreSettings = ManoeuvreSettings()) -> list[Manoeuvre]:
     """:func:`find_manoeuvres` of a reconstruction's segments."""
