@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
-from pyproj import CRS, Transformer
+from pyproj import CRS, Proj, Transformer
 
 from .inputs import FloatArray, InputError
 
@@ -34,6 +34,12 @@ def _plane(lat0: float, lon0: float) -> tuple[Transformer, Transformer]:
     geo = CRS.from_epsg(4326)
     return (Transformer.from_crs(geo, crs, always_xy=True),
             Transformer.from_crs(crs, geo, always_xy=True))
+
+
+@cache
+def _plane_proj(lat0: float, lon0: float) -> Proj:
+    """The sterea plane of :func:`_plane` as a ``Proj`` (for its scale factors)."""
+    return Proj(_plane(lat0, lon0)[0].target_crs)
 
 
 @cache
@@ -81,6 +87,14 @@ class LocalFrame:
         """Plane ``(x north, z east)`` -> geodetic ``(lat_deg, lon_deg)``."""
         lon, lat = _plane(self.lat_deg, self.lon_deg)[1].transform(z, x)
         return np.asarray(lat, float), np.asarray(lon, float)
+
+    def scale(self, x: FloatArray, z: FloatArray) -> FloatArray:
+        """The plane's scale factor at ``(x, z)`` (PROJ's; conformal: one in every direction):
+        plane distances and speeds there are this many times the ground's (1 at the tangent
+        point, about ``1 + (r / 2R)^2`` at a distance ``r``)."""
+        lat, lon = self.to_geodetic(x, z)
+        return np.asarray(_plane_proj(self.lat_deg, self.lon_deg).get_factors(
+            lon, lat).meridional_scale, float)
 
     def north_azimuth(self, x: FloatArray, z: FloatArray) -> FloatArray:
         """Angle (rad, clockwise) from the plane's ``x`` axis to true north at ``(x, z)``: the

@@ -18,7 +18,6 @@ NUMERICAL_FAILURES = (FloatingPointError, ZeroDivisionError, OverflowError,
                       np.linalg.LinAlgError, RuntimeError)
 """What a refinement may raise on numbers it cannot handle (RuntimeError: CasADi's own
 evaluation errors); answered by the sliding-window fallback, reported."""
-EARTH_RADIUS_M = 6_371_000.0  # mean radius: enough for the size of the plane's scale error
 FAR_SCALE = 0.005  # the plane's scale excess that warns (speeds 0.5 % too large)
 
 
@@ -75,19 +74,21 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
 
 
 def _warn_far_from_reference(result: Reconstruction) -> None:
-    """Warn when the track lies so far from the plane's reference that the stereographic
-    plane's scale ``k = 2 / (1 + cos(rho / R)) ~ 1 + (rho / 2R)^2`` makes its speeds and
-    distances more than :data:`FAR_SCALE` too large (about 900 km; 2.4 % measured at 2000 km)."""
-    s = result.at_plots
-    rho = float(np.max(np.hypot(s.x, s.z))) if len(s) else 0.0
-    excess = 2.0 / (1.0 + np.cos(rho / EARTH_RADIUS_M)) - 1.0
+    """Warn when the track lies so far from the plane's reference that the plane's scale
+    (:meth:`solver.frames.LocalFrame.scale`) makes its speeds and distances more than
+    :data:`FAR_SCALE` too large (about 900 km; 2.4 % measured at 2000 km)."""
+    s, frame = result.at_plots, result.frame
+    assert frame is not None
+    if not len(s):
+        return
+    far = int(np.argmax(np.hypot(s.x, s.z)))
+    excess = float(frame.scale(s.x[far:far + 1], s.z[far:far + 1])[0]) - 1.0
     if excess > FAR_SCALE:
-        assert result.frame is not None
         result.diagnostics.warnings.append(
-            f"the track lies up to {rho / 1e3:.0f} km from the plane's reference "
-            f"({result.frame.lat_deg:.4f}, {result.frame.lon_deg:.4f}): there the plane's scale "
-            f"makes speeds, accelerations and distances up to {100 * excess:.1f} % too large; "
-            "give a reference near the track")
+            f"the track lies up to {np.hypot(s.x[far], s.z[far]) / 1e3:.0f} km from the "
+            f"plane's reference ({frame.lat_deg:.4f}, {frame.lon_deg:.4f}): there the plane's "
+            f"scale makes speeds, accelerations and distances up to {100 * excess:.1f} % too "
+            "large; give a reference near the track")
 
 
 def _reconstruct_single(plots: Plots, radar: Radar, config: ReconstructionConfig,

@@ -200,3 +200,15 @@ def test_bounds_and_accuracies_at_and_beyond_their_limits():
         Radar(1e5 * 1.01, 0.01).validate()
     plots = Plots.from_arrays([0.0, 1.0], [1e4, 1e4], [np.deg2rad(-719.0), np.deg2rad(1e5 + 1)])
     np.testing.assert_allclose(np.rad2deg(plots.azimuth_rad), [1.0, 281.0], atol=1e-9)
+
+
+@pytest.mark.parametrize("north_km, east_km", [(0.0, 0.0), (300.0, 0.0), (0.0, 1000.0),
+                                               (-1500.0, 2000.0)])
+def test_plane_scale_is_plane_over_geodesic_distance(north_km, east_km):
+    """The plane's scale factor against an independent measure: a 10-m step in the plane over
+    its geodesic length on WGS-84 (pyproj.Geod)."""
+    frame = LocalFrame(46.0, 14.8)
+    x, z = np.array([north_km * 1e3]), np.array([east_km * 1e3])
+    lat, lon = frame.to_geodetic(np.array([x[0], x[0] + 7.0]), np.array([z[0], z[0] + 7.0]))
+    _, _, ground = Geod(ellps="WGS84").inv(lon[0], lat[0], lon[1], lat[1])
+    assert frame.scale(x, z)[0] == pytest.approx(7.0 * np.sqrt(2.0) / ground, rel=1e-6)
