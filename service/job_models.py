@@ -138,7 +138,11 @@ class JobStatus(_Out):
     id: str = Field(description="Job id.")
     kind: Literal["recording", "tracks"] = Field(description="`recording`: an uploaded "
                                                  "recording; `tracks`: a JSON body of tracks.")
-    state: JobState = Field(description="queued, running, done, failed or cancelled.")
+    state: JobState = Field(description="queued, running, done, failed or cancelled. "
+                            "`failed`: the input could not be read, or the job ran to its end "
+                            "without reconstructing one track (`error` says why; its "
+                            "`summary.json`, `problems.txt` and each track's reason stay "
+                            "readable).")
     tracks_total: int | None = Field(None, description="Aircraft tracks found (null until the "
                                      "recording has been read).")
     tracks_done: int = Field(0, description="Tracks reconstructed and stored.")

@@ -59,6 +59,7 @@ from solver.cli import (
 )
 from solver.config import ReconstructionConfig
 from solver.inputs import InputError, format_loc
+from solver.io.problems import Problems
 from solver.io.split import recording_frame
 from solver.run_settings import RunSettings
 
@@ -261,6 +262,22 @@ class JobStore:
         with self._tx() as db:
             db.execute("DELETE FROM tracks WHERE job = ?", (job_id,))
             db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+
+
+def _nothing_reconstructed(progress: Progress, problems: Problems) -> str | None:
+    """Why a job that ran to its end reconstructed no track (it is ``failed`` then, with its
+    outputs kept: the summary, the problems, each track's error), or None if it did one.
+    The command line's exit status 2 and 1 in the same cases (:func:`solver.cli.main`)."""
+    if progress.done:
+        return None
+    if not progress.entries:
+        first = "; ".join(str(e) for e in list(problems.entries)[:3])
+        return ("no aircraft's track could be read from the job's input"
+                + (f" ({first})" if first else "") + "; see problems.txt")
+    key, entry = next((k, e) for k, e in progress.entries.items() if e["status"] == "failed")
+    n = len(progress.entries)
+    return (f"{'the' if n == 1 else f'every one of the {n}'} track{'s' * (n > 1)} failed "
+            f"({key}: {entry.get('error')}); see /tracks for each track's reason")
 
 
 # ------------------------------------------------------------------------------- executor
@@ -610,10 +627,12 @@ class JobRunner:
             return
         solved = time.monotonic()
         self._finish_outputs(job.id, loaded)
-        self._db().finish(job.id, "done")
-        LOGGER.info("job done", extra={"fields": {
+        reason = _nothing_reconstructed(self.progress(job.id), loaded.problems)
+        self._db().finish(job.id, "failed" if reason else "done", reason)
+        LOGGER.info("job failed" if reason else "job done", extra={"fields": {
             "job": job.id, "seconds": round(time.monotonic() - began, 3),
-            "outputs_s": round(time.monotonic() - solved, 3)}})
+            "outputs_s": round(time.monotonic() - solved, 3),
+            **({"error": reason[:300]} if reason else {})}})
 
     def _public(self, job_id: str, reason: str) -> str:
         """A failed job's ``reason`` without this server's paths (a reader's message may hold

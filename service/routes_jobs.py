@@ -610,8 +610,11 @@ def _sensor_out(r: dict[str, Any]) -> dict[str, Any]:
 
 
 def _finished(runner: JobRunner, job_id: str) -> JobRecord:
+    """A done job, or a failed one that ran to its end (no track reconstructed: its summary,
+    problems and failures are there to read); else 409."""
     job = _job(runner, job_id)
-    if job.state != "done":
+    if job.state != "done" and not (job.state == "failed"
+                                    and runner.result_file(job_id, "summary.json")):
         raise HTTPException(409, f"job {job_id} is {job.state}; whole-job results are made "
                             "when it is done (finished tracks: GET .../tracks/{aircraft})")
     return job

@@ -603,6 +603,50 @@ def test_a_named_dask_scheduler_runs_the_jobs(client, tmp_path):
     assert wait(client, r.headers["location"])["state"] == "done"
 
 
+def test_a_job_that_reconstructs_no_track_is_failed_with_its_outputs(client, tmp_path):
+    """A job that ran to its end without one track reconstructed is ``failed``, not ``done``:
+    every track over its time limit (the reason of the first, the tracks' reasons at /tracks),
+    or no track long enough to try. Its summary and problems stay readable."""
+    address = client.app.state.jobs.dask_address
+    assert address is not None
+    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
+                        data_dir=tmp_path, dask_scheduler=address, jobs_track_figures=False,
+                        jobs_track_time_limit_s=1e-4)
+    enc = encode_recording(duration=40.0)
+    with TestClient(create_app(settings)) as other:
+        r = upload(other, enc.data)
+        assert r.status_code == 202
+        loc = r.headers["location"]
+        status = wait(other, loc)
+        assert status["state"] == "failed", status
+        assert (status["tracks_total"], status["tracks_done"], status["tracks_failed"]) == (
+            len(FLIGHTS), 0, len(FLIGHTS))
+        assert status["error"].startswith(f"every one of the {len(FLIGHTS)} tracks failed ("), \
+            status
+        assert "DeadlineExceeded" in status["error"] and "see /tracks" in status["error"]
+        listed = other.get(f"{loc}/tracks").json()
+        assert all(t["status"] == "failed" and "DeadlineExceeded" in t["error"] for t in listed)
+        summary = other.get(f"{loc}/results/summary.json")
+        assert summary.status_code == 200, summary.text
+        assert (summary.json()["done"], summary.json()["failed"]) == (0, len(FLIGHTS))
+        assert set(summary.json()["failures"]) == {t["aircraft"] for t in listed}
+        r = other.get(f"{loc}/results/tracks.parquet")
+        assert r.status_code == 404 and "no track was reconstructed" in r.json()["message"]
+        assert other.get(f"{loc}/map.png").status_code == 404
+
+        sensors, tracks = json_tracks(enc)
+        r = other.post("/v1/jobs", json={"sensors": sensors,
+                                         "tracks": {k: v[:2] for k, v in tracks.items()}})
+        assert r.status_code == 202, r.text
+        status = wait(other, r.headers["location"])
+        assert status["state"] == "failed" and status["tracks_total"] == 0, status
+        assert status["error"].startswith("no aircraft's track could be read from the "
+                                          "job's input (short_track"), status
+        assert status["problems"]["counts"] == {"short_track": 2}
+        problems = other.get(r.headers["location"] + "/results/problems.txt")
+        assert problems.status_code == 200 and "short_track: 2" in problems.text
+
+
 def test_a_second_service_on_the_same_data_dir_is_refused(client):
     """Two services would run the same jobs into the same directories: the second one's jobs
     answer 503 naming the reason (single tracks still served)."""
