@@ -58,6 +58,8 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     408: {"model": ErrorResponse, "description": "The request did not arrive in time (the "
           "connection is closed)."},
     413: {"model": ErrorResponse, "description": "Request body over the size limit."},
+    415: {"model": ErrorResponse, "description": "The body is not sent as JSON (its "
+          "Content-Type is not application/json)."},
     422: {"model": ErrorResponse, "description": "Invalid input; the message names the field "
           "and plot index."},
     500: {"model": ErrorResponse, "description": "Internal error (a bug; never bad input)."},
@@ -86,6 +88,14 @@ def _line_column(doc: Any, pos: int) -> tuple[int, int]:
     text = doc.decode("utf-8", "replace") if isinstance(doc, bytes) else str(doc or "")
     before = text[:pos]
     return before.count("\n") + 1, pos - (before.rfind("\n") + 1) + 1
+
+
+def _is_json(content_type: str) -> bool:
+    """Whether FastAPI parses a body of this media type as JSON (``application/json``,
+    ``application/*+json``)."""
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or (media.startswith("application/")
+                                            and media.endswith("+json"))
 
 
 def _validation_items(exc: RequestValidationError) -> list[dict[str, Any]]:
@@ -299,6 +309,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         where = format_loc(tuple(first["loc"])) or "body"
         more = f" (and {len(items) - 1} more)" if len(items) > 1 else ""
         message = f"{where}: {first['msg']}{more}"
+        kind = request.headers.get("content-type", "")
+        if first["loc"] == ["body"] and first.get("type") == "model_attributes_type" and \
+                not _is_json(kind):  # FastAPI reads a body as JSON only when it says it is
+            said = f"its Content-Type is {kind!r}" if kind else "it has no Content-Type"
+            msg = (f"the body is not read as JSON: {said}; send 'Content-Type: "
+                   "application/json' (curl: -H 'content-type: application/json')")
+            return _error(415, msg, [{"loc": ["headers", "content-type"], "msg": msg,
+                                      "type": "unsupported_media_type"}])
+        if first["loc"] == ["body"] and first.get("type") == "missing":
+            msg = "is empty: the request is a JSON object in the body"
+            message, items[0] = f"body: {msg}", {**first, "msg": msg}
         # a summary, never the list: one body can carry 10^5 errors
         LOGGER.info("invalid request", extra={"fields": {
             "errors": len(items), "first": message[:300]}})

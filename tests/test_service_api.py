@@ -285,6 +285,26 @@ def test_malformed_json_is_422(client, text):
     assert r.json()["message"]
 
 
+@pytest.mark.parametrize("kind", [None, "text/plain", "application/x-www-form-urlencoded"])
+def test_a_body_not_sent_as_json_is_415_naming_the_header(client, kind):
+    """``curl -d @request.json`` sends ``application/x-www-form-urlencoded``: FastAPI does not
+    read that as JSON, and its own message ("Input should be a valid dictionary") does not say
+    why. The answer names the header and what to send; the same text as JSON is answered."""
+    text = json.dumps(batch(200.0)).encode()
+    r = client.post("/v1/reconstructions", content=text,
+                    headers={"content-type": kind} if kind else {})
+    assert r.status_code == 415, r.text
+    said = f"its Content-Type is {kind!r}" if kind else "it has no Content-Type"
+    assert r.json()["message"].startswith(f"the body is not read as JSON: {said}; send "
+                                          "'Content-Type: application/json'"), r.text
+    assert r.json()["detail"][0]["loc"] == ["headers", "content-type"]
+    assert post(client, text).status_code == 200
+    empty = client.post("/v1/reconstructions", content=b"",
+                        headers={"content-type": "application/json"})
+    assert empty.status_code == 422
+    assert empty.json()["message"] == "body: is empty: the request is a JSON object in the body"
+
+
 def test_oversize_body_is_413(client):
     body = _with("plots", [{"t": float(i), "range_m": 5e4, "azimuth_deg": 1.0}
                            for i in range(6000)])
