@@ -182,6 +182,9 @@ class JobStateOut(PlotStateOut):
     """The state at one plot of a job's track."""
 
     plot: int = Field(description="Index of the plot in the track (time order).")
+    source: str | None = _optional(
+        "Where the plot is in the job's input, as its problems name places: `byte 1234` of an "
+        "ASTERIX recording or capture, `row 17` of a plot table, `tracks.A[3]` of a JSON body.")
     sensor: str = Field(description="The plot's sensor.")
     along_track_residual_m: float | None = _optional(
         "A position plot's distance from this state along its velocity, m (ahead positive: a "

@@ -41,6 +41,7 @@ from functools import partial
 from pathlib import Path
 from typing import IO, Any, Literal
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -61,6 +62,7 @@ from solver.config import ReconstructionConfig
 from solver.inputs import InputError, format_loc
 from solver.io.problems import Problems
 from solver.io.split import recording_frame
+from solver.io.tables import PlotRows
 from solver.run_settings import RunSettings
 
 from .logs import LOGGER
@@ -357,6 +359,22 @@ def job_track(key: str, table: Any, config: ReconstructionConfig | None,
                         max_samples=max_samples)
 
 
+def json_sources(rows: PlotRows) -> Callable[[Any], pa.Array]:
+    """``tracks.parquet``'s ``source`` for a job of JSON tracks: a plot's place in the body
+    (``tracks.A[3]``, as its errors name it) rather than its row in the table the body was
+    stored as (written key by key, each track's plots in order, by :mod:`service.routes_jobs`)."""
+    keys = rows.aircraft.astype(str)
+    order = np.argsort(rows.origin, kind="stable")
+    uniq, first = np.unique(keys[order], return_index=True)
+    start = dict(zip(uniq.tolist(), rows.origin[order][first].tolist(), strict=True))
+
+    def names(track: Any) -> pa.Array:
+        k, o = keys[track.rows], rows.origin[track.rows]
+        return pa.array([format_loc(("tracks", key, int(r - start[key])))
+                         for key, r in zip(k.tolist(), o.tolist(), strict=True)], pa.string())
+    return names
+
+
 def figure_dir(root: Path, key: str) -> Path:
     """Where a track's figure is drawn: one directory per key (keys that differ only in
     characters a file name cannot hold do not share a figure)."""
@@ -619,7 +637,8 @@ class JobRunner:
                                           times_of_day=loaded.times_of_day,
                                           filters=settings.filters,
                                           samples=settings.sample_step_s is not None,
-                                          max_samples=s.max_samples))
+                                          max_samples=s.max_samples),
+                             sources=json_sources(loaded.rows) if job.kind == "tracks" else None)
         except Aborted:
             LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
             return

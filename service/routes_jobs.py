@@ -539,6 +539,8 @@ def _state_rows(t: Any, cov: bool = True) -> list[dict[str, Any]]:
     out = _sample_rows(t, cov, cols)
     for i, row in enumerate(out):
         row["plot"], row["sensor"] = cols["plot"][i], cols["sensor"][i]
+        if cols.get("source") is not None and cols["source"][i] is not None:
+            row["source"] = cols["source"][i]
         for name in ("range_residual_m", "azimuth_residual_deg", "position_residual_m",
                      "along_track_residual_m", "cross_track_residual_m", "gated"):
             if cols.get(name) is not None and cols[name][i] is not None:

@@ -45,6 +45,7 @@ from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .config import ReconstructionConfig
@@ -56,19 +57,21 @@ COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_v
 RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "range_residual_m",
                     "azimuth_residual_deg", "position_residual_m", "along_track_residual_m",
                     "cross_track_residual_m", "gated")
-TRACK_COLUMNS = ("aircraft", "plot", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
+TRACK_COLUMNS = ("aircraft", "plot", "source", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
                  "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m",
                  *RESIDUAL_COLUMNS)
-"""Columns of ``tracks.parquet``: one row per plot (``plot``: its index in the track's table,
-time order), ``t`` (s; from the UTC midnight before the recording's first plot when the
-recording is timed by time of day, as ASTERIX is) and ``time_of_day_s`` (``t`` modulo a day
-then, else null), positions in the recording's plane (m; ``x`` north, ``z`` east) and on
-WGS-84, velocity (m/s), heading (deg clockwise from north), the covariance over
-``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where it was
-estimated (else null), and the plot against the state, as the sensors' statistics take it
+"""Columns of ``tracks.parquet``: one row per plot (``plot``: its index in the track's table, time
+order; ``source``: where the plot is in the input, as the problems name places: ``byte 1234`` of
+an ASTERIX file or capture, ``row 17`` of a plot table, ``tracks.A[3]`` of a job's JSON body;
+null when the input has no such place), ``t`` (s; from the UTC midnight before the recording's
+first plot when the recording is timed by time of day, as ASTERIX is) and ``time_of_day_s``
+(``t`` modulo a day then, else null), positions in the recording's plane (m; ``x`` north, ``z``
+east) and on WGS-84, velocity (m/s), heading (deg clockwise from north), the covariance over
+``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where it was estimated
+(else null), and the plot against the state, as the sensors' statistics take it
 (:func:`solver.refine.output.plot_residuals`): a radar plot's measured slant range and azimuth
-(``plot_range_m``, ``plot_azimuth_deg``) and its residuals after the sensor's estimated
-offsets (``range_residual_m``, ``azimuth_residual_deg``), a position plot's horizontal distance
+(``plot_range_m``, ``plot_azimuth_deg``) and its residuals after the sensor's estimated offsets
+(``range_residual_m``, ``azimuth_residual_deg``), a position plot's horizontal distance
 (``position_residual_m``) and its parts along and across the track (``along_track_residual_m``:
 ahead of the state positive, a late report's is negative; ``cross_track_residual_m``: right of
 the track positive); null where they do not apply or the method gives none; ``gated``: given no
@@ -84,7 +87,7 @@ track's first plot to its last (the last plot's time always included), propagate
 solution with its covariance, as the single-track answer's ``trajectory.samples``."""
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
 _TYPES = {"aircraft": pa.string(), "sensor": pa.string(), "filter": pa.string(),
-          "plot": pa.int32(), "gated": pa.bool_()}  # the others: float64
+          "source": pa.string(), "plot": pa.int32(), "gated": pa.bool_()}  # others: float64
 
 
 def read_part(path: Path, names: Sequence[str] = TRACK_COLUMNS) -> pa.Table:
@@ -273,8 +276,23 @@ def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
         position_residual_m=None if res is None else res.position_m,
         along_track_residual_m=None if res is None else res.along_m,
         cross_track_residual_m=None if res is None else res.cross_m,
-        gated=pa.array(np.zeros(n, bool) if res is None else res.gated, pa.bool_()))
+        gated=pa.array(np.zeros(n, bool) if res is None else res.gated, pa.bool_()),
+        source=pa.nulls(n, pa.string()))  # named by reconstruct_many (with_sources)
     return _arrow(cols, TRACK_COLUMNS, n)
+
+
+def source_names(origin: np.ndarray, unit: str) -> pa.Array:
+    """The ``source`` of plots at ``origin`` (``unit``: ``byte`` or ``row``, as
+    :class:`solver.io.tables.PlotRows`): ``"byte 1234"``, as the problems name places."""
+    numbers = pc.cast(pa.array(np.asarray(origin, dtype=np.int64)), pa.string())
+    return pc.binary_join_element_wise(f"{unit} ", numbers, "")
+
+
+def with_sources(states: pa.Table, names: pa.Array) -> pa.Table:
+    """``states`` (:data:`TRACK_COLUMNS`) with ``source`` the names of its plots (``names[i]``:
+    the track's plot ``i``)."""
+    i = states.column_names.index("source")
+    return states.set_column(i, "source", names.take(states.column("plot")))
 
 
 def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_day: bool,
@@ -416,7 +434,8 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                      time_limit_s: float | None = 300.0, max_in_flight: int | None = None,
                      flush_tracks: int = 32, flush_s: float = 5.0, retry_failed: bool = False,
                      on_outcome: Callable[[TrackOutcome], None] | None = None,
-                     task: Callable[..., TrackOutcome] = solve_track) -> BatchSummary:
+                     task: Callable[..., TrackOutcome] = solve_track,
+                     sources: Callable[[Any], pa.Array | None] | None = None) -> BatchSummary:
     """Reconstruct every track of ``problems`` (objects with ``key`` and ``table``, e.g.
     :class:`TrackProblem` or :class:`solver.io.split.AircraftTrack`) into ``out_dir``.
 
@@ -430,14 +449,19 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
     committed to ``out_dir`` (progress; what it records is then never reported twice by a
     resumed run; an exception it raises stops the run, committed tracks kept).
     ``task``: the function run per track, ``task(key, table, config, time_limit_s)``
-    (default :func:`solve_track`).
+    (default :func:`solve_track`). ``sources(problem)``: the names of its plots in the input,
+    ``tracks.parquet``'s ``source`` (default: from the problem's ``origin`` and
+    ``origin_unit`` where it has them, as :class:`solver.io.split.AircraftTrack`, by
+    :func:`source_names`; else null).
     """
+    sources = sources or _origin_sources
     store = _Store(Path(out_dir))
     summary = BatchSummary()
     start = time.perf_counter()
     with _engine(executor, scheduler, workers, config) as (submit, wait, n_workers):
         limit = max_in_flight or max(2 * n_workers, 2)
         pending: dict[Any, str] = {}
+        names: dict[str, pa.Array | None] = {}  # the pending tracks' plots' sources
         buffer: list[TrackOutcome] = []
         last_flush = time.monotonic()
         seen: set[str] = set()
@@ -450,6 +474,9 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                     outcome: TrackOutcome = fut.result()
                 except Exception as e:  # the task itself failed: a worker died repeatedly
                     outcome = TrackOutcome(key, "failed", 0, 0.0, f"{type(e).__name__}: {e}")
+                source = names.pop(key, None)
+                if source is not None and outcome.states is not None:
+                    outcome = replace(outcome, states=with_sources(outcome.states, source))
                 summary.done += outcome.status == "done"
                 summary.failed += outcome.status == "failed"
                 summary.plots += outcome.plots if outcome.status == "done" else 0
@@ -481,6 +508,7 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                 continue
             while len(pending) >= limit:
                 collect(wait(list(pending)))
+            names[key] = sources(problem)
             pending[submit(task, key, problem.table, config, time_limit_s)] = key
         while pending:
             collect(wait(list(pending)))
@@ -488,6 +516,11 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
             flush()
     summary.elapsed_s = time.perf_counter() - start
     return summary
+
+
+def _origin_sources(problem: Any) -> pa.Array | None:
+    origin = getattr(problem, "origin", None)
+    return None if origin is None else source_names(origin, problem.origin_unit)
 
 
 def _problems(problems: Iterable[Any]) -> Iterator[Any]:

@@ -465,7 +465,7 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
                 tracks += 1
     if writer is None:  # no track: the header alone, as the other tables have theirs
         writer = pacsv.CSVWriter(csv_tmp, pa.schema(
-            [(n, pa.string() if n in ("aircraft", "sensor") else pa.float64())
+            [(n, pa.string() if n in ("aircraft", "source", "sensor") else pa.float64())
              for n in TRACK_COLUMNS]))
     writer.close()
     os.replace(csv_tmp, out / "tracks.csv")  # whole files only: a stop leaves the old ones

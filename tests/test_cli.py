@@ -11,10 +11,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import asterix.generated as ast
 import numpy as np
 import pyarrow.compute as pc
+import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
+from asterix.base import Bits, ParsingMode
 from test_io_asterix import FLIGHTS, SENSOR_FILE, encode_recording
 
 from solver.cli import main
@@ -64,6 +67,17 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
         dy = (tracks["lat_deg"][sel] - lat) * 111_000
         dx = (tracks["lon_deg"][sel] - lon) * 111_000 * np.cos(np.deg2rad(lat))
         assert np.hypot(dx, dy).max() < 60.0
+    # every plot's source is its record's byte offset: the record there, parsed by libasterix
+    # alone, has the plot's time of day (and a radar plot's range)
+    data = (d / "day.ast").read_bytes()
+    sources = table.column("source").to_pylist()
+    assert all(s.startswith("byte ") for s in sources) and len(set(sources)) == len(sources)
+    for i in range(0, table.num_rows, 7):
+        cat, tod, rho = _record_at(data, int(sources[i].removeprefix("byte ")))
+        assert cat == (21 if table.column("sensor")[i].as_py() == "ADSB" else 48)
+        assert tod == tracks["time_of_day_s"][i]
+        if cat == 48:
+            assert rho == pytest.approx(table.column("plot_range_m")[i].as_py(), abs=1e-6)
     lines = (out / "tracks.geojsonl").read_text().splitlines()
     assert len(lines) == len(FLIGHTS)
     feature = json.loads(lines[0])
@@ -176,6 +190,21 @@ def _check_samples(samples, table, enc, step: float) -> None:
     assert set(keys) == set(plot_keys)
 
 
+def _record_at(data: bytes, at: int) -> tuple[int, float, float | None]:
+    """The record at byte ``at`` of a raw ASTERIX file, parsed with libasterix alone: its
+    category, time of day (s) and a CAT048 record's slant range (m)."""
+    pos = 0
+    while not pos + 3 <= at < pos + ((data[pos + 1] << 8) | data[pos + 2]):
+        pos += (data[pos + 1] << 8) | data[pos + 2]
+    cat, end = data[pos], min(len(data), pos + ((data[pos + 1] << 8) | data[pos + 2]))
+    spec = {48: ast.Cat_048_1_32, 21: ast.Cat_021_2_7}[cat]
+    rec, _ = spec.cv_uap.cv_record.parse(ParsingMode.StrictParsing, Bits.from_bytes(data[at:end]))
+    tod = rec.get_item("140" if cat == 48 else "071").variation.content.as_quantity("s")
+    rho = (rec.get_item("040").variation.get_item("RHO").variation.content.as_quantity("NM")
+           * 1852.0 if cat == 48 else None)
+    return cat, tod, rho
+
+
 def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys):
     """`trajrecon plot`: the named aircraft's figures and the map of a finished run's tracks;
     an aircraft not in the recording, or a map without tracks, is a clear error (exit 2)."""
@@ -219,8 +248,17 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
     assert gc.get_threshold() == thresholds  # the run's collector setting is undone
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["done"] == len(FLIGHTS) and summary["bounds"]["v"] == [30.0, 200.0]
-    speed = pq.read_table(tmp_path / "out" / "tracks.parquet").column("speed").to_numpy()
+    states = pq.read_table(tmp_path / "out" / "tracks.parquet")
+    speed = states.column("speed").to_numpy()
     assert speed.max() <= 200.0 + 1e-3 and speed.max() > 199.0
+    # a plot's source is its row of the table (data rows from 1, as the problems count them)
+    table = pacsv.read_csv(tmp_path / "plots.csv").to_pydict()
+    for i, source in enumerate(states.column("source").to_pylist()):
+        row = int(source.removeprefix("row ")) - 1
+        assert table["sensor"][row] == states.column("sensor")[i].as_py()
+        assert table["time_of_day_s"][row] == states.column("time_of_day_s")[i].as_py()
+        if table["sensor"][row] != "ADSB":
+            assert table["range_m"][row] == states.column("plot_range_m")[i].as_py()
     # held at the bound: every track warns, and the user is told (warnings.csv has them all)
     assert summary["output"]["tracks_with_warnings"] == len(FLIGHTS)
     assert all(any("upper bound" in w for w in texts)

@@ -201,6 +201,13 @@ def test_json_tracks_job(client):
         one = client.get(f"{r.headers['location']}/tracks/{path}")
         assert one.status_code == 200 and one.json()["aircraft"] == "B/2#x"
         assert len(one.json()["trajectory"]["at_plots"]) == len(tracks["B/2#x"])
+    # each state names its plot in the body: the same time and sensor there, every plot once
+    at_plots = one.json()["trajectory"]["at_plots"]
+    named = [int(s["source"].removeprefix("tracks.B/2#x[").removesuffix("]")) for s in at_plots]
+    assert sorted(named) == list(range(len(tracks["B/2#x"])))
+    for state, j in zip(at_plots, named, strict=True):
+        assert (state["t"], state["sensor"]) == (tracks["B/2#x"][j]["t"],
+                                                 tracks["B/2#x"][j]["sensor"])
     figure = client.get(f"{r.headers['location']}/tracks/B/2%23x/figure.png")
     assert figure.status_code == 200 and figure.content[:4] == b"\x89PNG"
 

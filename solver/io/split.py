@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -55,11 +55,14 @@ _MAX_ROW_RETRIES = 50
 @dataclass(frozen=True)
 class AircraftTrack:
     """One aircraft's plots: its ``key``, the validated ``table`` (rows in time order) and, for
-    each table row, its index in the recording's :class:`PlotRows` (``rows``)."""
+    each table row, its index in the recording's :class:`PlotRows` (``rows``) and where it is
+    in the input (``origin``, in ``origin_unit``: :attr:`PlotRows.origin`)."""
 
     key: str
     table: PlotTable
     rows: np.ndarray
+    origin: np.ndarray
+    origin_unit: str = "row"
 
 
 def recording_frame(sensors: SensorSet, rows: PlotRows) -> LocalFrame | None:
@@ -241,7 +244,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
             track = _build(key, members, buffer, sensors, sensor_idx, frame, min_plots,
                            problems)
             if track is not None:
-                yield AircraftTrack(track.key, track.table, numbers[track.rows])
+                yield replace(track, rows=numbers[track.rows])
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
         buffer = buffer.take(~taken)
         numbers = numbers[~taken]
@@ -356,7 +359,7 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
             problems.add("bad_track", f"aircraft {key}", f"{e}: left out",
                          dropped=int(m.size))
             return None
-        return AircraftTrack(key, table, m)
+        return AircraftTrack(key, table, m, rows.origin[m], rows.origin_unit)
     problems.add("bad_track", f"aircraft {key}", f"more than {_MAX_ROW_RETRIES} bad plots: "
                  "left out", dropped=int(m.size))
     return None
