@@ -4,6 +4,7 @@ robustness to a wild plot, and calibration of the returned covariance."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -57,6 +58,62 @@ def _scan_times(drop_in_turns: bool = True) -> np.ndarray:
         turning = np.array([LEGS[i][1] != 0 for i in k])
         t = t[~(turning & (np.cumsum(turning) % 2 == 0))]
     return t
+
+
+@pytest.mark.parametrize("wild", [3, 0, 7])
+def test_a_plot_out_of_reach_at_the_speed_bound_is_left_out_from_the_start(wild):
+    """Eight exact plots of a straight flight, 10 s apart, one with a range of 1 m (inside,
+    first or last): the start's smoother and the first solve were pulled 50 km towards it and
+    IPOPT ended 1e16 m away (600 iterations, answered 200). It is out of reach of its
+    neighbours at bounds.v (330 m/s): no weight, said, and the rest of the track exact."""
+    x = -50_000.0 + 2_000.0 * np.arange(8)
+    z = np.full(8, 30_000.0)
+    r = np.hypot(x, z)
+    r[wild] = 1.0
+    plots = Plots.from_arrays(10.0 * np.arange(8), r, np.arctan2(z, x))
+    rec = refine(plots, Radar(500.0, np.deg2rad(1.5)), ReconstructionConfig())
+    keep = np.arange(8) != wild
+    err = np.hypot(rec.at_plots.x - x, rec.at_plots.z - z)[keep]
+    assert err.max() < 1.0, err
+    assert any(f"plots [{wild}]" in w and "out of reach at bounds.v" in w
+               for w in rec.diagnostics.warnings), rec.diagnostics.warnings
+    assert rec.diagnostics.solver_failures == 0
+
+
+def test_unreachable_plots_against_brute_force():
+    """On random tracks with wild plots put in (30-90 km off, never two in a row), exactly
+    those are found, the kept plots are within reach of each other in turn, and a direct
+    check of each removed one finds it out of reach of the kept plots before and after it;
+    a clean line keeps every plot."""
+    from solver.refine.gate import UNREACHABLE_SLACK_M, unreachable_plots
+
+    rng = np.random.default_rng(5)
+    v = 300.0
+    for _ in range(40):
+        n = int(rng.integers(5, 40))
+        t = np.cumsum(rng.uniform(1.0, 12.0, n))
+        c = np.column_stack([250.0 * t, 20.0 * t]) + rng.normal(0, 50.0, (n, 2))
+        sigma, spread = np.full(n, 60.0), np.zeros(n)
+        # wild plots never next to each other (two near each other would look like a track)
+        wild = rng.choice(np.arange(0, n, 2), size=int(rng.integers(0, n // 5 + 1)),
+                          replace=False)
+        c[wild] += rng.uniform(3e4, 9e4, (wild.size, 2)) * rng.choice([-1, 1], (wild.size, 2))
+        out = unreachable_plots(t, c, sigma, spread, v)
+        assert set(out.tolist()) == set(wild.tolist())
+
+        def far(i, j, c=c, t=t):
+            return np.hypot(*(c[j] - c[i])) > (v * abs(t[j] - t[i]) + 20 * 60.0
+                                                + UNREACHABLE_SLACK_M)
+
+        kept = np.setdiff1d(np.arange(n), out)
+        assert not any(far(i, j) for i, j in itertools.pairwise(kept))
+        for k in out:
+            before, after = kept[kept < k], kept[kept > k]
+            assert (before.size == 0 or far(before[-1], k)) and (after.size == 0
+                                                                  or far(k, after[0]))
+    t = np.arange(10.0)
+    line = np.column_stack([200.0 * t, 0.0 * t])
+    assert unreachable_plots(t, line, np.full(10, 50.0), np.zeros(10), v).size == 0
 
 
 def test_node_grid_keeps_plot_times_and_bounds_steps():

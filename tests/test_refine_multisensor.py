@@ -112,6 +112,53 @@ def test_two_radars_without_altitude_noise_free_within_5_m():
     assert _rms(alone, x[m], z[m]) > 100.0
 
 
+@pytest.mark.parametrize("range_m", [1e-3, 1.0, 3000.0])
+def test_a_wild_plot_near_a_radar_is_left_out_and_the_height_kept(range_m):
+    """One of radar A's plots with a range of 1 mm, 1 m or 3 km (a garbled report) and no
+    altitude anywhere: it was a 500 (1 mm: NaN fixes), or it bounded the track's height to its
+    own reach (3 km: the height 6 km low, the track 300 m off). It is out of reach of its
+    neighbours at bounds.v, given no weight from the start, and said; the track is as without
+    it (within 5 m of the truth, as the clean one)."""
+    table, x, z, h = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=0.0)
+    k = 40  # one of A's plots (rows are sensor by sensor)
+    wild = dataclasses.replace(table, range_m=np.where(np.arange(len(table)) == k, range_m,
+                                                          table.range_m))
+    rec = reconstruct(wild)
+    keep = np.arange(len(table)) != k
+    err = np.hypot(rec.at_plots.x - x, rec.at_plots.z - z)[keep]
+    assert err.max() < 5.0, err.max()
+    assert rec.at_plots.h is not None and np.abs(rec.at_plots.h - h).max() < 50.0
+    assert any(w.startswith("1 plot(s) out of reach at bounds.v") and f"plots [{k}]" in w
+               for w in rec.diagnostics.warnings), rec.diagnostics.warnings
+    assert rec.residuals is not None and rec.residuals.gated[k] and rec.residuals.gated.sum() == 1
+
+
+def test_an_overflight_at_74_deg_elevation_without_altitude():
+    """An aircraft at 10 km passing 3 km (ground) from radar A, no altitude: 74 deg elevation
+    at the closest point. The height used to be capped at 0.9 of the slant range (64 deg) per
+    plot, which made the true height impossible there: 700 m off, 30 m/s. Within the reach
+    now (0.96 r): within 12 m of the truth at every plot, no plot left out."""
+    xa, za = FRAME.to_plane(np.array([SSR_A.site.lat_deg]), np.array([SSR_A.site.lon_deg]))
+    segs = [Segment(0.0, 400.0, float(xa[0]) + 2700.0, float(za[0]) - 44_000.0, np.pi / 2,
+                    220.0, 0.0, 0.0)]
+    cols: dict[str, list] = {k: [] for k in ("t", "s", "r", "a", "x", "z")}
+    for sensor, offset in ((SSR_A, 0.3), (SSR_B, 1.1)):
+        t = np.arange(offset, 400.0, 4.0)
+        st = evaluate(segs, t)
+        r, a = sensor.measure(FRAME, st.x, st.z, np.full(t.size, 10_000.0))
+        for key, val in zip(cols, (t, [sensor.id] * t.size, r, a, st.x, st.z), strict=True):
+            cols[key].append(np.asarray(val))
+    c = {k: np.concatenate(v) for k, v in cols.items()}
+    closest = c["r"][c["s"] == "A"].min()
+    assert np.degrees(np.arcsin((10_000.0 - 380.0) / closest)) > 73.5
+    table = PlotTable.build((SSR_A, SSR_B), c["t"], c["s"], c["r"], c["a"], reference=FRAME)
+    rec = reconstruct(table)
+    err = np.hypot(rec.at_plots.x - c["x"], rec.at_plots.z - c["z"])
+    assert err.max() < 12.0, err.max()
+    assert rec.altitude_m == pytest.approx(10_000.0, abs=30.0)
+    assert rec.residuals is not None and not rec.residuals.gated.any()
+
+
 def test_two_noisy_radars_fused_beat_each_alone():
     table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
     fused = _rms(reconstruct(table), x, z)

@@ -24,9 +24,10 @@ import time
 import numpy as np
 
 from ..config import ReconstructionConfig, RefineSettings
-from ..inputs import Plots, Radar
+from ..inputs import Bounds, Plots, Radar
 from ..plots import PlotTable
 from ..results import Diagnostics, Reconstruction
+from ..sensors import ALTITUDE_RANGE_M
 from ..trajectory import sample_times
 from . import nlp
 from .blocks import (
@@ -39,7 +40,14 @@ from .blocks import (
     solve_block,
 )
 from .covariance import node_covariance, state_size
-from .gate import RESCALE_ROUNDS, overstated_sigmas, report_bounds, report_scales, wild_plots
+from .gate import (
+    RESCALE_ROUNDS,
+    overstated_sigmas,
+    report_bounds,
+    report_scales,
+    unreachable_plots,
+    wild_plots,
+)
 from .layout import BIAS_TERMS, Variant, solution_columns
 from .nodes import (
     NodeData,
@@ -55,6 +63,27 @@ from .output import plot_residuals, segments, sensor_reports, series
 TIME_GAUGE_INFO = 1e6  # 1/s^2: the time offsets' sum held at zero to a millisecond
 
 __all__ = ["LADDER", "DeadlineExceeded", "build_solvers", "node_grid", "refine", "refine_table"]
+
+
+def _unreachable(table: PlotTable, data: NodeData, plot_node: np.ndarray, bounds: Bounds
+                 ) -> np.ndarray:
+    """:func:`solver.refine.gate.unreachable_plots` of the table's plots: their centres (at the
+    middle of their reach where the height is free), largest sigma, and the centre's move over
+    the heights each may take."""
+    a, b, c = data.info[plot_node].T
+    lam_min = (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b**2)
+    sigma = 1.0 / np.sqrt(np.maximum(lam_min, 1e-18))
+    lo = data.centre_at(np.full(data.centre.shape[0], ALTITUDE_RANGE_M[0]))[plot_node]
+    hi = data.centre_at(np.full(data.centre.shape[0], ALTITUDE_RANGE_M[1]))[plot_node]
+    spread = np.where(data.free[plot_node], np.hypot(*(hi - lo).T), 0.0)
+    centre = data.centre_at(data.h_mid)[plot_node]
+    return unreachable_plots(table.t, centre, sigma, spread, bounds.v[1])
+
+
+def _listed(plots: np.ndarray, most: int = 50) -> str:
+    """``[3, 17, ...]``: at most ``most`` indexes, saying how many more there are."""
+    shown = str(plots.tolist()[:most])
+    return shown if plots.size <= most else f"{shown[:-1]}, ... ({plots.size - most} more)]"
 
 
 def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
@@ -108,6 +137,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     variant = Variant(altitude=table.estimate_altitude(), biases=len(bias_sensors))
     fixes = table.fixes()
     data = NodeData.assemble(table, fixes, n, plot_node, variant, bias_sensors)
+    impossible = _unreachable(table, data, plot_node, bounds)
+    data = data.without(plot_node[impossible])  # from the start (the guess too) to the end
     bias_sigma = np.concatenate([table.sensors[k].bias_prior.sigmas  # type: ignore[union-attr]
                                  for k in bias_sensors]) if bias_sensors else np.zeros(0)
     if st.init == "sliding":
@@ -124,8 +155,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         if variant.altitude:
             guess, h0 = altitude_guess(table, data, plot_node, t_nodes, bounds)
         else:
-            guess, _ = smoother_guess(table.t, data.centre[plot_node], data.info[plot_node],
-                                      t_nodes, bounds)
+            guess, _ = smoother_guess(table.t, data.centre[plot_node],
+                                      data.weighed_info()[plot_node], t_nodes, bounds)
     if variant.altitude:
         if st.init == "sliding":
             _, h0 = altitude_guess(table, data, plot_node, t_nodes, bounds)
@@ -200,10 +231,17 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
             failures, iters, solves = failures + f2, iters + it2, solves + len(blocks)
     finally:
         nlp.set_deadline(None)
+    if impossible.size:
+        diag.warnings.append(
+            f"{impossible.size} plot(s) out of reach at bounds.v of the two plots before and "
+            f"the two after them (a wild range or azimuth) were given no weight: plots "
+            f"{_listed(impossible)}")
+    rejected = np.setdiff1d(rejected, impossible)
     if rejected.size:
         diag.warnings.append(
             f"{rejected.size} plot(s) more than {st.outlier_gate:g} sigma from the track were "
-            f"given no weight: plots {rejected.tolist()[:50]}")
+            f"given no weight: plots {_listed(rejected)}")
+    rejected = np.union1d(rejected, impossible).astype(int)
     diag.extra["rejected_plots"] = int(rejected.size)
     diag.solver_failures += failures
     diag.extra.update(refine_blocks=len(blocks), refine_nodes=n, refine_iterations=iters)

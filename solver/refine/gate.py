@@ -106,3 +106,38 @@ def report_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
             diag.warnings.append(
                 f"speed at its {side} bound ({value:g} m/s) for {100 * share:.0f} % of "
                 "the track: the plots ask for an aircraft that bounds.v does not allow")
+
+
+UNREACHABLE_SLACK_M = 2_000.0
+"""Metres beyond ``v_max dt`` and ten sigmas both ways before a plot counts as out of reach of
+its neighbours (:func:`unreachable_plots`): the wild plots it is for are tens of km off."""
+
+
+def unreachable_plots(t: FloatArray, centre: FloatArray, sigma: FloatArray, spread: FloatArray,
+                      v_max: float) -> np.ndarray:
+    """Indexes of plots no aircraft under ``v_max`` could have made: out of reach of each of
+    the two plots before and the two after it in time (of the ones kept), left out until none
+    is. Out of reach: ``|c_i - c_j| > v_max |t_i - t_j| + 10 (sigma_i + sigma_j) + spread_i +
+    spread_j + UNREACHABLE_SLACK_M`` (``sigma``: the largest one-sigma axis; ``spread``: how
+    far the centre moves over the heights it may take). Two neighbours each way, so a plot
+    between two wild ones keeps the support of the next; two wild plots within reach of each
+    other are left to the gate of the first solution. Such a plot (a range of 1 m, a garbled
+    azimuth) would otherwise pull the start and the first solve towards it: 50 km, and IPOPT
+    to 1e16 m, before that gate sees it."""
+    order = np.argsort(t, kind="stable")
+    ts, cs, ss, ps = t[order], centre[order], sigma[order], spread[order]
+    kept = np.ones(t.size, dtype=bool)
+    while kept.sum() > 2:
+        idx = np.flatnonzero(kept)
+        supported = np.zeros(idx.size, dtype=bool)
+        for d in (1, 2):
+            i, j = idx[:-d], idx[d:]
+            near = np.hypot(*(cs[j] - cs[i]).T) <= (v_max * (ts[j] - ts[i])
+                                                    + 10 * (ss[i] + ss[j]) + ps[i] + ps[j]
+                                                    + UNREACHABLE_SLACK_M)
+            supported[:-d] |= near
+            supported[d:] |= near
+        if supported.all() or not supported.any():
+            break
+        kept[idx[~supported]] = False
+    return np.sort(order[~kept])

@@ -13,8 +13,9 @@
 ``a_k`` scales the level penalty at node k (:meth:`solver.refine.nodes.NodeData.relieved`);
 ``d_i = p_i - c_i(h_i)`` is plot i's residual in the plane: ``p_i`` the node position (with
 biases: ``p_i - b_t v_i + (dc/dr) b_r + (dc/dpsi) b_psi``, the plot's centre as the radar's
-offsets would move it), ``c_i(h)`` the plot's centre at the node's height (fixed where the
-altitude is known or not estimated), ``M_i`` its one-sigma ellipse's weight, ``rho`` the
+offsets would move it), ``c_i(h)`` the plot's centre at the node's height (as far as the
+plot's reach goes, :func:`solver.sensors.reach`; fixed where the altitude is known or not
+estimated), ``M_i`` its one-sigma ellipse's weight, ``rho`` the
 pseudo-Huber loss ``2 delta^2 (sqrt(1 + q / delta^2) - 1)``. Changes are split ``Delta =
 Delta+ - Delta-`` with ``Delta+- >= 0``, so the NLP has only bounds and the dynamics as
 constraints; IPOPT solves it with exact sparse second derivatives (a Gauss-Newton Hessian is
@@ -34,7 +35,7 @@ import casadi as ca
 from .. import compiled
 from ..config import RefineSettings
 from ..motion import motion_function
-from ..sensors import ALTITUDE_FIT_DEGREE
+from ..sensors import ALTITUDE_FIT_DEGREE, reach
 from .layout import (
     BIAS_TERMS,
     Variant,
@@ -158,8 +159,10 @@ def _block_solver(n: int, variant: Variant, warm: bool, tol: float,
     alt_pen = 0
     if variant.altitude:
         h, hd = row(X, V, "h"), row(X, V, "hd")
-        sh = (h - row(Pm, P, "h_mid")) / row(Pm, P, "h_half")
-        ground = ca.sqrt(row(Pm, P, "slant") ** 2 - (h - row(Pm, P, "site_h")) ** 2)
+        h_mid, h_half = row(Pm, P, "h_mid"), row(Pm, P, "h_half")
+        hc = reach(h, h_mid, h_half, ca)  # the height the plot's centre follows
+        sh = (hc - h_mid) / h_half
+        ground = ca.sqrt(row(Pm, P, "slant") ** 2 - (hc - row(Pm, P, "site_h")) ** 2)
         cx = cx + row(Pm, P, "ray") * ground
         cz = cz + row(Pm, P, "ray", 1) * ground
         for j in range(ALTITUDE_FIT_DEGREE):

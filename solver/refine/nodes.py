@@ -15,7 +15,14 @@ from ..estimation.cv_rts import smoothed_means
 from ..inputs import Bounds, FloatArray
 from ..plots import PlotTable
 from ..results import Reconstruction, StateSeries
-from ..sensors import ALTITUDE_FIT_DEGREE, ALTITUDE_RANGE_M, PlaneFixes, PositionSensor
+from ..sensors import (
+    ALTITUDE_FIT_DEGREE,
+    ALTITUDE_RANGE_M,
+    PlaneFixes,
+    PositionSensor,
+    reach,
+    reach_slope,
+)
 from ..trajectory import evaluate
 from .layout import HD_MAX, Variant
 
@@ -75,10 +82,10 @@ class NodeData:
         e = fixes.ellipses
         free = np.zeros(n, bool)
         free[plot_node] = fixes.altitude_free
-        # heights each node may take: the plot's reach for a free centre, else the general range
+        # heights each node may take: the general range (a free centre follows the height
+        # within its plot's reach only, solver.sensors.reach)
         h_lo = np.full(n, ALTITUDE_RANGE_M[0])
-        hi_plot = np.where(fixes.altitude_free, fixes.h_mid + fixes.h_half, ALTITUDE_RANGE_M[1])
-        h_hi = scatter(hi_plot, ALTITUDE_RANGE_M[1])
+        h_hi = np.full(n, ALTITUDE_RANGE_M[1])
         alt_sigma = np.array([s.altitude_sigma_m if isinstance(s, PositionSensor)
                               else ALTITUDE_SIGMA_RADAR_M for s in table.sensors])[table.sensor]
         known = np.isfinite(table.altitude_m)
@@ -108,6 +115,10 @@ class NodeData:
             level=np.ones((n, 2)),
         )
 
+    def weighed_info(self) -> FloatArray:
+        """``info`` times ``weight``: zero for the plots given no weight."""
+        return self.info * self.weight[:, None]
+
     def without(self, nodes: np.ndarray) -> NodeData:
         """A copy with no weight on the plots at ``nodes`` (gated as wild)."""
         weight = self.weight.copy()
@@ -133,6 +144,7 @@ class NodeData:
         """``(n, 2)`` plot centres at node heights ``h`` (None: the fixed centres)."""
         if h is None:
             return self.centre
+        h = reach(h, self.h_mid, self.h_half)
         sh = (h - self.h_mid) / self.h_half
         c = self.centre.copy()
         for j in range(ALTITUDE_FIT_DEGREE):
@@ -142,13 +154,15 @@ class NodeData:
 
     def dcentre_dh(self, h: FloatArray) -> FloatArray:
         """``(n, 2)`` derivative of the centres with respect to the height."""
+        slope = reach_slope(h, self.h_mid, self.h_half)
+        h = reach(h, self.h_mid, self.h_half)
         sh = (h - self.h_mid) / self.h_half
         d = np.zeros_like(self.centre)
         for j in range(ALTITUDE_FIT_DEGREE):
             d += self.centre_h[:, :, j] * (j + 1) * sh[:, None] ** j / self.h_half[:, None]
         dh = h - self.site_h
         ground = np.sqrt(np.maximum(self.slant**2 - dh**2, 1e-6))
-        return d - self.ray * (dh / ground)[:, None]
+        return (d - self.ray * (dh / ground)[:, None]) * slope[:, None]
 
     def residuals(self, sol: np.ndarray, biases: FloatArray | None, altitude: bool
                   ) -> FloatArray:
@@ -220,7 +234,8 @@ def smoother_guess(t_plot: FloatArray, centre: FloatArray, info3: FloatArray, t_
                    bounds: Bounds) -> tuple[np.ndarray, float]:
     """Node guess from the constant-velocity smoother's means at the plots (one banded solve),
     and the smoother's weighted residual sum (to compare altitude hypotheses)."""
-    times, c, I = fused_points(t_plot, centre, info_matrices(info3))
+    used = info3[:, 0] + info3[:, 2] > 0  # plots given no weight are no part of it
+    times, c, I = fused_points(t_plot[used], centre[used], info_matrices(info3[used]))
     if times.size < 2:  # every plot at one instant: a point at rest
         s = np.zeros((2, 4))
         s[:, :2] = c[0]
@@ -248,7 +263,8 @@ def altitude_guess(table: PlotTable, data: NodeData, plot_node: np.ndarray, t_no
     for h in candidates:
         h = np.clip(h, data.h_lo, data.h_hi)
         c = data.centre_at(h)[plot_node]
-        guess, cost = smoother_guess(table.t, c, data.info[plot_node], t_nodes, bounds)
+        guess, cost = smoother_guess(table.t, c, data.weighed_info()[plot_node], t_nodes,
+                                     bounds)
         if best is None or cost < best[0]:
             best = (cost, guess, h)
     assert best is not None
