@@ -24,6 +24,7 @@ from solver.results import (
     Reconstruction,
     SensorReport,
     StateSeries,
+    full_turn,
 )
 from solver.sensors import PositionSensor, RadarSensor, Sensor, Site
 
@@ -273,8 +274,7 @@ def _states(s: StateSeries, with_heading: bool, frame: LocalFrame | None = None)
     the plane has a frame; the estimated height where there is one."""
     cols = {"t": s.t, "x": s.x, "z": s.z, "vx": s.vx, "vz": s.vz}
     if with_heading:
-        cols["heading_deg"] = np.rad2deg(s.heading)
-        cols["speed"] = s.speed
+        cols["heading_deg"], cols["speed"] = s.heading_deg_and_speed(frame)
     if s.lat_deg is None and frame is not None:
         s.lat_deg, s.lon_deg = frame.to_geodetic(s.x, s.z)
     if s.lat_deg is not None and s.lon_deg is not None:
@@ -300,14 +300,14 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
             s.cov = None
     segments = [
         {"t_start": s.t_start, "t_end": s.t_end, "u": s.u, "w": s.w, "x": s.x, "z": s.z,
-         "heading_deg": float(np.rad2deg(s.heading) % 360.0), "speed": s.speed}
+         "heading_deg": float(full_turn(np.rad2deg(s.heading), 360.0)), "speed": s.speed}
         for s in rec.segments
     ]
     trajectory: dict = {
         "segments": segments,
         "manoeuvres": [m.as_dict() for m in from_segments(rec.segments)],
-        "at_plots": _with_residuals(_states(rec.at_plots, True), rec.residuals),
-        "samples": [] if "samples" in omit else _states(rec.samples, True),
+        "at_plots": _with_residuals(_states(rec.at_plots, True, rec.frame), rec.residuals),
+        "samples": [] if "samples" in omit else _states(rec.samples, True, rec.frame),
     }
     if rec.altitude_m is not None:
         trajectory["altitude_m"] = rec.altitude_m

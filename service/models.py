@@ -273,8 +273,12 @@ class StateOut(_GeoOut):
     z: float = Field(description="East position (m).")
     vx: float = Field(description="North velocity (m/s).")
     vz: float = Field(description="East velocity (m/s).")
-    heading_deg: float = Field(description="Heading (degrees clockwise from north, [0, 360)).")
-    speed: float = Field(description="Ground speed (m/s).")
+    heading_deg: float = Field(description="Heading (degrees clockwise from true north, "
+                               "[0, 360)): on the earth where the answer has latitudes (the "
+                               "velocity's plane bearing turned by the meridian convergence), "
+                               "the plane's north in the seed's flat plane.")
+    speed: float = Field(description="Ground speed (m/s; on the earth where the answer has "
+                         "latitudes: the plane's speed over its scale).")
     cov: Cov | None = Field(None, description=f"{_COV}; null when the method gives none.")
     altitude_m: float | None = _optional("Estimated height above the ellipsoid (m), where the "
                                          "altitude was estimated from several sensors.")
@@ -305,8 +309,12 @@ class SegmentOut(_Out):
     w: float = Field(description="Longitudinal acceleration (m/s^2).")
     x: float = Field(description="North position at `t_start` (m).")
     z: float = Field(description="East position at `t_start` (m).")
-    heading_deg: float = Field(description="Heading at `t_start` (degrees clockwise from north).")
-    speed: float = Field(description="Ground speed at `t_start` (m/s).")
+    heading_deg: float = Field(description="Heading at `t_start` (degrees clockwise from the "
+                               "plane's north, its `x` axis: the frame `x`, `z`, `u` and `w` "
+                               "are in, so that the segments propagate; `at_plots` and "
+                               "`samples` give the heading from true north).")
+    speed: float = Field(description="Speed at `t_start` in the plane (m/s; `at_plots` and "
+                         "`samples` give the ground speed on the earth).")
 
 
 class ManoeuvreOut(_Out):
@@ -330,7 +338,7 @@ class ManoeuvreOut(_Out):
     x_end: float = Field(description="North position at `t_end` (m).")
     z_end: float = Field(description="East position at `t_end` (m).")
     heading_start_deg: float = Field(description="Heading at `t_start` (deg clockwise from "
-                                     "north).")
+                                     "the plane's north, as the segments').")
     heading_end_deg: float = Field(description="Heading at `t_end` (deg).")
     heading_change_deg: float = Field(description="Heading change over the manoeuvre (deg, "
                                       "positive to the right; may exceed 360).")

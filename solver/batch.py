@@ -50,7 +50,7 @@ import pyarrow.parquet as pq
 
 from .config import ReconstructionConfig
 from .plots import PlotTable
-from .results import PlotResiduals, StateSeries
+from .results import PlotResiduals, StateSeries, full_turn
 
 COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
@@ -66,9 +66,10 @@ an ASTERIX file or capture, ``row 17`` of a plot table, ``tracks.A[3]`` of a job
 null when the input has no such place), ``t`` (s; from the UTC midnight before the recording's
 first plot when the recording is timed by time of day, as ASTERIX is) and ``time_of_day_s``
 (``t`` modulo a day then, else null), positions in the recording's plane (m; ``x`` north, ``z``
-east) and on WGS-84, velocity (m/s), heading (deg clockwise from north), the covariance over
-``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where it was estimated
-(else null), and the plot against the state, as the sensors' statistics take it
+east) and on WGS-84, velocity in the plane (m/s), speed over the ground (m/s) and heading from
+true north (deg clockwise; :meth:`solver.results.StateSeries.heading_deg_and_speed`), the
+covariance over ``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where
+it was estimated (else null), and the plot against the state, as the sensors' statistics take it
 (:func:`solver.refine.output.plot_residuals`): a radar plot's measured slant range and azimuth
 (``plot_range_m``, ``plot_azimuth_deg``) and its residuals after the sensor's estimated offsets
 (``range_residual_m``, ``azimuth_residual_deg``), a position plot's horizontal distance
@@ -249,7 +250,8 @@ def _kinematics(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
 def _samples_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
                    ) -> pa.Table:
     cols = _kinematics(key, table, s, times_of_day)
-    cols.update(speed=s.speed, heading_deg=np.rad2deg(s.heading), h_m=s.h, h_sigma_m=s.h_sigma)
+    heading, speed = s.heading_deg_and_speed(table.frame)
+    cols.update(speed=speed, heading_deg=heading, h_m=s.h, h_sigma_m=s.h_sigma)
     return _arrow(cols, SAMPLE_COLUMNS, len(s))
 
 
@@ -267,7 +269,8 @@ def _arrow(cols: dict[str, Any], names: Sequence[str], n: int) -> pa.Table:
 def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool,
                   residuals: PlotResiduals | None = None) -> pa.Table:
     cols = _state_columns(key, table, s, times_of_day)
-    cols.update(speed=s.speed, heading_deg=np.rad2deg(s.heading), h_m=s.h, h_sigma_m=s.h_sigma)
+    heading, speed = s.heading_deg_and_speed(table.frame)
+    cols.update(speed=speed, heading_deg=heading, h_m=s.h, h_sigma_m=s.h_sigma)
     n, res = len(s), residuals
     cols.update(  # the table's range and azimuth are NaN on position rows
         plot_range_m=table.range_m, plot_azimuth_deg=np.rad2deg(table.azimuth_rad),
@@ -333,7 +336,8 @@ def _segments_table(key: str, rec: Any) -> pa.Table:
         "t_end": pa.array([g.t_end for g in segs], pa.float64()),
         "x": pa.array([g.x for g in segs], pa.float64()),
         "z": pa.array([g.z for g in segs], pa.float64()),
-        "heading_deg": pa.array([float(np.rad2deg(g.heading)) for g in segs], pa.float64()),
+        "heading_deg": pa.array([float(full_turn(np.rad2deg(g.heading), 360.0)) for g in segs],
+                                pa.float64()),
         "speed": pa.array([g.speed for g in segs], pa.float64()),
         "u": pa.array([g.u for g in segs], pa.float64()),
         "w": pa.array([g.w for g in segs], pa.float64())})

@@ -96,6 +96,14 @@ class LocalFrame:
         return np.asarray(_plane_proj(self.lat_deg, self.lon_deg).get_factors(
             lon, lat).meridional_scale, float)
 
+    def on_earth(self, x: FloatArray, z: FloatArray, heading: FloatArray, speed: FloatArray
+                 ) -> tuple[FloatArray, FloatArray]:
+        """A motion in the plane at ``(x, z)`` (heading in rad clockwise from the plane's ``x``
+        axis, speed in m/s) on the earth: the heading from true north (:meth:`north_azimuth`
+        taken off) and the ground speed (the plane's speed over its :meth:`scale`)."""
+        return (np.asarray(heading, float) - self.north_azimuth(x, z),
+                np.asarray(speed, float) / self.scale(x, z))
+
     def north_azimuth(self, x: FloatArray, z: FloatArray) -> FloatArray:
         """Angle (rad, clockwise) from the plane's ``x`` axis to true north at ``(x, z)``: the
         meridian convergence, which turns a radar's true-north azimuths into plane bearings."""

@@ -11,6 +11,13 @@ from .frames import LocalFrame
 from .inputs import FloatArray
 
 
+def full_turn(angle: Any, turn: float) -> Any:
+    """``angle`` modulo ``turn`` in ``[0, turn)``: ``np.mod`` of a tiny negative angle is
+    ``turn`` itself in floating point (a heading of 360.0)."""
+    a = np.mod(angle, turn)
+    return np.where(a >= turn, 0.0, a)
+
+
 @dataclass
 class StateSeries:
     """Horizontal states at times ``t``: position ``(x, z)`` (m), velocity ``(vx, vz)`` (m/s).
@@ -38,8 +45,18 @@ class StateSeries:
 
     @property
     def heading(self) -> FloatArray:
-        """Heading clockwise from north in [0, 2 pi) (rad)."""
-        return np.mod(np.arctan2(self.vz, self.vx), 2 * np.pi)
+        """Heading clockwise from the plane's ``x`` axis (north) in [0, 2 pi) (rad)."""
+        return full_turn(np.arctan2(self.vz, self.vx), 2 * np.pi)
+
+    def heading_deg_and_speed(self, frame: LocalFrame | None) -> tuple[FloatArray, FloatArray]:
+        """What the answers report: heading (deg clockwise from true north, [0, 360)) and
+        ground speed (m/s) on the earth (:meth:`LocalFrame.on_earth`; the plane's own
+        without a frame). The plane's grid north turns by the meridian convergence away from
+        the reference (1.95 deg at 78 N, 45 deg near the pole, measured), and its scale grows."""
+        heading, speed = self.heading, self.speed
+        if frame is not None and len(self.t):
+            heading, speed = frame.on_earth(self.x, self.z, heading, speed)
+        return full_turn(np.rad2deg(heading), 360.0), speed
 
     @property
     def states(self) -> FloatArray:

@@ -159,6 +159,35 @@ def test_an_overflight_at_74_deg_elevation_without_altitude():
     assert rec.residuals is not None and not rec.residuals.gated.any()
 
 
+@pytest.mark.parametrize("lat0, ref_km", [(46.0, 0.0), (78.0, 250.0), (60.0, 600.0)])
+def test_heading_and_speed_are_on_the_earth(lat0, ref_km):
+    """A geodesic flown at 230 m/s (pyproj's Geod: the independent truth), exact ADS-B every
+    2 s, the plane's reference ``ref_km`` west of the track: the states' heading is from true
+    north and their speed over the ground, within 0.02 deg and 0.02 m/s of the geodesic's
+    (the plane's own bearing was off by the meridian convergence: 1.95 deg at 78 N)."""
+    from pyproj import Geod
+
+    geod = Geod(ellps="WGS84")
+    t = np.arange(0.0, 300.0, 2.0)
+    lon1, lat1, back = geod.fwd(np.full(t.size, 20.0), np.full(t.size, lat0),
+                                np.full(t.size, 40.0), 230.0 * t)
+    heading = (np.asarray(back) + 180.0) % 360.0  # the geodesic's azimuth where it is
+    ref_lon, ref_lat, _ = geod.fwd(20.0, lat0, 270.0, ref_km * 1e3)
+    frame = LocalFrame(float(ref_lat), float(ref_lon))
+    adsb = PositionSensor("ADSB", position_sigma_m=5.0)
+    table = PlotTable.build((adsb,), t, ["ADSB"] * t.size, lat_deg=lat1, lon_deg=lon1,
+                            reference=frame)
+    rec = reconstruct(table)
+    got_heading, got_speed = rec.at_plots.heading_deg_and_speed(rec.frame)
+    inner = slice(5, -5)  # the ends of a track rest on one side's plots
+    dh = (got_heading - heading + 180.0) % 360.0 - 180.0
+    assert np.abs(dh[inner]).max() < 0.02, np.abs(dh).max()
+    assert np.abs(got_speed - 230.0)[inner].max() < 0.02
+    plane = np.rad2deg(rec.at_plots.heading)
+    if ref_km:  # the plane's own bearing differs there
+        assert np.abs((plane - heading + 180.0) % 360.0 - 180.0)[inner].min() > 0.3
+
+
 def test_two_noisy_radars_fused_beat_each_alone():
     table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
     fused = _rms(reconstruct(table), x, z)
