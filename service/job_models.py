@@ -244,7 +244,10 @@ class SensorSummaryOut(_Out):
     kind: str
     tracks: int
     plots: int
-    plots_gated: int = Field(description="Plots given no weight as wild.")
+    plots_gated: int = Field(description="Plots the reconstruction gave no weight as wild.")
+    plots_wild: int = Field(0, description="Plots outside the sensor's own residual "
+                            "distribution in their track (as the single-track answer's "
+                            "`sensors[].plots_wild`), which the residual statistics leave out.")
     scan_period_s: float | None = Field(None, description="From CAT034, else estimated.")
     detection_rate: float | None = Field(None, description="Plots over expected scans.")
     range_residual_mean_m: float | None = None

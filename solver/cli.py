@@ -88,7 +88,7 @@ from .run_settings import stored as stored_settings
 from .sensors import RadarSensor
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
-SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "scan_period_s",
+SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "plots_wild", "scan_period_s",
                   "detection_rate", "range_residual_mean_m", "range_residual_sigma_m",
                   "azimuth_residual_mean_deg", "azimuth_residual_sigma_deg",
                   "position_residual_rms_m", "along_track_residual_mean_m",
@@ -327,7 +327,7 @@ class SensorStats:
         self.sensors = sensors
         self.periods = dict(periods)
         self.acc: dict[str, dict[str, Any]] = {
-            s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "used": 0,
+            s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "plots_wild": 0, "used": 0,
                    "steps": _Sample(MEDIAN_SAMPLE), "span_s": 0.0, "spans": 0,
                    "r1": 0.0, "r2": 0.0, "a1": 0.0, "a2": 0.0, "p2": 0.0,
                    "along": [0, 0.0, 0.0], "cross": [0, 0.0, 0.0],
@@ -338,10 +338,12 @@ class SensorStats:
             a = self.acc.get(r["id"])
             if a is None:
                 continue
-            n = r["plots"] - r["plots_gated"]
+            wild = r.get("plots_wild", r["plots_gated"])  # (a report of before the field)
+            n = r["plots"] - wild  # the plots its statistics are of
             a["tracks"] += 1
             a["plots"] += r["plots"]
             a["plots_gated"] += r["plots_gated"]
+            a["plots_wild"] += wild
             a["span_s"] += r.get("span_s", 0.0)
             a["spans"] += 1
             if r.get("median_step_s"):
@@ -374,7 +376,8 @@ class SensorStats:
             a = self.acc[s.id]
             n = a["used"]
             row: dict[str, Any] = {"sensor": s.id, "kind": s.kind, "tracks": a["tracks"],
-                                   "plots": a["plots"], "plots_gated": a["plots_gated"]}
+                                   "plots": a["plots"], "plots_gated": a["plots_gated"],
+                                   "plots_wild": a["plots_wild"]}
             steps = a["steps"].values
             period = self.periods.get(s.id) or (float(np.median(steps)) if steps else None)
             row["scan_period_s"] = period
@@ -557,7 +560,7 @@ def write_map(out: Path, sensors: SensorSet, rows: PlotRows | None = None, *,
 def _write_sensor_csv(out: Path, rows: list[dict[str, Any]]) -> None:
     cols = {k: [r[k] for r in rows] for k in SENSOR_COLUMNS}
     types = {k: pa.string() if k in ("sensor", "kind") else
-             pa.int64() if k in ("tracks", "plots", "plots_gated") else pa.float64()
+             pa.int64() if k in ("tracks", "plots", "plots_gated", "plots_wild") else pa.float64()
              for k in SENSOR_COLUMNS}
     pacsv.write_csv(pa.table({k: pa.array(v, types[k]) for k, v in cols.items()}),
                     out / "sensors.csv")
@@ -830,16 +833,22 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
                   "reconstructed with warnings (all of them in warnings.csv), e.g.:", file=file)
             for key, texts in list(state["warnings"].items())[:5]:
                 print(f"  {key}: {texts[0][:200]}", file=file)
-    print(f"{'sensor':<12}{'plots':>8}{'det.':>7}{'wild':>6}{'range bias':>12}{'sigma':>8}"
-          f"{'az bias':>10}{'sigma':>8}", file=file)
+    # residuals after the estimated offsets (those on the lines below)
+    print(f"{'sensor':<12}{'plots':>8}{'det.':>7}{'wild':>6}{'range res.':>12}{'sigma':>8}"
+          f"{'az res.':>10}{'sigma':>8}", file=file)
     for r in p["sensors"]:
         def f(v: Any, fmt: str) -> str:
             return format(v, fmt) if v is not None else "-"
         print(f"{r['sensor']:<12}{r['plots']:>8}{f(r['detection_rate'], '.2f'):>7}"
-              f"{r['plots_gated']:>6}{f(r['range_residual_mean_m'], '.1f'):>12}"
+              f"{r['plots_wild']:>6}{f(r['range_residual_mean_m'], '.1f'):>12}"
               f"{f(r['range_residual_sigma_m'], '.1f'):>8}"
               f"{f(r['azimuth_residual_mean_deg'], '.3f'):>10}"
               f"{f(r['azimuth_residual_sigma_deg'], '.3f'):>8}", file=file)
+    for r in p["sensors"]:
+        if r.get("range_bias_m") is not None:
+            print(f"{r['sensor']}: estimated offsets range {r['range_bias_m']:+.1f} m, azimuth "
+                  f"{r['azimuth_bias_deg']:+.4f} deg, time {r['time_bias_s']:+.3f} s (medians "
+                  "over its tracks)", file=file)
     for r in p["sensors"]:
         if r.get("along_track_residual_mean_m") is not None:
             print(f"{r['sensor']}: along the track {r['along_track_residual_mean_m']:+.1f} m "

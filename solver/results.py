@@ -131,12 +131,16 @@ class SensorReport:
     with their standard deviations (None when not estimated), and the residuals (measured minus
     predicted from the track, after the offsets): mean, RMS and standard deviation in slant
     range (m) and azimuth (rad) for a radar; for a position sensor the horizontal RMS (m) and
-    the mean and standard deviation along and across the track (m)."""
+    the mean and standard deviation along and across the track (m). ``plots_gated``: plots
+    the reconstruction gave no weight; ``plots_wild``: plots outside the sensor's own residual
+    distribution (:func:`solver.refine.output.wild_residuals`), which the statistics leave
+    out."""
 
     id: str
     kind: str
     plots: int
     plots_gated: int = 0
+    plots_wild: int = 0
     range_bias_m: float | None = None
     range_bias_sigma_m: float | None = None
     azimuth_bias_rad: float | None = None

@@ -188,6 +188,29 @@ def test_heading_and_speed_are_on_the_earth(lat0, ref_km):
         assert np.abs((plane - heading + 180.0) % 360.0 - 180.0)[inner].min() > 0.3
 
 
+def test_statistics_of_a_radar_with_an_offset_not_estimated():
+    """Radar A reports 300 m and 0.2 deg too far (6 and 2.5 sigmas) and its offsets are not
+    estimated; radar B and ADS-B are right; 3 of A's plots are 8 km off. The reconstruction
+    gates most of A's plots (its gate is about the track), but the statistics take A's plots
+    against its own residual distribution: exactly the 3 are wild, and the residuals' mean
+    and sigma are A's offsets and noise (they were the 24 ungated plots' before)."""
+    adsb = PositionSensor("ADSB", position_sigma_m=15.0)
+    table, *_ = _simulate((SSR_A, SSR_B, adsb), ((4.8, 0.3), (4.0, 1.1), (2.0, 0.5)),
+                          noise=1.0, seed=7, biases={0: (300.0, np.deg2rad(0.2), 0.0)},
+                          mode_c=True)
+    wild = np.flatnonzero(table.sensor == 0)[[10, 60, 120]]
+    table = dataclasses.replace(table, range_m=np.where(
+        np.isin(np.arange(len(table)), wild), table.range_m + 8000.0, table.range_m))
+    a, b, _ = reconstruct(table).sensors
+    assert a.plots_gated > 100 and a.plots_wild == 3 and b.plots_wild == 0
+    assert a.range_residual_mean_m == pytest.approx(300.0, abs=20.0)
+    assert a.range_residual_sigma_m == pytest.approx(SSR_A.sigma_r, rel=0.2)
+    assert np.rad2deg(a.azimuth_residual_mean_rad) == pytest.approx(0.2, abs=0.02)
+    assert a.azimuth_residual_sigma_rad == pytest.approx(SSR_A.sigma_psi, rel=0.2)
+    assert abs(b.range_residual_mean_m) < 10.0
+    assert b.range_residual_sigma_m == pytest.approx(SSR_B.sigma_r, rel=0.2)
+
+
 def test_two_noisy_radars_fused_beat_each_alone():
     table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
     fused = _rms(reconstruct(table), x, z)
