@@ -78,8 +78,14 @@ from .inputs import Bounds, InputError
 from .io.asterix import iter_recording, looks_like_recording, read_recording
 from .io.problems import Problems
 from .io.sensors_file import SensorSet, load_sensors
-from .io.split import AircraftTrack, recording_frame, split_aircraft, split_stream
-from .io.tables import PlotRows, counts_from_midnight, iter_table, read_table
+from .io.split import (
+    DISORDER_S,
+    AircraftTrack,
+    recording_frame,
+    split_aircraft,
+    split_stream,
+)
+from .io.tables import PlotRows, counts_from_midnight, iter_table, read_table, time_disorder_s
 from .plots import PlotTable
 from .results import Reconstruction
 from .run_settings import RunSettings, parse_bounds
@@ -245,8 +251,21 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
 
 def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator[PlotRows]:
     if recording.suffix.lower() in TABLE_SUFFIXES:
-        for rows in iter_table(recording, batch_rows=STREAM_BATCH_ROWS, problems=out.problems):
-            yield out._note(rows)
+        back = time_disorder_s(recording)
+        if back <= DISORDER_S:
+            for rows in iter_table(recording, batch_rows=STREAM_BATCH_ROWS,
+                                   problems=out.problems):
+                yield out._note(rows)
+            return
+        # rows by aircraft or by sensor: split in batches, an aircraft would be closed at a
+        # batch's end and its later rows start a new track (60 aircraft became 70)
+        rows, _ = read_table(recording, problems=out.problems)
+        out.problems.add("unordered_table", "file", f"rows up to {back:.0f} s out of time "
+                         f"order: read whole and sorted by time ({len(rows)} rows in memory; "
+                         "a table in time order is read in batches)")
+        rows = rows.take(np.argsort(rows.t, kind="stable"))
+        for i in range(0, len(rows), STREAM_BATCH_ROWS):
+            yield out._note(rows.take(np.arange(i, min(i + STREAM_BATCH_ROWS, len(rows)))))
         return
     with open(recording, "rb") as f:
         head = f.read(RECORDING_HEAD_BYTES)

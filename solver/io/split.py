@@ -48,6 +48,9 @@ from .sensors_file import SensorSet
 from .tables import PlotRows
 
 GAP_S = 300.0
+DISORDER_S = 60.0
+"""How far (s) a row of a recording read in parts may come after a later-timed one
+(:func:`split_stream`)."""
 MIN_PLOTS = 3
 _MAX_ROW_RETRIES = 50
 
@@ -178,7 +181,7 @@ def split_aircraft(rows: PlotRows, sensors: SensorSet, *, reference: LocalFrame 
 
 def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                  reference: LocalFrame | None = None, min_plots: int = MIN_PLOTS,
-                 gap_s: float = GAP_S, disorder_s: float = 60.0,
+                 gap_s: float = GAP_S, disorder_s: float = DISORDER_S,
                  problems: Problems | None = None) -> Iterator[AircraftTrack]:
     """:func:`split_aircraft` over a recording that arrives in pieces (in recording order):
     an aircraft is yielded as soon as no later plot can change it: the recording has moved

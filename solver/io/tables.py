@@ -241,6 +241,45 @@ def _unwrap_loop(tod: FloatArray, previous: float) -> FloatArray:
 # ---------------------------------------------------------------------------- reading
 
 
+def time_disorder_s(path: str | Path) -> float:
+    """How far (s) a row of a plot table comes after a later-timed one, at most (0: in time
+    order), from its time column alone (``t``, else ``time_of_day_s`` unwrapped in row order;
+    unreadable times skipped): whether it can be split as it is read in batches
+    (:func:`solver.io.split.split_stream`) or must be read whole and sorted first."""
+    path = Path(path)
+    if path.suffix.lower() in (".parquet", ".pq"):
+        names = [n.strip() for n in pq.read_schema(path).names]
+        name = "t" if "t" in names else "time_of_day_s" if "time_of_day_s" in names else None
+        if name is None:
+            return 0.0  # no time column: read_table says so
+        col = pq.read_table(path, columns=[pq.read_schema(path).names[names.index(name)]]
+                            ).column(0)
+    else:
+        with open(path, "rb") as f:
+            first = f.readline().decode("utf-8-sig", errors="replace")
+        header = next(csv.reader(io.StringIO(first)), [])
+        names = [h.strip() for h in header]
+        name = "t" if "t" in names else "time_of_day_s" if "time_of_day_s" in names else None
+        if name is None:
+            return 0.0
+        raw = header[names.index(name)]
+        try:
+            col = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(
+                include_columns=[raw], column_types={raw: pa.string()},
+                strings_can_be_null=True)).column(0)
+        except pa.ArrowInvalid:
+            return 0.0  # read_table says what is wrong with it
+    if not pa.types.is_floating(col.type) and not pa.types.is_integer(col.type):
+        text = pc.utf8_trim_whitespace(col.cast(pa.string()))
+        numeric = pc.match_substring_regex(text, r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+        col = pc.if_else(numeric, text, pa.scalar(None, pa.string())).cast(pa.float64())
+    t = np.asarray(col.cast(pa.float64()).to_numpy(zero_copy_only=False), dtype=float)
+    t = t[np.isfinite(t)]
+    if name == "time_of_day_s":
+        t = unwrap_time_of_day(t)
+    return float(np.max(np.maximum.accumulate(t) - t)) if t.size else 0.0
+
+
 def read_table(path: str | Path, *, strict: bool = False, problems: Problems | None = None
                ) -> tuple[PlotRows, Problems]:
     """Read a plot table (``.parquet`` / ``.pq`` as Parquet, anything else as CSV).
