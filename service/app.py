@@ -78,9 +78,14 @@ def _error(status: int, message: str, detail: list[dict[str, Any]] | None = None
 
 
 def _clean_loc(loc: tuple[Any, ...]) -> list[str | int]:
-    """FastAPI's ``("body", "plots", 3, "t")`` -> ``["plots", 3, "t"]``."""
+    """FastAPI's ``("body", "plots", 3, "t")`` -> ``["plots", 3, "t"]``; a sensor's kind,
+    which pydantic puts in the path of a tagged union's member (``sensors[1].radar.
+    range_error_m``), left out: the field is ``sensors[1].range_error_m``."""
     parts = [p if isinstance(p, int) else str(p) for p in loc]
-    return parts[1:] if parts[:1] == ["body"] and len(parts) > 1 else parts
+    parts = parts[1:] if parts[:1] == ["body"] and len(parts) > 1 else parts
+    return [p for k, p in enumerate(parts)
+            if not (k >= 2 and parts[k - 2] == "sensors" and isinstance(parts[k - 1], int)
+                    and p in ("radar", "position"))]
 
 
 def _line_column(doc: Any, pos: int) -> tuple[int, int]:

@@ -57,6 +57,7 @@ class Job:
     filters: tuple[str, ...]
     omit: frozenset[str] = frozenset()
     notes: tuple[str, ...] = ()  # the request's own warnings (the answer's diagnostics)
+    sensors: tuple[tuple[str, str], ...] = ()  # the request's (id, kind), in its order
 
     @property
     def plots(self) -> Plots | PlotTable:
@@ -103,6 +104,9 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
                          "as `radar` or every sensor in `sensors`")
     if req.radar is None and req.sensors is None:
         raise InputError(("radar",), "is required (or `sensors` for several sensors)")
+    if req.radar is not None and req.reference is not None:
+        raise InputError(("reference",), "applies to `sensors` only: the single `radar` is at "
+                         "the origin of a flat plane, with no place on the earth")
     notes: list[str] = []
     table = _legacy_table(req) if req.radar is not None else _sensor_table(req, notes)
     b = req.bounds
@@ -115,10 +119,7 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
         method=req.method,
         nlp_solver=nlp_solver,  # type: ignore[arg-type]
     )
-    config.validate()
-    if req.window.plots is not None and req.window.plots > n:
-        raise InputError(("window", "plots"),
-                         f"({config.window_plots}) is longer than the track ({n} plots)")
+    config.validate()  # a window longer than the track is one window over it, warned
     span = float(table.t.max() - table.t.min())
     if "samples" in req.omit:  # none answered: no limit, and a few computed (as solver.batch)
         config = replace(config, sample_step_s=span / 2 or 1.0)
@@ -141,7 +142,7 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
                              f"{config.refine.max_node_step_s:g} s); this service's limit is "
                              f"max_nodes = {max_nodes}: split the track at its long gaps")
     return Job(table, config, tuple(dict.fromkeys(req.filters)), frozenset(req.omit),
-               tuple(notes))
+               tuple(notes), tuple((s.id, s.kind) for s in req.sensors or ()))
 
 
 def _radar(r: RadarIn) -> dict:
@@ -237,6 +238,15 @@ def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
     """The validated table of request plots, each naming one of ``sensors`` (every one
     used); an error at a plot is named at ``loc`` (a job's track ``("tracks", key)``: the
     plot's index within the track)."""
+    kinds = {s.id: s.kind for s in sensors}
+    for i, p in enumerate(plots):  # a missing field named as such, not as a NaN value
+        need = ("range_m", "azimuth_deg") if kinds.get(p.sensor) == "radar" else (
+            ("lat_deg", "lon_deg") if p.sensor in kinds else ())
+        for name in need:
+            if getattr(p, name) is None:
+                raise InputError((*loc, i, name), f"is required for a plot of {p.sensor!r} "
+                                 f"(a {kinds[p.sensor]} sensor)")
+
     def col(name: str, scale: float = 1.0) -> np.ndarray:
         return np.array([np.nan if getattr(p, name) is None else getattr(p, name) * scale
                          for p in plots], dtype=float)
@@ -291,10 +301,12 @@ def _states(s: StateSeries, with_heading: bool, frame: LocalFrame | None = None)
 
 
 def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
-                  omit: frozenset[str] = frozenset(), notes: tuple[str, ...] = ()) -> dict:
+                  omit: frozenset[str] = frozenset(), notes: tuple[str, ...] = (),
+                  sensors: Sequence[tuple[str, str]] = ()) -> dict:
     """The JSON-ready body of a 200 (validated against ``ReconstructionResponse`` by the
     caller); ``omit``: ``samples`` (an empty list) and/or ``covariances`` (``cov`` null).
-    Every filter's warning (e.g. a numerical fallback) joins ``diagnostics.warnings``."""
+    Every filter's warning (e.g. a numerical fallback) joins ``diagnostics.warnings``;
+    ``sensors``: the request's, one report each in its order."""
     if "covariances" in omit:
         for s in (rec.at_plots, rec.samples, *(e.states for e in estimates.values())):
             s.cov = None
@@ -320,9 +332,20 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
         "trajectory": trajectory,
         "filters": {name: {"states": _states(e.states, False, rec.frame)}
                     for name, e in estimates.items()},
-        "sensors": [_sensor(r) for r in rec.sensors],
+        "sensors": _in_request_order(rec.sensors, sensors),
         "diagnostics": diagnostics,
     }
+
+
+def _in_request_order(reports: list[SensorReport], sensors: Sequence[tuple[str, str]]
+                      ) -> list[dict]:
+    """One report per request sensor, in its order (sensors.md); a sensor without plots (left
+    out of the reconstruction) with none. No ``sensors``: the reconstruction's own."""
+    got = {r.id: r for r in reports}
+    if not sensors:
+        return [_sensor(r) for r in reports]
+    return [_sensor(got.get(sid) or SensorReport(id=sid, kind=kind, plots=0))
+            for sid, kind in sensors]
 
 
 def _with_residuals(rows: list[dict], res: PlotResiduals | None) -> list[dict]:

@@ -76,7 +76,17 @@ class SiteFields(_In):
                             examples=[380.0])
 
 
-class RadarSensorIn(RadarIn, SiteFields):
+class AsterixCodes(_In):
+    """The ASTERIX codes a sensor file gives a sensor (recordings.md), accepted so that the
+    same list serves a recording and JSON plots; JSON plots name their sensor by `id`."""
+
+    sac: int | None = Field(None, ge=0, le=255, description="ASTERIX System Area Code "
+                            "(recordings find the sensor by SAC/SIC; not used for JSON plots).")
+    sic: int | None = Field(None, ge=0, le=255, description="ASTERIX System Identification "
+                            "Code (with `sac`).")
+
+
+class RadarSensorIn(RadarIn, SiteFields, AsterixCodes):
     """A radar of `sensors`: its accuracies (as the single `radar`) and its site."""
 
     id: str = Field(min_length=1, max_length=64, description="Unique sensor id; "
@@ -89,7 +99,7 @@ class RadarSensorIn(RadarIn, SiteFields):
         "`sensors`.")
 
 
-class PositionSensorIn(_In):
+class PositionSensorIn(AsterixCodes):
     """A position sensor of `sensors` (ADS-B, WAM): plots carry latitude and longitude."""
 
     id: str = Field(min_length=1, max_length=64, description="Unique sensor id.",
@@ -359,10 +369,10 @@ class TrajectoryOut(_Out):
     at_plots: list[PlotStateOut] = Field(description="State at every plot time, in input "
                                          "order, one per plot.")
     samples: list[StateOut] = Field(description="States every `sample_step_s` over the track.")
-    altitude_m: float | None = Field(
-        None, description="Where the altitude was estimated from several sensors: the "
-        "time-weighted mean height above the ellipsoid (m); per state in `altitude_m`.")
-    altitude_sigma_m: float | None = Field(None, description="Its standard deviation (m).")
+    altitude_m: float | None = _optional(
+        "Where the altitude was estimated from several sensors: the time-weighted mean height "
+        "above the ellipsoid (m); per state in `altitude_m`. Absent otherwise (sensors.md).")
+    altitude_sigma_m: float | None = _optional("Its standard deviation (m); absent with it.")
 
 
 class SensorOut(_Out):

@@ -247,7 +247,7 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
             "bounds, radar errors or plots are too extreme for a numerical solution"))
     gc.disable()  # ~1e5 small objects: cyclic GC passes would triple this step's time
     try:
-        body = response_dict(rec, estimates, job.omit, job.notes)
+        body = response_dict(rec, estimates, job.omit, job.notes, job.sensors)
         body["diagnostics"]["filters_ms"] = filters_ms
         body["diagnostics"]["queue_ms"] = max(0.0, (started - enqueued_at) * 1e3)
         out = ReconstructionResponse.model_validate(body).model_dump_json().encode()

@@ -217,8 +217,6 @@ INVALID = [
     ("inverted u bounds", _with("bounds.u", [7.0, -7.0]), "bounds.u is inverted or empty"),
     ("inverted v bounds", _with("bounds.v", [330.0, 30.0]), "bounds.v is inverted or empty"),
     ("three-value bounds", _with("bounds.w", [1.0, 2.0, 3.0]), "bounds.w: List should have at"),
-    ("window longer than track", _with("window.plots", 500),
-     "window.plots (500) is longer than the track"),
     ("window of one plot", _with("window.plots", 1), "window.plots must be at least 2"),
     ("zero trial step", _with("window.trial_step_s", 0.0), "window.trial_step_s must be positive"),
     ("unknown filter", _with("filters", ["cv_rts", "kalmann"]), "filters[1]: Input should be"),
@@ -303,6 +301,30 @@ def test_a_body_not_sent_as_json_is_415_naming_the_header(client, kind):
                         headers={"content-type": "application/json"})
     assert empty.status_code == 422
     assert empty.json()["message"] == "body: is empty: the request is a JSON object in the body"
+
+
+def test_the_contracts_own_example_is_answered(client):
+    """spec/api.md's request, verbatim: two plots with a window of three (it was a 422,
+    "window.plots (3) is longer than the track"): one window over the track, said."""
+    body = {"radar": {"range_error_m": 500.0, "azimuth_error_deg": 1.5, "range_sigma_m": 166.7,
+                      "azimuth_sigma_deg": 0.5, "max_altitude_m": 15000.0,
+                      "max_elevation_deg": 60.0},
+            "plots": [{"t": 0.0, "range_m": 81234.5, "azimuth_deg": 123.40},
+                      {"t": 19.1, "range_m": 80310.2, "azimuth_deg": 124.02}],
+            "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
+            "window": {"plots": 3, "trial_step_s": 5.0}, "criterion": "R2",
+            "filters": ["singer", "quasi_optimal"], "sample_step_s": 1.0}
+    r = client.post("/v1/reconstructions", json=body)
+    assert r.status_code == 200, r.text
+    a = r.json()
+    assert len(a["trajectory"]["at_plots"]) == 2 and len(a["trajectory"]["samples"]) == 21
+    assert set(a["filters"]) == {"singer", "quasi_optimal"}
+    assert any("two plots" in w for w in a["diagnostics"]["warnings"])
+    assert "altitude_m" not in a["trajectory"]  # absent, not null, where not estimated
+    r = client.post("/v1/reconstructions", json={**body, "reference": {"lat_deg": 46.0,
+                                                                       "lon_deg": 14.0}})
+    assert r.status_code == 422 and r.json()["message"].startswith(
+        "reference applies to `sensors` only")
 
 
 def test_oversize_body_is_413(client):

@@ -212,6 +212,21 @@ def test_json_tracks_job(client):
     assert figure.status_code == 200 and figure.content[:4] == b"\x89PNG"
 
 
+def test_a_json_job_takes_the_sensor_files_own_list(client):
+    """The sensor file's sensors with their ASTERIX `sac`/`sic` (recordings.md): the same list
+    serves an upload and a JSON body (it was a 422, "sensors[0].radar.sac: Extra inputs are
+    not permitted"); a code out of range is still named."""
+    enc = encode_recording(duration=40.0)
+    _, tracks = json_tracks(enc)
+    r = client.post("/v1/jobs", json={"sensors": SENSOR_FILE, "tracks": tracks})
+    assert r.status_code == 202, r.text
+    assert wait(client, r.headers["location"])["state"] == "done"
+    bad = copy.deepcopy(SENSOR_FILE)
+    bad[0]["sac"] = 256
+    r = client.post("/v1/jobs", json={"sensors": bad, "tracks": tracks})
+    assert r.status_code == 422 and r.json()["message"].startswith("sensors[0].sac: "), r.text
+
+
 def test_job_options_run_the_filters_on_every_track(client):
     """`filters` and `sample_step_s` (JSON body; `options` part of an upload): each track's
     answer carries every filter's state at its plots and the regular samples, the same as the

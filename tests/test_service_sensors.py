@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import copy
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +18,7 @@ from solver.sensors import RadarSensor, Site
 from solver.trajectory import evaluate
 
 FRAME = LocalFrame(46.0, 14.8)
+ROOT = Path(__file__).resolve().parents[1]
 SITES = {"LJLJ": Site(46.2237, 14.4576, 380.0), "SSR2": Site(45.5, 15.2, 900.0)}
 
 
@@ -301,7 +304,8 @@ def test_a_reference_far_from_the_track_warns_of_the_planes_scale():
 def test_sensors_without_plots_are_left_out_with_a_note(client):
     """A site list shared by many requests: a radar (listed first, without `reference`: the
     plane's tangent point) and an ADS-B receiver that saw nothing of this track are left out,
-    said in the warnings; the answer is the one without them, in the same plane."""
+    said in the warnings; the answer is the one without them, in the same plane, and its
+    `sensors` lists them in their place with no plots."""
     body = _body()
     del body["reference"]
     spare = [{"id": "SPARE", "kind": "radar", "lat_deg": 46.5, "lon_deg": 14.0,
@@ -312,7 +316,10 @@ def test_sensors_without_plots_are_left_out_with_a_note(client):
     assert res.status_code == 200, res.text
     got = res.json()
     assert "sensors 'SPARE', 'SPARE2' have no plots: left out" in got["diagnostics"]["warnings"]
-    assert {s["id"] for s in got["sensors"]} == {"LJLJ", "SSR2", "ADSB"}
+    # sensors.md: one entry per sensor, in request order (the spares with no plots)
+    assert [s["id"] for s in got["sensors"]] == ["SPARE", "LJLJ", "SSR2", "ADSB", "SPARE2"]
+    assert [s["plots"] for s in got["sensors"]][::4] == [0, 0]
+    assert got["sensors"][0]["range_residual_rms_m"] is None
     want = client.post("/v1/reconstructions", json={
         **body, "reference": {"lat_deg": 46.5, "lon_deg": 14.0}}).json()
     for a, b in zip(got["trajectory"]["at_plots"], want["trajectory"]["at_plots"], strict=True):
@@ -330,3 +337,25 @@ def test_a_pole_radar_after_an_unused_sensor_is_named_at_its_own_index(client):
     res = client.post("/v1/reconstructions", json={**body, "sensors": [spare, *body["sensors"]]})
     assert res.status_code == 422, res.text
     assert res.json()["detail"][0]["loc"] == ["sensors", 1, "lat_deg"]
+
+
+def test_a_missing_field_is_named_as_missing(client):
+    """A position plot without `lon_deg` was "must be a finite number in [-180, 360] (nan)";
+    a sensor without a required field was named with its kind in the path
+    (`sensors[1].radar.range_error_m`)."""
+    body = json.loads((ROOT / "examples" / "two_radars_adsb.json").read_text())
+    kinds = {s["id"]: s["kind"] for s in body["sensors"]}
+    adsb = next(i for i, p in enumerate(body["plots"]) if kinds[p["sensor"]] == "position")
+    radar = next(i for i, p in enumerate(body["plots"]) if kinds[p["sensor"]] == "radar")
+    pos = next(j for j, s in enumerate(body["sensors"]) if s["kind"] == "position")
+    cases = ((("plots", adsb, "lon_deg"), f"plots[{adsb}].lon_deg is required for a plot of "),
+             (("plots", radar, "range_m"), f"plots[{radar}].range_m is required for a plot of "),
+             (("sensors", 0, "range_error_m"), "sensors[0].range_error_m: Field required"),
+             (("sensors", pos, "position_sigma_m"),
+              f"sensors[{pos}].position_sigma_m: Field required"))
+    for (where, i, name), message in cases:
+        sent = json.loads(json.dumps(body))
+        del sent[where][i][name]
+        r = client.post("/v1/reconstructions", json=sent)
+        assert r.status_code == 422 and r.json()["message"].startswith(message), r.text
+        assert r.json()["detail"][0]["loc"] == [where, i, name]
