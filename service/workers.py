@@ -21,6 +21,7 @@ from multiprocessing.connection import Connection
 import numpy as np
 
 from solver.config import ReconstructionConfig
+from solver.estimation.measurements import at_estimated_heights
 from solver.inputs import InputError
 from solver.results import FilterEstimate, Reconstruction
 from solver.warmup import synthetic_track
@@ -212,7 +213,9 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
     try:
         rec = reconstruct(job.plots, job.radar, job.config, deadline=deadline)
         t0 = time.perf_counter()
-        estimates = run_filters(list(job.filters), job.plots, job.radar) if job.filters else {}
+        estimates = run_filters(list(job.filters), at_estimated_heights(
+            job.plots, rec.at_plots.h) if job.radar is None else job.plots,
+            job.radar) if job.filters else {}
         filters_ms = (time.perf_counter() - t0) * 1e3
         _armed = False
         if _expired:  # the limit fired inside a solve, where CasADi swallowed the exception

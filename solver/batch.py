@@ -49,6 +49,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .config import ReconstructionConfig
+from .inputs import FloatArray
 from .plots import PlotTable
 from .results import PlotResiduals, StateSeries, full_turn
 
@@ -205,7 +206,8 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
         more = extras(rec) if extras is not None else {}
         warnings += rec.diagnostics.warnings
         t_filters = time.perf_counter()
-        filtered = _filters_table(key, table, filters, times_of_day, warnings)
+        filtered = _filters_table(key, table, filters, times_of_day, warnings,
+                                  rec.at_plots.h)
         filters_ms = 1e3 * (time.perf_counter() - t_filters) if filters else 0.0
         diagnostics = rec.diagnostics.as_dict()
         del diagnostics["warnings"]
@@ -299,12 +301,17 @@ def with_sources(states: pa.Table, names: pa.Array) -> pa.Table:
 
 
 def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_day: bool,
-                   warnings: list[str]) -> pa.Table | None:
+                   warnings: list[str], heights: FloatArray | None = None) -> pa.Table | None:
     """Every named filter's states (:data:`FILTER_COLUMNS`); a filter that raises (its rows
-    left out, the track kept) or falls back adds its reason to ``warnings``."""
+    left out, the track kept) or falls back adds its reason to ``warnings``. ``heights``: the
+    reconstruction's estimated heights, for radar plots without altitude
+    (:func:`solver.estimation.measurements.at_estimated_heights`)."""
     if not names:
         return None
     from .estimation import run_filter
+    from .estimation.measurements import at_estimated_heights
+
+    table = at_estimated_heights(table, heights)
 
     parts = []
     for name in names:

@@ -211,6 +211,26 @@ def test_statistics_of_a_radar_with_an_offset_not_estimated():
     assert b.range_residual_sigma_m == pytest.approx(SSR_B.sigma_r, rel=0.2)
 
 
+def test_filters_place_plots_at_the_estimated_heights():
+    """Two radars without Mode C at 9-10 km: the recursive filters placed the plots at the
+    radars' heights (h^2 / 2r off: hundreds of metres). At the reconstruction's estimated
+    heights they are within tens of metres, as the reconstruction."""
+    from solver.estimation import run_filter
+    from solver.estimation.measurements import at_estimated_heights
+
+    table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=0.3, seed=4)
+    rec = reconstruct(table)
+    moved = at_estimated_heights(table, rec.at_plots.h)
+    assert np.isfinite(moved.altitude_m).all() and not np.isfinite(table.altitude_m).any()
+    for name in ("cv_rts", "imm_smoother"):
+        flat = run_filter(name, table).states
+        placed = run_filter(name, moved).states
+        err_flat = np.median(np.hypot(flat.x - x, flat.z - z))
+        err = np.median(np.hypot(placed.x - x, placed.z - z))
+        assert err_flat > 300.0 and err < 40.0, (name, err_flat, err)
+    assert at_estimated_heights(table, None) is table
+
+
 def test_two_noisy_radars_fused_beat_each_alone():
     table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
     fused = _rms(reconstruct(table), x, z)
