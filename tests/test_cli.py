@@ -360,6 +360,23 @@ def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkey
     assert time_disorder_s(tod) == pytest.approx(99.0)
 
 
+@pytest.mark.parametrize("detected", [0.95, 0.7, 0.5, 0.35, 0.2])
+def test_scan_period_from_a_track_that_misses_scans(detected):
+    """A 4-s radar detecting a share of its scans (times jittered by 50 ms, a few split
+    plots): the period is 4 s within 1 %, so the detection rate is the share (the median
+    interval gave 5 s at half the scans missed, 8 s at 60 %)."""
+    from solver.cli import scan_step
+
+    rng = np.random.default_rng(int(detected * 100))
+    t = np.arange(0.0, 3000.0, 4.0) + rng.normal(0, 0.05, 750)
+    t = t[rng.random(750) < detected]
+    t = np.sort(np.concatenate([t, t[::40] + 0.3]))  # split plots
+    period = scan_step(np.diff(t))
+    assert period == pytest.approx(4.0, rel=0.01)
+    assert (t.size - t[::40].size) / ((t[-1] - t[0]) / period + 1) == pytest.approx(
+        detected, abs=0.05)
+
+
 def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
     """``python -m solver.cli`` runs the module as ``__main__``; its task must still be
     ``solver.cli.assess_track``, pickled by reference (a ``__main__`` function is pickled by
