@@ -205,3 +205,23 @@ def test_connections_beyond_the_limit_are_refused_at_once(server):
             s.close()
     time.sleep(0.2)
     assert httpx.get(server.url + "/healthz").status_code == 200
+
+
+def test_python_m_service_takes_port_and_workers_options(monkeypatch, capsys):
+    """`python -m service --port 8765` listened on 8000 (only TRAJRECON_PORT was read): the
+    options set the settings the app reads too; a bad one is a usage error naming it."""
+    import service.__main__ as entry
+    from service.settings import get_settings
+
+    for name in ("PORT", "WORKERS", "HOST", "DATA_DIR", "DASK_SCHEDULER"):
+        monkeypatch.delenv(f"TRAJRECON_{name}", raising=False)
+    served = []
+    monkeypatch.setattr(entry, "serve", served.append)
+    monkeypatch.setattr(entry, "setup_logging", lambda level: None)
+    entry.main(["--port", "8123", "--workers", "1"])
+    assert (served[0].port, served[0].workers) == (8123, 1)
+    assert get_settings().port == 8123  # what the app, loaded by name, reads
+    with pytest.raises(SystemExit) as stop:
+        entry.main(["--port", "99999"])
+    assert stop.value.code == 2 and "TRAJRECON_PORT: " in capsys.readouterr().err
+    get_settings.cache_clear()
