@@ -214,7 +214,11 @@ def test_python_m_service_takes_port_and_workers_options(monkeypatch, capsys):
     from service.settings import get_settings
 
     for name in ("PORT", "WORKERS", "HOST", "DATA_DIR", "DASK_SCHEDULER"):
-        monkeypatch.delenv(f"TRAJRECON_{name}", raising=False)
+        # set, then removed: both recorded, so what main() puts there is undone after the
+        # test (a delenv of an absent variable records nothing: TRAJRECON_PORT=99999 leaked
+        # into the next tests' settings)
+        monkeypatch.setenv(f"TRAJRECON_{name}", "")
+        monkeypatch.delenv(f"TRAJRECON_{name}")
     served = []
     monkeypatch.setattr(entry, "serve", served.append)
     monkeypatch.setattr(entry, "setup_logging", lambda level: None)
