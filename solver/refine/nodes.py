@@ -100,7 +100,9 @@ class NodeData:
             weight=scatter(np.ones(len(table))),
             centre_h=scatter(fixes.poly[:, :, 1:]),
             ray=scatter(fixes.ray),
-            slant=scatter(np.where(fixes.altitude_free, fixes.slant, 1e7)),
+            # far beyond any height where no free plot is (nodes without a plot too: a slant
+            # of 0 there made the NLP's sqrt(slant^2 - h^2) NaN, every block failing at a gap)
+            slant=scatter(np.where(fixes.altitude_free, fixes.slant, 1e7), 1e7),
             site_h=scatter(fixes.site_h),
             h_mid=scatter(fixes.h_mid),
             h_half=scatter(fixes.h_half, 1.0),
