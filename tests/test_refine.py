@@ -114,6 +114,16 @@ def test_unreachable_plots_against_brute_force():
     t = np.arange(10.0)
     line = np.column_stack([200.0 * t, 0.0 * t])
     assert unreachable_plots(t, line, np.full(10, 50.0), np.zeros(10), v).size == 0
+    # a burst of plots in reach of each other (clutter at the radar, 1 m away: sigmas of
+    # 1 m), off the track's chain, up to CHAIN_SKIP - 1 in a row
+    t = np.arange(60.0) * 4.0
+    c = np.column_stack([-50_000.0 + 220.0 * t, 30_000.0 + 0.0 * t])
+    sigma = np.full(60, 150.0)
+    for start, size in ((20, 3), (40, 7), (0, 4)):
+        wild = np.arange(start, start + size)
+        cc, ss = c.copy(), sigma.copy()
+        cc[wild], ss[wild] = 0.0, 1.0
+        assert unreachable_plots(t, cc, ss, np.zeros(60), v).tolist() == wild.tolist()
 
 
 def test_node_grid_keeps_plot_times_and_bounds_steps():

@@ -246,6 +246,55 @@ def test_a_gap_with_the_height_estimated():
                     rec.at_plots.z - whole.at_plots.z[keep]).max() < 30.0
 
 
+def test_a_radar_whose_offsets_are_estimated_is_not_judged_by_the_others():
+    """Radar A 2 deg off in azimuth (10 km here), its offsets estimated, beside 1-Hz ADS-B:
+    the pre-gate took every plot of A for wild against the ADS-B between them (the offset
+    then the prior's, 0 +- 0.5 deg). A is judged by its own plots until its offsets are
+    estimated: none left out, the offset within 3 sigmas."""
+    a = dataclasses.replace(SSR_A, estimate_bias=True)
+    adsb = PositionSensor("ADSB", position_sigma_m=15.0)
+    table, *_ = _simulate((a, adsb), ((4.8, 0.3), (1.0, 0.5)), noise=1.0, seed=3,
+                          biases={0: (0.0, np.deg2rad(2.0), 0.0)}, mode_c=True)
+    rec = reconstruct(table)
+    rep = rec.sensors[0]
+    assert rep.plots_gated == 0, rec.diagnostics.warnings
+    assert abs(rep.azimuth_bias_rad - np.deg2rad(2.0)) < 3 * rep.azimuth_bias_sigma_rad
+
+
+@pytest.mark.parametrize("burst, wild, mode_c", [(3, 1.0, False), (6, 1.0, False),
+                                                 (1, 8000.0, True)])
+def test_a_burst_of_wild_plots_at_the_radar_is_left_out(burst, wild, mode_c):
+    """Consecutive plots of A at 1 m (clutter at the radar), in reach of each other: the
+    pre-gate kept a plot in reach of any neighbour, so they stayed and pulled the track 8-12
+    km off. One plot 8 km too far with Mode C was in reach of a neighbour two plots away,
+    and the first solve looped to it (speed 40-315 m/s, 96 plots over 5 sigma, none gated).
+    Off the track's chain now: left out, the rest within 30 m of the clean track."""
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3,
+                          mode_c=mode_c)
+    k = np.flatnonzero(table.sensor == 0)[80:80 + burst]
+    rec = reconstruct(dataclasses.replace(table, range_m=np.where(
+        np.isin(np.arange(len(table)), k), wild if wild < 10 else table.range_m + wild,
+        table.range_m)))
+    clean = reconstruct(table)
+    good = ~np.isin(np.arange(len(table)), k)
+    err = np.hypot(rec.at_plots.x - clean.at_plots.x, rec.at_plots.z - clean.at_plots.z)
+    assert err[good].max() < 30.0, err.max()  # those plots' information is lost, no more
+    assert rec.residuals is not None and rec.residuals.gated[k].all()
+
+
+def test_sliding_guesses_the_height_without_a_wild_plot():
+    """`sliding` places plots without altitude at the height the plots fit best: one plot at
+    3 km put every plot at 0 m instead of 10 km (643 m off in the median). That guess is
+    made without the plots out of reach of the others now."""
+    table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
+    wild = dataclasses.replace(table, range_m=np.where(np.arange(len(table)) == 40, 3000.0,
+                                                          table.range_m))
+    rec = reconstruct(wild, config=SLIDING)
+    assert "placed at 10000 m (median)" in rec.diagnostics.warnings[0]
+    err = np.delete(np.hypot(rec.at_plots.x - x, rec.at_plots.z - z), 40)
+    assert np.median(err) < 80.0
+
+
 def test_two_noisy_radars_fused_beat_each_alone():
     table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
     fused = _rms(reconstruct(table), x, z)

@@ -62,14 +62,15 @@ from .output import plot_residuals, segments, sensor_reports, series
 
 TIME_GAUGE_INFO = 1e6  # 1/s^2: the time offsets' sum held at zero to a millisecond
 
-__all__ = ["LADDER", "DeadlineExceeded", "build_solvers", "node_grid", "refine", "refine_table"]
+__all__ = ["LADDER", "DeadlineExceeded", "build_solvers", "node_grid", "refine", "refine_table",
+           "unreachable_in"]
 
 
-def _unreachable(table: PlotTable, data: NodeData, plot_node: np.ndarray, bounds: Bounds
-                 ) -> np.ndarray:
+def unreachable_in(table: PlotTable, data: NodeData, plot_node: np.ndarray, bounds: Bounds,
+                 bias_sensors: list[int] | None = None) -> np.ndarray:
     """:func:`solver.refine.gate.unreachable_plots` of the table's plots: their centres (at the
     middle of their reach where the height is free), largest sigma, and the centre's move over
-    the heights each may take."""
+    the heights each may take; each sensor whose offsets are estimated apart."""
     a, b, c = data.info[plot_node].T
     lam_min = (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b**2)
     sigma = 1.0 / np.sqrt(np.maximum(lam_min, 1e-18))
@@ -77,7 +78,15 @@ def _unreachable(table: PlotTable, data: NodeData, plot_node: np.ndarray, bounds
     hi = data.centre_at(np.full(data.centre.shape[0], ALTITUDE_RANGE_M[1]))[plot_node]
     spread = np.where(data.free[plot_node], np.hypot(*(hi - lo).T), 0.0)
     centre = data.centre_at(data.h_mid)[plot_node]
-    return unreachable_plots(table.t, centre, sigma, spread, bounds.v[1])
+    # a sensor whose offsets are estimated is judged by its own plots alone: until they are
+    # estimated, its plots may lie kilometres off the others' (2 deg at 280 km: every plot of
+    # a radar next to 1-Hz ADS-B left out, the offset then the prior's)
+    alone = list(bias_sensors or [])
+    groups = [np.flatnonzero(table.sensor == k) for k in alone]
+    groups.append(np.flatnonzero(~np.isin(table.sensor, alone)))
+    out = [g[unreachable_plots(table.t[g], centre[g], sigma[g], spread[g], bounds.v[1])]
+           for g in groups if g.size]
+    return np.sort(np.concatenate(out)) if out else np.zeros(0, dtype=int)
 
 
 def _listed(plots: np.ndarray, most: int = 50) -> str:
@@ -137,7 +146,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     variant = Variant(altitude=table.estimate_altitude(), biases=len(bias_sensors))
     fixes = table.fixes()
     data = NodeData.assemble(table, fixes, n, plot_node, variant, bias_sensors)
-    impossible = _unreachable(table, data, plot_node, bounds)
+    impossible = unreachable_in(table, data, plot_node, bounds, bias_sensors)
     data = data.without(plot_node[impossible])  # from the start (the guess too) to the end
     bias_sigma = np.concatenate([table.sensors[k].bias_prior.sigmas  # type: ignore[union-attr]
                                  for k in bias_sensors]) if bias_sensors else np.zeros(0)
@@ -233,8 +242,9 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         nlp.set_deadline(None)
     if impossible.size:
         diag.warnings.append(
-            f"{impossible.size} plot(s) out of reach at bounds.v of the two plots before and "
-            f"the two after them (a wild range or azimuth) were given no weight: plots "
+            f"{impossible.size} plot(s) out of reach at bounds.v of the track's other plots "
+            f"(off their longest chain in time, each in reach of the one before: a wild range "
+            f"or azimuth) were given no weight: plots "
             f"{_listed(impossible)}")
     rejected = np.setdiff1d(rejected, impossible)
     if rejected.size:

@@ -113,31 +113,49 @@ UNREACHABLE_SLACK_M = 2_000.0
 its neighbours (:func:`unreachable_plots`): the wild plots it is for are tens of km off."""
 
 
+CHAIN_SKIP = 8
+"""The longest run of plots the chain of :func:`unreachable_plots` may step over."""
+
+
 def unreachable_plots(t: FloatArray, centre: FloatArray, sigma: FloatArray, spread: FloatArray,
                       v_max: float) -> np.ndarray:
-    """Indexes of plots no aircraft under ``v_max`` could have made: out of reach of each of
-    the two plots before and the two after it in time (of the ones kept), left out until none
-    is. Out of reach: ``|c_i - c_j| > v_max |t_i - t_j| + 10 (sigma_i + sigma_j) + spread_i +
-    spread_j + UNREACHABLE_SLACK_M`` (``sigma``: the largest one-sigma axis; ``spread``: how
-    far the centre moves over the heights it may take). Two neighbours each way, so a plot
-    between two wild ones keeps the support of the next; two wild plots within reach of each
-    other are left to the gate of the first solution. Such a plot (a range of 1 m, a garbled
-    azimuth) would otherwise pull the start and the first solve towards it: 50 km, and IPOPT
-    to 1e16 m, before that gate sees it."""
+    """Indexes of plots no aircraft under ``v_max`` could have made together with the others:
+    those off the longest chain of plots in time order, each within reach of the one before
+    it (stepping over at most :data:`CHAIN_SKIP` - 1 plots at a time). Within reach: ``|c_i -
+    c_j| <= v_max |t_i - t_j| + 10 (sigma_i + sigma_j) + spread_i + spread_j +
+    UNREACHABLE_SLACK_M`` (``sigma``: the largest one-sigma axis; ``spread``: how far the
+    centre moves over the heights it may take). A burst of wild plots near each other (three
+    at the radar, 1 m away: each in reach of the next) is a shorter chain than the track's,
+    which steps over it. Such plots, with their tiny sigmas, would otherwise pull the start
+    and the first solve towards them: 8-12 km, and IPOPT to 1e16 m for one plot on one radar,
+    before the gate of the first solution sees them. Nothing is left out when the chain is
+    not most of the plots (no track to judge by)."""
+    n = t.size
+    if n < 3:
+        return np.zeros(0, dtype=int)
     order = np.argsort(t, kind="stable")
     ts, cs, ss, ps = t[order], centre[order], sigma[order], spread[order]
-    kept = np.ones(t.size, dtype=bool)
-    while kept.sum() > 2:
-        idx = np.flatnonzero(kept)
-        supported = np.zeros(idx.size, dtype=bool)
-        for d in (1, 2):
-            i, j = idx[:-d], idx[d:]
-            near = np.hypot(*(cs[j] - cs[i]).T) <= (v_max * (ts[j] - ts[i])
-                                                    + 10 * (ss[i] + ss[j]) + ps[i] + ps[j]
-                                                    + UNREACHABLE_SLACK_M)
-            supported[:-d] |= near
-            supported[d:] |= near
-        if supported.all() or not supported.any():
-            break
-        kept[idx[~supported]] = False
-    return np.sort(order[~kept])
+    near = np.zeros((CHAIN_SKIP + 1, n), dtype=bool)  # near[d, i]: i within reach of i - d
+    for d in range(1, min(CHAIN_SKIP, n - 1) + 1):
+        i, j = np.arange(d, n), np.arange(n - d)
+        near[d, i] = np.hypot(*(cs[i] - cs[j]).T) <= (
+            v_max * (ts[i] - ts[j]) + 10 * (ss[i] + ss[j]) + ps[i] + ps[j] + UNREACHABLE_SLACK_M)
+    if near[1, 1:].all():  # every plot in reach of the one before: the whole is the chain
+        return np.zeros(0, dtype=int)
+    length = np.ones(n, dtype=int)  # the longest chain ending at each plot
+    back = np.full(n, -1)
+    for i in range(1, n):  # sequential by nature (each length from earlier ones), n steps
+        ds = np.arange(1, min(CHAIN_SKIP, i) + 1)
+        ok = near[ds, i]
+        if ok.any():
+            cand = np.where(ok, length[i - ds], 0)
+            k = int(np.argmax(cand))  # the nearest of the longest: ds ascending
+            length[i], back[i] = cand[k] + 1, i - int(ds[k])
+    end = int(np.argmax(length))
+    if 2 * length[end] <= n:
+        return np.zeros(0, dtype=int)
+    on = np.zeros(n, dtype=bool)
+    while end >= 0:
+        on[end] = True
+        end = back[end]
+    return np.sort(order[~on])
