@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 import uuid
 from collections.abc import AsyncIterator
@@ -109,12 +110,20 @@ def _validation_items(exc: RequestValidationError) -> list[dict[str, Any]]:
     items = []
     for e in exc.errors():
         if e.get("type") == "json_invalid":
-            pos = next((p for p in e.get("loc", ())[1:] if isinstance(p, int)), 0)
-            line, col = _line_column(getattr(exc, "body", ""), pos)
-            what = (e.get("ctx") or {}).get("error", "invalid JSON")
-            items.append({"loc": ["body"], "type": "json_invalid",
-                          "msg": f"is not valid JSON: {what} at line {line} column {col} "
-                          f"(char {pos})"})
+            body = getattr(exc, "body", b"") or b""
+            what = str((e.get("ctx") or {}).get("error", "invalid JSON"))
+            if not (body.strip() if isinstance(body, bytes | str) else body):
+                items.append({"loc": ["body"], "type": "missing",
+                              "msg": "is empty: the request is a JSON object in the body"})
+            elif re.search(r" at line \d+ column \d+$", what):  # pydantic's (a jobs body)
+                items.append({"loc": ["body"], "type": "json_invalid",
+                              "msg": f"is not valid JSON: {what}"})
+            else:  # FastAPI's: a character offset as the field path
+                pos = next((p for p in e.get("loc", ())[1:] if isinstance(p, int)), 0)
+                line, col = _line_column(body, pos)
+                items.append({"loc": ["body"], "type": "json_invalid",
+                              "msg": f"is not valid JSON: {what} at line {line} column {col} "
+                              f"(char {pos})"})
             continue
         items.append({"loc": _clean_loc(tuple(e.get("loc", ()))), "msg": str(e.get("msg", "")),
                       "type": str(e.get("type", "value_error"))})

@@ -508,6 +508,11 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
     r = client.post("/v1/jobs", content=b"{not json", headers={"content-type":
                                                                 "application/json"})
     assert r.status_code == 422 and "not valid JSON" in r.json()["message"]
+    # the position said once (it was "... at line 1 column 2 at line 1 column 1 (char 0)")
+    assert r.json()["message"] == ("body: is not valid JSON: key must be a string at line 1 "
+                                   "column 2"), r.text
+    r = client.post("/v1/jobs", content=b" ", headers={"content-type": "application/json"})
+    assert r.json()["message"] == "body: is empty: the request is a JSON object in the body"
     r = client.post("/v1/jobs", content=b"x", headers={"content-type": "text/plain"})
     assert r.status_code == 415
 
