@@ -104,6 +104,7 @@ def read_part(path: Path, names: Sequence[str] = TRACK_COLUMNS) -> pa.Table:
     return table.select(list(names))
 
 
+LOG = logging.getLogger(__name__)
 PROGRESS = "progress.jsonl"
 _PART = re.compile(r"part-(\d{6})\.parquet|\.part-\d{6}\.parquet\.tmp")
 
@@ -368,6 +369,18 @@ def ledger_entries(out: str | Path) -> list[dict[str, Any]]:
     return entries
 
 
+def _upgrade(part: Path) -> None:
+    """A committed ``tracks.parquet`` part written before a column of :data:`TRACK_COLUMNS`
+    existed, rewritten with it (null) in place: reading the directory as one table takes the
+    first part's schema, and a resumed run's ``source`` column was lost whole (a tester's)."""
+    if tuple(pq.read_schema(part).names) == TRACK_COLUMNS:
+        return
+    tmp = part.with_name(f".{part.name}.tmp")
+    pq.write_table(read_part(part), tmp)
+    os.replace(tmp, part)
+    LOG.info("upgraded %s to this version's columns", part)
+
+
 class _Store:
     """The output directory: parts, the progress ledger, resume."""
 
@@ -403,6 +416,8 @@ class _Store:
                     f.unlink()
                 elif ours.group(1):
                     numbers.append(int(ours.group(1)))
+                    if d == self.tracks_dir:
+                        _upgrade(f)
         self.next_part = max(numbers) + 1
 
     def _rewrite(self, lines: list[bytes]) -> None:

@@ -356,3 +356,24 @@ def test_parts_of_an_earlier_version_conform(tmp_path):
     table = pq.read_table(combined)
     assert table.num_rows == 2 * n and table.column("gated").to_pylist() == [None] * n + [
         False] * n
+
+
+def test_a_run_resumed_over_parts_of_before_a_column_keeps_it(tmp_path, tracks):
+    """An output directory with a part written before ``source`` existed, resumed: reading
+    the directory as one table took the old part's schema and lost ``source`` for every
+    row. The old part is rewritten with the column (null: its input places are not known)."""
+    out = tmp_path / "out"
+    with ThreadPoolExecutor(1) as ex:
+        reconstruct_many(tracks[:1], out, executor=ex, flush_tracks=1)
+    part = next((out / "tracks.parquet").glob("part-*.parquet"))
+    pq.write_table(pq.read_table(part).drop(["source"]), part)  # as the version before
+    with ThreadPoolExecutor(1) as ex:
+        summary = reconstruct_many([tracks[0], tracks[2]], out, executor=ex, flush_tracks=1)
+    assert (summary.done, summary.skipped) == (1, 1)
+    table = pq.read_table(out / "tracks.parquet")
+    assert tuple(table.column_names) == TRACK_COLUMNS
+    source = table.column("source").to_pylist()
+    keys = table.column("aircraft").to_pylist()
+    assert all(s is None for s, k in zip(source, keys, strict=True) if k == tracks[0].key)
+    assert all(s.startswith("byte ") for s, k in zip(source, keys, strict=True)
+               if k == tracks[2].key)
