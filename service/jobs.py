@@ -599,6 +599,14 @@ class JobRunner:
             first = "; ".join(str(e) for e in list(loaded.problems.entries)[:3])
             reason = "no plot could be read from the recording" + (f" ({first})" if first
                                                                      else "")
+            # what was read is there to see, as for a job that ran to its end (all of it:
+            # the status shows a few examples)
+            (out / "problems.txt").write_text(loaded.problems.summary() + "\n",
+                                              encoding="utf-8")
+            (out / "summary.json").write_text(json.dumps({
+                "tracks": 0, "done": 0, "failed": 0, "plots": 0, "rows_in_recording": 0,
+                "problems": dict(loaded.problems.counts), "failures": {},
+                "error": self._public(job.id, reason)}, indent=1) + "\n", encoding="utf-8")
             self._db().finish(job.id, "failed", self._public(job.id, reason))
             return
         if self._stop_requested(job.id):

@@ -603,6 +603,11 @@ def test_unreadable_recording_is_accepted_and_fails_with_the_reason(client):
     assert status["state"] == "failed" and status["rows"] == 0, status
     assert status["error"].startswith("no plot could be read from the recording ("), status
     assert status["problems"]["total"] >= 1 and "byte 0" in status["problems"]["examples"][0]
+    # what was read is there to see (the status shows a few examples): 409 before
+    problems = client.get(r.headers["location"] + "/results/problems.txt")
+    assert problems.status_code == 200 and "byte 0" in problems.text
+    summary = client.get(r.headers["location"] + "/results/summary.json").json()
+    assert summary["error"] == status["error"] and summary["tracks"] == 0
 
 
 def test_unknown_job_is_404(client):
