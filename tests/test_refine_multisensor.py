@@ -295,6 +295,21 @@ def test_sliding_guesses_the_height_without_a_wild_plot():
     assert np.median(err) < 80.0
 
 
+def test_a_turn_harder_than_the_bounds_keeps_its_plots():
+    """The truth turns at 2 m/s^2 while bounds.u allows 1: the plots in the turn lie far from
+    the track the bounds allow. They were gated as wild (the turn cut further); they keep
+    their weight now, and the warning says the bounds, not the plots, are the cause."""
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3,
+                          mode_c=True)
+    tight = dataclasses.replace(ReconstructionConfig(), bounds=dataclasses.replace(
+        ReconstructionConfig().bounds, u=(-1.0, 1.0)))
+    rec = reconstruct(table, config=tight)
+    said = [w for w in rec.diagnostics.warnings if "sits at a bound of bounds.u" in w]
+    assert said and "a turn harder than the bounds allow" in said[0], rec.diagnostics.warnings
+    turn = (table.t > 300) & (table.t < 500)  # the truth's right turn
+    assert rec.residuals is not None and not rec.residuals.gated[turn].any()
+
+
 def test_two_noisy_radars_fused_beat_each_alone():
     table, x, z, _ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=3)
     fused = _rms(reconstruct(table), x, z)

@@ -229,7 +229,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         report_scales(weight_scale, table, diag)
         # Second solve, decided on the stitched solution so blocks and one block decide alike.
         quad = data.quad(sol, biases, variant.altitude)
-        rejected = wild_plots(quad[plot_node], t_nodes, sol, bounds, st, diag)
+        rejected = wild_plots(quad[plot_node], t_nodes, sol, bounds, st, diag, plot_node)
         fixed = None
         if polish:
             fixed = np.zeros((2, n), dtype=bool)
