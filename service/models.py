@@ -383,11 +383,12 @@ class SensorOut(_Out):
     plots: int = Field(description="Plots of this sensor.")
     plots_gated: int = Field(description="Of those, plots the reconstruction gave no weight "
                              "as wild.")
-    plots_wild: int = Field(0, description="Of those, plots outside the sensor's own residual "
-                            "distribution (over 5 robust sigmas from its median, with 10 plots "
-                            "or more; else the gated ones), which the residual statistics leave "
-                            "out: a radar's offset that is not estimated moves its plots beyond "
-                            "the reconstruction's gate, not beyond this.")
+    plots_wild: int = Field(0, description="Of `plots`, those outside the sensor's own "
+                            "residual distribution (over 5 robust sigmas from its median, with "
+                            "10 plots or more; else the gated ones), which the residual "
+                            "statistics leave out. Not a part of `plots_gated`, nor it of this: "
+                            "a radar's offset that is not estimated moves its plots beyond the "
+                            "reconstruction's gate, not beyond this.")
     range_bias_m: float | None = Field(description="Estimated range offset (m; reported "
                                        "minus true); null unless `estimate_bias`.")
     range_bias_sigma_m: float | None = Field(description="Its standard deviation (m).")
