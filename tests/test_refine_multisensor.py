@@ -254,7 +254,7 @@ def test_a_radar_whose_offsets_are_estimated_is_not_judged_by_the_others():
     a = dataclasses.replace(SSR_A, estimate_bias=True)
     adsb = PositionSensor("ADSB", position_sigma_m=15.0)
     table, *_ = _simulate((a, adsb), ((4.8, 0.3), (1.0, 0.5)), noise=1.0, seed=3,
-                          biases={0: (0.0, np.deg2rad(2.0), 0.0)}, mode_c=True)
+                          biases={0: (0.0, np.deg2rad(2.0), 0.0)}, mode_c=True, t_end=400.0)
     rec = reconstruct(table)
     rep = rec.sensors[0]
     assert rep.plots_gated == 0, rec.diagnostics.warnings
