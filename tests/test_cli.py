@@ -327,12 +327,13 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
     assert "would overwrite" in capsys.readouterr().err
 
 
-def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkeypatch, capsys):
-    """Rows by aircraft (then time) or by sensor, read in batches as the command line does: an
-    aircraft was closed at a batch's end and its later rows started a new track (a tester's
-    60 aircraft: 70 tracks; here 3 for 2). Such a table is read whole and sorted, said in the
-    problems; the tracks are the recording's two. Times of day across midnight in time order
-    are in order (no false alarm)."""
+def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkeypatch):
+    """Rows by aircraft (then time) or by sensor, read in batches as the command line does
+    (:func:`solver.cli.stream`, the command line's reading): an aircraft was closed at a
+    batch's end and its later rows started a new track (a tester's 60 aircraft: 70 tracks;
+    here 3 for 2). Such a table is read whole and sorted, said in the problems; the tracks
+    are the recording's two, with every plot. Times of day across midnight in time order are
+    in order (no false alarm)."""
     import solver.cli as cli
     from solver.io.tables import time_disorder_s
 
@@ -341,19 +342,18 @@ def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkey
     rows = read_recording(tmp_path / "long.ast", parse_sensors(SENSOR_FILE)).rows
     monkeypatch.setattr(cli, "STREAM_BATCH_ROWS", 200)
     keys = np.array([f"{m:06X}" for m in rows.mode_s])
-    write_table(rows, tmp_path / "in_order.parquet")  # no false alarm (its run: the others')
+    write_table(rows, tmp_path / "in_order.parquet")
     assert time_disorder_s(tmp_path / "in_order.parquet") == 0.0
-    for name, order in (("by_aircraft.parquet", np.lexsort((rows.t, keys))),
+    for name, order in (("in_order.parquet", None),
+                        ("by_aircraft.parquet", np.lexsort((rows.t, keys))),
                         ("by_sensor.csv", np.lexsort((rows.t, rows.sensor.astype(str))))):
-        write_table(rows.take(order), tmp_path / name)
-        code = main([str(tmp_path / name), "--sensors", str(d / "sensors.json"), "--out",
-                     str(tmp_path / name.split(".")[0]), "--workers", "1", "--no-progress"])
-        assert code == 0, capsys.readouterr().err
-        summary = json.loads((tmp_path / name.split(".")[0] / "summary.json").read_text())
-        assert summary["tracks"] == summary["done"] == len(FLIGHTS), summary
-        assert "unordered_table" in summary["problems"]
-        got = pq.read_table(tmp_path / name.split(".")[0] / "tracks.parquet")
-        assert got.num_rows == len(rows)
+        if order is not None:
+            write_table(rows.take(order), tmp_path / name)
+        read = cli.stream(tmp_path / name, d / "sensors.json")
+        tracks = list(read.tracks)
+        assert sorted(t.key for t in tracks) == sorted(f"{f.address:06X}" for f in FLIGHTS)
+        assert sum(len(t.table) for t in tracks) == len(rows)
+        assert ("unordered_table" in read.problems.counts) == (order is not None)
     tod = tmp_path / "tod.csv"
     tod.write_text("time_of_day_s,sensor\n86390,R1\n86399.5,R1\n3.5,R1\nbad,R1\n9,R1\n")
     assert time_disorder_s(tod) == 0.0
