@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache
+from typing import Any
 
 import numpy as np
 from pyproj import CRS, Proj, Transformer
@@ -88,21 +89,27 @@ class LocalFrame:
         lon, lat = _plane(self.lat_deg, self.lon_deg)[1].transform(z, x)
         return np.asarray(lat, float), np.asarray(lon, float)
 
+    def _factors(self, x: FloatArray, z: FloatArray) -> Any:
+        """PROJ's factors of the plane at ``(x, z)`` (scale, meridian convergence)."""
+        lat, lon = self.to_geodetic(x, z)
+        return _plane_proj(self.lat_deg, self.lon_deg).get_factors(lon, lat)
+
     def scale(self, x: FloatArray, z: FloatArray) -> FloatArray:
         """The plane's scale factor at ``(x, z)`` (PROJ's; conformal: one in every direction):
         plane distances and speeds there are this many times the ground's (1 at the tangent
         point, about ``1 + (r / 2R)^2`` at a distance ``r``)."""
-        lat, lon = self.to_geodetic(x, z)
-        return np.asarray(_plane_proj(self.lat_deg, self.lon_deg).get_factors(
-            lon, lat).meridional_scale, float)
+        return np.asarray(self._factors(x, z).meridional_scale, float)
 
     def on_earth(self, x: FloatArray, z: FloatArray, heading: FloatArray, speed: FloatArray
                  ) -> tuple[FloatArray, FloatArray]:
         """A motion in the plane at ``(x, z)`` (heading in rad clockwise from the plane's ``x``
-        axis, speed in m/s) on the earth: the heading from true north (:meth:`north_azimuth`
-        taken off) and the ground speed (the plane's speed over its :meth:`scale`)."""
-        return (np.asarray(heading, float) - self.north_azimuth(x, z),
-                np.asarray(speed, float) / self.scale(x, z))
+        axis, speed in m/s) on the earth: the heading from true north (PROJ's meridian
+        convergence added: :meth:`north_azimuth` taken off) and the ground speed (the plane's
+        speed over its :meth:`scale`), from one PROJ evaluation."""
+        f = self._factors(x, z)
+        return (np.asarray(heading, float) + np.deg2rad(np.asarray(f.meridian_convergence,
+                                                                   float)),
+                np.asarray(speed, float) / np.asarray(f.meridional_scale, float))
 
     def north_azimuth(self, x: FloatArray, z: FloatArray) -> FloatArray:
         """Angle (rad, clockwise) from the plane's ``x`` axis to true north at ``(x, z)``: the

@@ -53,21 +53,25 @@ def reach(h: Any, h_mid: Any, h_half: Any, lib: Any = np) -> Any:
     at 10 km; an aircraft overhead above the elevation cap) stops moving with it and is
     weighed as wild, instead of bounding the track's height. ``lib``: ``numpy`` or
     ``casadi``."""
-    b = lib.fmin(REACH_SOFTNESS_M, h_half / 400)
+    b, lo, hi = _reach_ends(h_mid, h_half, lib)
 
     def sp(x: Any) -> Any:
         return lib.fmax(x, 0) + b * lib.log1p(lib.exp(-lib.fabs(x) / b))
 
-    lo, hi = h_mid - h_half - REACH_MARGIN * b, h_mid + h_half + REACH_MARGIN * b
     return lo + sp(h - lo) - sp(h - hi)
+
+
+def _reach_ends(h_mid: Any, h_half: Any, lib: Any = np) -> tuple[Any, Any, Any]:
+    """:func:`reach`'s width ``b`` and the ends ``lo``, ``hi`` of its smooth clamp."""
+    b = lib.fmin(REACH_SOFTNESS_M, h_half / 400)
+    return b, h_mid - h_half - REACH_MARGIN * b, h_mid + h_half + REACH_MARGIN * b
 
 
 def reach_slope(h: FloatArray, h_mid: FloatArray, h_half: FloatArray) -> FloatArray:
     """``d reach / d h = sigma((h - lo) / b) - sigma((h - hi) / b)`` (logistic sigma)."""
     from scipy.special import expit
 
-    b = np.fmin(REACH_SOFTNESS_M, h_half / 400)
-    lo, hi = h_mid - h_half - REACH_MARGIN * b, h_mid + h_half + REACH_MARGIN * b
+    b, lo, hi = _reach_ends(h_mid, h_half)
     return expit((h - lo) / b) - expit((h - hi) / b)
 
 

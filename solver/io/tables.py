@@ -248,12 +248,12 @@ def time_disorder_s(path: str | Path) -> float:
     (:func:`solver.io.split.split_stream`) or must be read whole and sorted first."""
     path = Path(path)
     if path.suffix.lower() in (".parquet", ".pq"):
-        names = [n.strip() for n in pq.read_schema(path).names]
+        raw_names = pq.read_schema(path).names
+        names = [n.strip() for n in raw_names]
         name = "t" if "t" in names else "time_of_day_s" if "time_of_day_s" in names else None
         if name is None:
             return 0.0  # no time column: read_table says so
-        col = pq.read_table(path, columns=[pq.read_schema(path).names[names.index(name)]]
-                            ).column(0)
+        col = pq.read_table(path, columns=[raw_names[names.index(name)]]).column(0)
     else:
         with open(path, "rb") as f:
             first = f.readline().decode("utf-8-sig", errors="replace")
