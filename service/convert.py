@@ -232,6 +232,17 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
         raise unsent_reference(e, listed, first) from None
 
 
+def require_fields(plot: PlotIn, kind: str | None, loc: tuple[str | int, ...]) -> None:
+    """A plot's fields its sensor's ``kind`` needs (``range_m`` and ``azimuth_deg`` of a
+    radar, ``lat_deg`` and ``lon_deg`` of a position sensor; none of an unknown sensor, named
+    elsewhere), a missing one named as such rather than as a NaN value."""
+    need = {"radar": ("range_m", "azimuth_deg"), "position": ("lat_deg", "lon_deg")}
+    for name in need.get(kind or "", ()):
+        if getattr(plot, name) is None:
+            raise InputError((*loc, name), f"is required for a plot of {plot.sensor!r} (a "
+                             f"{kind} sensor)")
+
+
 def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
                reference: LocalFrame | None, loc: tuple[str | int, ...] = ("plots",)
                ) -> PlotTable:
@@ -239,13 +250,8 @@ def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
     used); an error at a plot is named at ``loc`` (a job's track ``("tracks", key)``: the
     plot's index within the track)."""
     kinds = {s.id: s.kind for s in sensors}
-    for i, p in enumerate(plots):  # a missing field named as such, not as a NaN value
-        need = ("range_m", "azimuth_deg") if kinds.get(p.sensor) == "radar" else (
-            ("lat_deg", "lon_deg") if p.sensor in kinds else ())
-        for name in need:
-            if getattr(p, name) is None:
-                raise InputError((*loc, i, name), f"is required for a plot of {p.sensor!r} "
-                                 f"(a {kinds[p.sensor]} sensor)")
+    for i, p in enumerate(plots):
+        require_fields(p, kinds.get(p.sensor), (*loc, i))
 
     def col(name: str, scale: float = 1.0) -> np.ndarray:
         return np.array([np.nan if getattr(p, name) is None else getattr(p, name) * scale

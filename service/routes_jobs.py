@@ -29,7 +29,7 @@ from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
-from .convert import plot_table, unsent_reference
+from .convert import plot_table, require_fields, unsent_reference
 from .job_models import (
     JobOptions,
     JobStatus,
@@ -342,10 +342,7 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
             if p.sensor not in radar:
                 raise InputError((*loc, "sensor"), f"{p.sensor!r} is not a sensor id (ids: "
                                  f"{', '.join(radar)})")
-            need = ("range_m", "azimuth_deg") if radar[p.sensor] else ("lat_deg", "lon_deg")
-            for name in need:
-                if getattr(p, name) is None:
-                    raise InputError((*loc, name), f"is required for a plot of {p.sensor}")
+            require_fields(p, "radar" if radar[p.sensor] else "position", loc)
             for name in cols:
                 value = key if name == "aircraft" else getattr(p, name)
                 cols[name].append(np.nan if value is None else value)
