@@ -10,7 +10,7 @@ the answer: None only for the seed's case of radars at the origin of a flat plan
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -200,6 +200,16 @@ class PlotTable:
         lack it and another sensor sees the aircraft too (a single radar cannot observe it)."""
         radar = self.radar_rows()
         return bool(len(self.sensors) > 1 and np.any(radar & np.isnan(self.altitude_m)))
+
+    def corrected(self, offsets: dict[int, tuple[float, float]]) -> PlotTable:
+        """A copy whose radar plots of sensor ``k`` measured ``(r - b_r, psi - b_psi)`` for
+        ``offsets[k] = (b_r, b_psi)`` (m, rad): where a radar with those offsets saw them."""
+        r, psi = self.range_m.copy(), self.azimuth_rad.copy()
+        for k, (b_r, b_psi) in offsets.items():
+            rows = self.sensor == k
+            r[rows] -= b_r
+            psi[rows] = np.mod(psi[rows] - b_psi, 2 * np.pi)
+        return replace(self, range_m=r, azimuth_rad=psi)
 
     def fixes(self) -> PlaneFixes:
         """Every plot as a fix in the local plane (rows in table order)."""

@@ -234,7 +234,10 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         if polish:
             fixed = np.zeros((2, n), dtype=bool)
             fixed[:, 1:] = np.abs(np.diff(sol[:, 4:6], axis=0)).T <= st.switch_threshold
-        if fixed is not None or rejected.size:
+        if variant.biases:  # the radar model linearised at the offsets found, not at zero
+            data = data.relinearised(table, plot_node, variant, bias_sensors, biases,
+                                     weight_scale)
+        if fixed is not None or rejected.size or variant.biases:
             data = data.without(plot_node[rejected])
             sol, biases, f2, it2 = solve_all(sol, data, biases, fixed)
             failures, iters, solves = failures + f2, iters + it2, solves + len(blocks)

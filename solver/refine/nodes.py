@@ -142,6 +142,25 @@ class NodeData:
         info[plot_node] *= factor[:, None]
         return replace(self, info=info)
 
+    def relinearised(self, table: PlotTable, plot_node: np.ndarray, variant: Variant,
+                     bias_sensors: list[int], biases: FloatArray, sensor_scale: FloatArray
+                     ) -> NodeData:
+        """A copy whose radar plots' centres and derivatives are taken at the offsets
+        ``biases`` (``(radars, 3)``, range and azimuth; the time offset's term is exact):
+        ``c(r - b0, psi - b0) + J b0`` as the centre, so the NLP's ``p + J b - centre`` is the
+        residual linearised at ``b0`` instead of at zero (a Gauss-Newton step on the radar
+        model). At zero, a 2-deg azimuth offset at 280 km leaves ``r b^2 / 2 = 170 m`` along the
+        ray, which the range offset took up. Weights, gating, level relief and the sensors'
+        weight scales ``sensor_scale`` (per table sensor) carry over."""
+        offsets = {k: (float(biases[j, 0]), float(biases[j, 1]))
+                   for j, k in enumerate(bias_sensors)}
+        new = NodeData.assemble(table, table.corrected(offsets).fixes(), len(self.weight),
+                                plot_node, variant, bias_sensors)
+        b = new.sensor @ biases
+        centre = new.centre + new.d_range * b[:, 0:1] + new.d_azimuth * b[:, 1:2]
+        new = new.reweighted(plot_node, sensor_scale[table.sensor])
+        return replace(new, centre=centre, weight=self.weight, level=self.level)
+
     def centre_at(self, h: FloatArray | None) -> FloatArray:
         """``(n, 2)`` plot centres at node heights ``h`` (None: the fixed centres)."""
         if h is None:
