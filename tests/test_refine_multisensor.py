@@ -709,3 +709,29 @@ def test_held_offsets_are_consider_states_for_every_measurement(monkeypatch):
     np.testing.assert_allclose(full[-1][b, b], cut[-1][b, b], rtol=1e-9)
     # and the later measurements do inform the track's own states
     assert full[-1][0, 0] < 0.5 * cut[-1][0, 0]
+
+
+@pytest.mark.parametrize("variant", [(False, 1), (True, 2)])
+def test_the_hessian_by_parts_is_casadis_whole_hessian(variant):
+    """The offsets' NLP gives IPOPT its Lagrangian Hessian in blocks (CasADi's colouring of the
+    whole one is quadratic in the nodes): the same sparsity and values as CasADi's own, at
+    random points."""
+    import casadi as ca
+
+    from solver.motion import motion_function
+    from solver.refine.layout import Variant
+    from solver.refine.nlp import block_nlp, hessian_by_parts
+
+    nlp = block_nlp(24, Variant(*variant), motion_function(compile=False))
+    lam_f, lam_g = ca.MX.sym("lf"), ca.MX.sym("lg", nlp["g"].shape[0])
+    whole = ca.triu(ca.hessian(lam_f * nlp["f"] + ca.dot(lam_g, nlp["g"]), nlp["x"])[0])
+    ref = ca.Function("whole", [nlp["x"], nlp["p"], lam_f, lam_g], [whole])
+    parts = hessian_by_parts(nlp)
+    rng = np.random.default_rng(2)
+    for _ in range(3):
+        args = (1 + 0.2 * rng.normal(size=nlp["x"].shape[0]),
+                np.abs(rng.normal(size=nlp["p"].shape[0])), rng.uniform(0.5, 2),
+                rng.normal(size=nlp["g"].shape[0]))
+        a, b = parts(*args), ref(*args)
+        assert a.sparsity() == b.sparsity()
+        np.testing.assert_allclose(a.nonzeros(), b.nonzeros(), rtol=1e-12, atol=1e-12)

@@ -124,6 +124,49 @@ _interpreted_derivatives: list[bool] = []  # non-empty once compiling them faile
 
 def _block_solver(n: int, variant: Variant, warm: bool, tol: float,
                   motion: ca.Function) -> ca.Function:
+    nlp = block_nlp(n, variant, motion)
+    nx, ng = nlp["x"].shape[0], nlp["g"].shape[0]
+    callback = _DeadlineCallback(f"deadline_{n}_{len(_callbacks)}", nx, ng, nlp["p"].shape[0])
+    _callbacks.append(callback)
+    opts = {
+        "print_time": False,
+        "error_on_fail": False,
+        "iteration_callback": callback,
+        "ipopt": {
+            "print_level": 0,
+            "sb": "yes",
+            "tol": tol,  # chi-square units (RefineSettings.ipopt_tol)
+            "acceptable_tol": tol,
+            "max_iter": 300,
+            # adaptive, also in the cold first solve: the monotone barrier from 0.01 there took
+            # 11 / 14 / 1 % less CPU on dev seeds 100-107 (seed000 / seed001 / ssr; its
+            # quality-function oracle is work in every iteration), but on the blocked seed-like
+            # track of tests/test_refine.py it chose other switches: 12.4 m from the one-block
+            # solution, against the test's 1 m
+            "mu_strategy": "adaptive",
+            # refine a linear solve only when its residual asks for it (IPOPT still checks
+            # residual_ratio_max after every solve); IPOPT's default of at least one step costs
+            # a back-substitution per solve: MUMPS's solves were 17 % of a reconstruction.
+            "min_refinement_steps": 0,
+            # MUMPS without its scaling and permutation (ICNTL 6 and 8): the NLP is scaled
+            # already (layout.node_scale); 4.7 % fewer instructions a seed000 pass, the same
+            # iterations (915 on the 42 dev runs) and positions (< 0.05 mm)
+            "mumps_permuting_scaling": 0,
+            "mumps_scaling": 0,
+        },
+    }
+    if warm:  # the polish solve starts at the first solve's primal-dual solution
+        opts["ipopt"].update({"warm_start_init_point": "yes", "warm_start_bound_push": 1e-6,
+                              "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-5})
+    if variant.biases:
+        opts["hess_lag"] = hessian_by_parts(nlp)
+    name = f"refine_{n}_{int(variant.altitude)}{variant.biases}{'_warm' if warm else ''}"
+    return ca.nlpsol(name, "ipopt", nlp, opts)
+
+
+def block_nlp(n: int, variant: Variant, motion: ca.Function) -> dict[str, ca.MX]:
+    """The NLP of a block of ``n`` nodes (module docstring): ``x`` is ``vec(X)`` then the
+    offsets ``B``, two symbols (``x.primitives()``)."""
     V, G = node_variables(variant), global_variables(variant)
     P, E = node_parameters(variant), block_parameters(variant)
     Xs = ca.MX.sym("X", V.size, n)
@@ -192,38 +235,20 @@ def _block_solver(n: int, variant: Variant, warm: bool, tol: float,
         "f": data + pen,
         "g": ca.vertcat(ca.vec(g_dyn), ca.vec(g_ctl), *(ca.vec(g) for g in g_alt)),
     }
-    nx, ng = nlp["x"].shape[0], nlp["g"].shape[0]
-    callback = _DeadlineCallback(f"deadline_{n}_{len(_callbacks)}", nx, ng, nlp["p"].shape[0])
-    _callbacks.append(callback)
-    opts = {
-        "print_time": False,
-        "error_on_fail": False,
-        "iteration_callback": callback,
-        "ipopt": {
-            "print_level": 0,
-            "sb": "yes",
-            "tol": tol,  # chi-square units (RefineSettings.ipopt_tol)
-            "acceptable_tol": tol,
-            "max_iter": 300,
-            # adaptive, also in the cold first solve: the monotone barrier from 0.01 there took
-            # 11 / 14 / 1 % less CPU on dev seeds 100-107 (seed000 / seed001 / ssr; its
-            # quality-function oracle is work in every iteration), but on the blocked seed-like
-            # track of tests/test_refine.py it chose other switches: 12.4 m from the one-block
-            # solution, against the test's 1 m
-            "mu_strategy": "adaptive",
-            # refine a linear solve only when its residual asks for it (IPOPT still checks
-            # residual_ratio_max after every solve); IPOPT's default of at least one step costs
-            # a back-substitution per solve: MUMPS's solves were 17 % of a reconstruction.
-            "min_refinement_steps": 0,
-            # MUMPS without its scaling and permutation (ICNTL 6 and 8): the NLP is scaled
-            # already (layout.node_scale); 4.7 % fewer instructions a seed000 pass, the same
-            # iterations (915 on the 42 dev runs) and positions (< 0.05 mm)
-            "mumps_permuting_scaling": 0,
-            "mumps_scaling": 0,
-        },
-    }
-    if warm:  # the polish solve starts at the first solve's primal-dual solution
-        opts["ipopt"].update({"warm_start_init_point": "yes", "warm_start_bound_push": 1e-6,
-                              "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-5})
-    name = f"refine_{n}_{int(variant.altitude)}{variant.biases}{'_warm' if warm else ''}"
-    return ca.nlpsol(name, "ipopt", nlp, opts)
+    return nlp
+
+
+def hessian_by_parts(nlp: dict[str, ca.MX]) -> ca.Function:
+    """The Lagrangian's Hessian (upper triangle, IPOPT's ``hess_lag``) in blocks: nodes-nodes,
+    nodes-offsets, offsets-offsets. The offsets couple every node, so the whole Hessian has
+    dense rows, and CasADi's star colouring of it is quadratic in the nodes: building one solver
+    of 1024 nodes with three radars' offsets took 6.3 s, 20 s at 1750 nodes (a 47-s first
+    request). In blocks: 0.3 s, the same sparsity and values (tested)."""
+    Xs, Bs = nlp["x"].primitives()
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", nlp["g"].shape[0])
+    lagrangian = lam_f * nlp["f"] + ca.dot(lam_g, nlp["g"])
+    h_xx = ca.hessian(lagrangian, Xs)[0]
+    h_xb = ca.jacobian(ca.gradient(lagrangian, Xs), Bs)
+    h_bb = ca.hessian(lagrangian, Bs)[0]
+    h = ca.triu(ca.blockcat([[h_xx, h_xb], [h_xb.T, h_bb]]))
+    return ca.Function("hess_lag_parts", [nlp["x"], nlp["p"], lam_f, lam_g], [h])
