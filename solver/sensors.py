@@ -37,6 +37,7 @@ REACH_SOFTNESS_M = 10.0
 REACH_MARGIN = 12.0
 """The smooth ends start this many widths beyond the reach's (``h`` is itself within it to
 ``b log(1 + e^-12)``, 0.06 mm)."""
+MAX_ELEVATION_DEG = float(np.degrees(np.arcsin(MAX_ELEVATION_FRACTION)))
 ALTITUDE_FIT_DEGREE = 5
 
 
@@ -65,6 +66,13 @@ def _reach_ends(h_mid: Any, h_half: Any, lib: Any = np) -> tuple[Any, Any, Any]:
     """:func:`reach`'s width ``b`` and the ends ``lo``, ``hi`` of its smooth clamp."""
     b = lib.fmin(REACH_SOFTNESS_M, h_half / 400)
     return b, h_mid - h_half - REACH_MARGIN * b, h_mid + h_half + REACH_MARGIN * b
+
+
+def beyond_reach(h: FloatArray, h_mid: FloatArray, h_half: FloatArray) -> np.ndarray:
+    """Heights beyond the ends of :func:`reach`'s smooth clamp, where the centre has stopped
+    following them."""
+    _, lo, hi = _reach_ends(h_mid, h_half)
+    return (h < lo) | (h > hi)
 
 
 def reach_slope(h: FloatArray, h_mid: FloatArray, h_half: FloatArray) -> FloatArray:

@@ -133,13 +133,11 @@ def test_a_wild_plot_near_a_radar_is_left_out_and_the_height_kept(range_m):
     assert rec.residuals is not None and rec.residuals.gated[k] and rec.residuals.gated.sum() == 1
 
 
-def test_an_overflight_at_74_deg_elevation_without_altitude():
-    """An aircraft at 10 km passing 3 km (ground) from radar A, no altitude: 74 deg elevation
-    at the closest point. The height used to be capped at 0.9 of the slant range (64 deg) per
-    plot, which made the true height impossible there: 700 m off, 30 m/s. Within the reach
-    now (0.96 r): within 12 m of the truth at every plot, no plot left out."""
+def _overflight(passing_m: float) -> tuple[PlotTable, dict, float]:
+    """Radars A and B, no altitude, an aircraft at 10 km flying east ``passing_m`` north of A:
+    the table, the true positions and A's largest elevation (deg)."""
     xa, za = FRAME.to_plane(np.array([SSR_A.site.lat_deg]), np.array([SSR_A.site.lon_deg]))
-    segs = [Segment(0.0, 400.0, float(xa[0]) + 2700.0, float(za[0]) - 44_000.0, np.pi / 2,
+    segs = [Segment(0.0, 400.0, float(xa[0]) + passing_m, float(za[0]) - 44_000.0, np.pi / 2,
                     220.0, 0.0, 0.0)]
     cols: dict[str, list] = {k: [] for k in ("t", "s", "r", "a", "x", "z")}
     for sensor, offset in ((SSR_A, 0.3), (SSR_B, 1.1)):
@@ -150,13 +148,43 @@ def test_an_overflight_at_74_deg_elevation_without_altitude():
             cols[key].append(np.asarray(val))
     c = {k: np.concatenate(v) for k, v in cols.items()}
     closest = c["r"][c["s"] == "A"].min()
-    assert np.degrees(np.arcsin((10_000.0 - 380.0) / closest)) > 73.5
     table = PlotTable.build((SSR_A, SSR_B), c["t"], c["s"], c["r"], c["a"], reference=FRAME)
+    return table, c, float(np.degrees(np.arcsin((10_000.0 - 380.0) / closest)))
+
+
+def test_an_overflight_at_74_deg_elevation_without_altitude():
+    """An aircraft at 10 km passing 3 km (ground) from radar A, no altitude: 74 deg elevation
+    at the closest point. The height used to be capped at 0.9 of the slant range (64 deg) per
+    plot, which made the true height impossible there: 700 m off, 30 m/s. Within the reach
+    now (0.96 r): within 12 m of the truth at every plot, no plot left out."""
+    table, c, top = _overflight(2700.0)
+    assert top > 73.5
     rec = reconstruct(table)
     err = np.hypot(rec.at_plots.x - c["x"], rec.at_plots.z - c["z"])
     assert err.max() < 12.0, err.max()
     assert rec.altitude_m == pytest.approx(10_000.0, abs=30.0)
     assert rec.residuals is not None and not rec.residuals.gated.any()
+
+
+@pytest.mark.parametrize("passing_m, top_deg", [(1500.0, 81.0), (500.0, 86.9)])
+def test_plots_above_74_deg_are_left_out_by_themselves(passing_m, top_deg):
+    """Passing 1.5 km or 0.5 km from A at 10 km, no altitude (81 and 87 deg): A's plots near
+    the top are beyond their reach (a slant range places a plot without altitude up to 74 deg:
+    MAX_ELEVATION_FRACTION). Weighed, they pulled the track 145 m and 86 m off; the turn that
+    made kept their weight as 'a turn harder than bounds.u', and B's plots were gated instead.
+    Now they are left out, said so, before any other plot is judged: within 1 m, noise-free."""
+    table, c, top = _overflight(passing_m)
+    assert top > top_deg
+    rec = reconstruct(table)
+    err = np.hypot(rec.at_plots.x - c["x"], rec.at_plots.z - c["z"])
+    assert err.max() < 1.0, err.max()
+    warns = rec.diagnostics.warnings
+    overhead = [w for w in warns if "cannot place them at the track's height" in w]
+    assert len(overhead) == 1, warns
+    assert not any("bounds.u" in w or "sigma from the track" in w for w in warns), warns
+    gated = np.flatnonzero(rec.residuals.gated)
+    assert 3 <= gated.size <= 6 and np.all(table.sensor[gated] == 0)
+    assert str(gated.tolist()) in overhead[0]
 
 
 @pytest.mark.parametrize("lat0, ref_km", [(46.0, 0.0), (78.0, 250.0), (60.0, 600.0)])

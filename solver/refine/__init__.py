@@ -27,7 +27,7 @@ from ..config import ReconstructionConfig, RefineSettings
 from ..inputs import Bounds, Plots, Radar
 from ..plots import PlotTable
 from ..results import Diagnostics, Reconstruction
-from ..sensors import ALTITUDE_RANGE_M
+from ..sensors import ALTITUDE_RANGE_M, MAX_ELEVATION_DEG
 from ..trajectory import sample_times
 from . import nlp
 from .blocks import (
@@ -228,6 +228,17 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
             failures, iters, solves = failures + f1, iters + it1, solves + len(blocks)
         report_scales(weight_scale, table, diag)
         # Second solve, decided on the stitched solution so blocks and one block decide alike.
+        overhead = np.array([], dtype=int)
+        if variant.altitude:
+            # plots beyond their reach at the track's height (above 74 deg without altitude):
+            # left out and solved again, before they are taken for a turn or wild plots
+            h = sol[:, solution_columns(variant).index("h")]
+            overhead = np.flatnonzero(data.beyond_reach(h)[plot_node]
+                                      & (data.weight[plot_node] > 0))
+            if overhead.size:
+                data = data.without(plot_node[overhead])
+                sol, biases, f1, it1 = solve_all(sol, data, biases, None)
+                failures, iters, solves = failures + f1, iters + it1, solves + len(blocks)
         quad = data.quad(sol, biases, variant.altitude)
         rejected = wild_plots(quad[plot_node], t_nodes, sol, bounds, st, diag, plot_node)
         fixed = None
@@ -249,12 +260,18 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
             f"(off their longest chain in time, each in reach of the one before: a wild range "
             f"or azimuth) were given no weight: plots "
             f"{_listed(impossible)}")
-    rejected = np.setdiff1d(rejected, impossible)
+    if overhead.size:
+        diag.warnings.append(
+            f"{overhead.size} plot(s) without altitude whose slant range cannot place them at "
+            f"the track's height (above {MAX_ELEVATION_DEG:.0f} deg elevation there, or a range "
+            f"shorter than the height: solver.sensors.MAX_ELEVATION_FRACTION) were given no "
+            f"weight: plots {_listed(overhead)}")
+    rejected = np.setdiff1d(rejected, np.union1d(impossible, overhead))
     if rejected.size:
         diag.warnings.append(
             f"{rejected.size} plot(s) more than {st.outlier_gate:g} sigma from the track were "
             f"given no weight: plots {_listed(rejected)}")
-    rejected = np.union1d(rejected, impossible).astype(int)
+    rejected = np.union1d(np.union1d(rejected, impossible), overhead).astype(int)
     diag.extra["rejected_plots"] = int(rejected.size)
     diag.solver_failures += failures
     diag.extra.update(refine_blocks=len(blocks), refine_nodes=n, refine_iterations=iters)

@@ -20,6 +20,7 @@ from ..sensors import (
     ALTITUDE_RANGE_M,
     PlaneFixes,
     PositionSensor,
+    beyond_reach,
     reach,
     reach_slope,
 )
@@ -160,6 +161,12 @@ class NodeData:
         centre = new.centre + new.d_range * b[:, 0:1] + new.d_azimuth * b[:, 1:2]
         new = new.reweighted(plot_node, sensor_scale[table.sensor])
         return replace(new, centre=centre, weight=self.weight, level=self.level)
+
+    def beyond_reach(self, h: FloatArray) -> np.ndarray:
+        """``(n,)`` bool: nodes whose plot's centre follows the height (no altitude) but not to
+        ``h``, the node's height: beyond its reach (:func:`solver.sensors.reach`) by more than
+        the reach's smooth ends (an aircraft above 74 deg elevation, a wild range)."""
+        return self.free & beyond_reach(h, self.h_mid, self.h_half)
 
     def centre_at(self, h: FloatArray | None) -> FloatArray:
         """``(n, 2)`` plot centres at node heights ``h`` (None: the fixed centres)."""
