@@ -22,9 +22,11 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from pyproj import CRS, Proj, Transformer
+from pyproj import CRS, Geod, Proj, Transformer
 
 from .inputs import FloatArray, InputError
+
+_GEOD = Geod(ellps="WGS84")
 
 
 @cache
@@ -110,6 +112,13 @@ class LocalFrame:
         return (np.asarray(heading, float) + np.deg2rad(np.asarray(f.meridian_convergence,
                                                                    float)),
                 np.asarray(speed, float) / np.asarray(f.meridional_scale, float))
+
+    def ground_distance(self, lat_deg: FloatArray, lon_deg: FloatArray) -> FloatArray:
+        """Geodesic distance (m, WGS-84; PROJ's ``Geod``) from the reference to points."""
+        lat, lon = np.broadcast_arrays(np.asarray(lat_deg, float), np.asarray(lon_deg, float))
+        _, _, d = _GEOD.inv(np.full(lat.shape, self.lon_deg), np.full(lat.shape, self.lat_deg),
+                            lon, lat)
+        return np.asarray(d, float)
 
     def north_azimuth(self, x: FloatArray, z: FloatArray) -> FloatArray:
         """Angle (rad, clockwise) from the plane's ``x`` axis to true north at ``(x, z)``: the

@@ -75,20 +75,24 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
 
 def _warn_far_from_reference(result: Reconstruction) -> None:
     """Warn when the track lies so far from the plane's reference that the plane's scale
-    (:meth:`solver.frames.LocalFrame.scale`) makes its speeds and distances more than
-    :data:`FAR_SCALE` too large (about 900 km; 2.4 % measured at 2000 km)."""
+    (:meth:`solver.frames.LocalFrame.scale`) exceeds ``1 +`` :data:`FAR_SCALE` (about 900 km;
+    1.024 at 2000 km): the plane's quantities (``x``, ``z``, segments, manoeuvres) are then
+    that much larger than the ground's. Latitudes, longitudes and the states' heading and speed
+    are on the earth, and the bounds hold on the ground (:meth:`NodeData.scaled`)."""
     s, frame = result.at_plots, result.frame
     assert frame is not None
     if not len(s):
         return
-    far = int(np.argmax(np.hypot(s.x, s.z)))
-    excess = float(frame.scale(s.x[far:far + 1], s.z[far:far + 1])[0]) - 1.0
-    if excess > FAR_SCALE:
+    scale = np.asarray(frame.scale(s.x, s.z), float)
+    far = int(np.argmax(scale))
+    if scale[far] - 1.0 > FAR_SCALE:
+        km = float(frame.ground_distance(s.lat_deg[far], s.lon_deg[far])) / 1e3
         result.diagnostics.warnings.append(
-            f"the track lies up to {np.hypot(s.x[far], s.z[far]) / 1e3:.0f} km from the "
-            f"plane's reference ({frame.lat_deg:.4f}, {frame.lon_deg:.4f}): there the plane's "
-            f"scale makes speeds, accelerations and distances up to {100 * excess:.1f} % too "
-            "large; give a reference near the track")
+            f"the track lies up to {km:.0f} km from the plane's reference ({frame.lat_deg:.4f}, "
+            f"{frame.lon_deg:.4f}), where the plane's scale is {scale[far]:.3f}: x, z, segments "
+            f"and manoeuvres are up to {100 * (scale[far] - 1):.1f} % larger there than on the "
+            "ground (latitudes, longitudes and the states' heading and speed are on the earth); "
+            "give a reference near the track for the plane to read as the ground")
 
 
 def _reconstruct_single(plots: Plots, radar: Radar, config: ReconstructionConfig,

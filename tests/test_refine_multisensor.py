@@ -216,6 +216,39 @@ def test_heading_and_speed_are_on_the_earth(lat0, ref_km):
         assert np.abs((plane - heading + 180.0) % 360.0 - 180.0)[inner].min() > 0.3
 
 
+def test_the_speed_bounds_hold_on_the_ground_far_from_the_reference():
+    """ADS-B of a geodesic flown at 320 m/s 3400 km from the plane's reference, the default
+    bounds.v (30-330 m/s): the plane's scale there is about 1.07, so the plane's speed is about
+    342 m/s. Held at 330 m/s in the plane, the track fell behind: 15.7 km off at the far end of
+    a tester's 3-hour flight, with a warning that the plots asked for more than bounds.v. The
+    bounds now hold on the ground (the plane's scale times them): within 5 m, no speed warning,
+    and the warning about the reference gives the geodesic distance and the scale."""
+    from pyproj import Geod
+
+    geod = Geod(ellps="WGS84")
+    t = np.arange(0.0, 400.0, 2.0)
+    lon1, lat1, _ = geod.fwd(np.full(t.size, 20.0), np.full(t.size, 50.0),
+                             np.full(t.size, 60.0), 320.0 * t)
+    ref_lon, ref_lat, _ = geod.fwd(20.0, 50.0, 250.0, 3400e3)
+    table = PlotTable.build((PositionSensor("ADSB", position_sigma_m=5.0),), t,
+                            ["ADSB"] * t.size, lat_deg=lat1, lon_deg=lon1,
+                            reference=LocalFrame(float(ref_lat), float(ref_lon)))
+    rec = reconstruct(table)
+    assert rec.frame is not None
+    scale = rec.frame.scale(rec.at_plots.x, rec.at_plots.z)
+    assert scale.min() > 1.06
+    lat, lon = rec.frame.to_geodetic(rec.at_plots.x, rec.at_plots.z)
+    _, _, err = geod.inv(lon, lat, lon1, lat1)
+    assert np.max(err) < 5.0, np.max(err)
+    warns = rec.diagnostics.warnings
+    assert not any("bounds.v" in w for w in warns), warns
+    far = [w for w in warns if "from the plane's reference" in w]
+    assert len(far) == 1, warns
+    _, _, dist = geod.inv(np.full(t.size, ref_lon), np.full(t.size, ref_lat), lon1, lat1)
+    assert f"lies up to {np.max(dist) / 1e3:.0f} km" in far[0], far  # on the ground
+    assert f"plane's scale is {scale.max():.3f}" in far[0], far
+
+
 def test_statistics_of_a_radar_with_an_offset_not_estimated():
     """Radar A reports 300 m and 0.2 deg too far (6 and 2.5 sigmas) and its offsets are not
     estimated; radar B and ADS-B are right; 3 of A's plots are 8 km off. The reconstruction

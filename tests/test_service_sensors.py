@@ -298,7 +298,8 @@ def test_a_reference_far_from_the_track_warns_of_the_planes_scale():
         assert np.median(rec.at_plots.speed) == pytest.approx(speed, abs=0.3)
         far = [w for w in rec.diagnostics.warnings if "from the plane's reference" in w]
         assert bool(far) == warned, rec.diagnostics.warnings
-    assert "up to 2.5 % too large" in far[0]  # at the farthest plot, 2007 km
+    # at the farthest plot, 1991 km on the ground (pyproj Geod; 2007 km in the plane)
+    assert "lies up to 1991 km" in far[0] and "up to 2.5 % larger there" in far[0], far
 
 
 def test_sensors_without_plots_are_left_out_with_a_note(client):

@@ -84,7 +84,10 @@ def unreachable_in(table: PlotTable, data: NodeData, plot_node: np.ndarray, boun
     alone = list(bias_sensors or [])
     groups = [np.flatnonzero(table.sensor == k) for k in alone]
     groups.append(np.flatnonzero(~np.isin(table.sensor, alone)))
-    out = [g[unreachable_plots(table.t[g], centre[g], sigma[g], spread[g], bounds.v[1])]
+    # plane distances: the fastest ground speed times the plane's largest scale at the plots
+    v_max = bounds.v[1] * (float(np.max(table.frame.scale(*centre.T)))
+                           if table.frame is not None else 1.0)
+    out = [g[unreachable_plots(table.t[g], centre[g], sigma[g], spread[g], v_max)]
            for g in groups if g.size]
     return np.sort(np.concatenate(out)) if out else np.zeros(0, dtype=int)
 
@@ -172,6 +175,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         guess = with_altitude(guess, h0, t_nodes)
     # the level penalty relieved where the start turns (RefineSettings.level_relief_u)
     data = data.relieved(guess[:, solution_columns(variant).index("u")], st.level_relief_u)
+    data = data.scaled(table.frame, guess[:, 0], guess[:, 1])
     delta = st.huber_delta if st.huber_delta is not None else 1e6
     diag.method = "refined"
     pb = Problem(t_nodes, hd_information(t_nodes), variant, bounds, st, delta,
@@ -240,7 +244,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
                 sol, biases, f1, it1 = solve_all(sol, data, biases, None)
                 failures, iters, solves = failures + f1, iters + it1, solves + len(blocks)
         quad = data.quad(sol, biases, variant.altitude)
-        rejected = wild_plots(quad[plot_node], t_nodes, sol, bounds, st, diag, plot_node)
+        rejected = wild_plots(quad[plot_node], t_nodes, data.on_ground(sol), bounds, st, diag,
+                              plot_node)
         fixed = None
         if polish:
             fixed = np.zeros((2, n), dtype=bool)
@@ -279,7 +284,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         diag.warnings.append(f"refinement: IPOPT did not converge in {failures} of {solves} "
                              f"block solve(s) over {len(blocks)} block(s); the last iterate "
                              "was kept")
-    report_bounds(t_nodes, sol, bounds, diag)
+    report_bounds(t_nodes, data.on_ground(sol), bounds, diag)
     segs = segments(t_nodes, sol, bounds)
     # offsets estimated in the first block only are consider states after it
     consider = blocks[0][2] + 1 if variant.biases and len(blocks) > 1 else None

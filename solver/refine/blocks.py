@@ -151,6 +151,11 @@ def solve_block(pb: Problem, start: int, stop: int, data: NodeData, guess: np.nd
     lo[V["dw"]], hi[V["dw"]] = 0.0, dw_max
     lbx = np.tile(lo[:, None], (1, size))
     ubx = np.tile(hi[:, None], (1, size))
+    # speed and accelerations bounded on the ground: the plane's are its scale times those
+    k = np.append(data.plane_scale[sl], np.full(size - m, data.plane_scale[stop - 1]))
+    for name in ("v", "u", "w", "du", "dw"):
+        lbx[V[name]] *= k
+        ubx[V[name]] *= k
     extra = np.zeros(E.size)
     extra[E["u_prev"]], extra[E["w_prev"]] = first
     extra[E["huber"]] = pb.delta

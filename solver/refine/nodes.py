@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..estimation.cv_rts import smoothed_means
+from ..frames import LocalFrame
 from ..inputs import Bounds, FloatArray
 from ..plots import PlotTable
 from ..results import Reconstruction, StateSeries
@@ -70,6 +71,7 @@ class NodeData:
     sensor: FloatArray  # (n, biases) one-hot
     free: np.ndarray  # (n,) bool: the centre depends on the height
     level: FloatArray  # (n, 2) scale of the level penalties on |u|, |w| (1: the full weight)
+    plane_scale: FloatArray  # (n,) the plane's scale at the node (speeds there are this x)
 
     @classmethod
     def assemble(cls, table: PlotTable, fixes: PlaneFixes, n: int, plot_node: np.ndarray,
@@ -116,6 +118,7 @@ class NodeData:
             sensor=scatter(onehot),
             free=free,
             level=np.ones((n, 2)),
+            plane_scale=np.ones(n),
         )
 
     def weighed_info(self) -> FloatArray:
@@ -127,6 +130,22 @@ class NodeData:
         weight = self.weight.copy()
         weight[nodes] = 0.0
         return replace(self, weight=weight)
+
+    def scaled(self, frame: LocalFrame | None, x: FloatArray, z: FloatArray) -> NodeData:
+        """A copy with the plane's scale at the nodes' positions ``(x, z)`` (a pilot's): the
+        bounds on speed and accelerations hold on the ground, so the plane's are this many times
+        theirs. A track 2600 km from the reference (scale 1.076) at 320 m/s moved at 344 m/s
+        in the plane: held at 330 m/s, it came out 16 km off (1 without a frame)."""
+        if frame is None:
+            return self
+        return replace(self, plane_scale=np.asarray(frame.scale(x, z), float))
+
+    def on_ground(self, sol: np.ndarray) -> np.ndarray:
+        """The node solution with speed and accelerations (columns 3-5) over the plane's scale:
+        what the bounds hold."""
+        out = sol.copy()
+        out[:, 3:6] /= self.plane_scale[:, None]
+        return out
 
     def relieved(self, u0: FloatArray, relief: float) -> NodeData:
         """A copy whose ``|u|`` level weight is ``1 / (1 + (u0 / relief)^2)`` per node (``u0``:
@@ -160,7 +179,8 @@ class NodeData:
         b = new.sensor @ biases
         centre = new.centre + new.d_range * b[:, 0:1] + new.d_azimuth * b[:, 1:2]
         new = new.reweighted(plot_node, sensor_scale[table.sensor])
-        return replace(new, centre=centre, weight=self.weight, level=self.level)
+        return replace(new, centre=centre, weight=self.weight, level=self.level,
+                       plane_scale=self.plane_scale)
 
     def beyond_reach(self, h: FloatArray) -> np.ndarray:
         """``(n,)`` bool: nodes whose plot's centre follows the height (no altitude) but not to
