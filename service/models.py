@@ -220,7 +220,8 @@ class ReconstructionRequest(_In):
         "many requests); the plane stays where it would be with it.")
     reference: ReferenceIn | None = Field(
         None, description="Tangent point of the answer's local plane (with `sensors`). "
-        "Default: the first radar's site, else the first position plot.")
+        "Default: the first radar's site, else the first position plot. Within about 7800 km "
+        "of every radar site and position plot (the plane's scale at most 1.5), else 422.")
     plots: list[PlotIn] = Field(
         min_length=1, description="The aircraft's plots in time order (at least one; the "
         "service's `max_plots` setting caps the count).")

@@ -360,3 +360,19 @@ def test_a_missing_field_is_named_as_missing(client):
         r = client.post("/v1/reconstructions", json=sent)
         assert r.status_code == 422 and r.json()["message"].startswith(message), r.text
         assert r.json()["detail"][0]["loc"] == [where, i, name]
+
+
+@pytest.mark.parametrize("reference, status", [((-46.0, -165.2), 422), ((20.0, -60.0), 200)])
+def test_a_reference_near_the_datas_antipode_is_refused(client, reference, status):
+    """The reference given at the track's antipode (19,950 km): the stereographic plane blows
+    up there (a tester measured 59 km RMS, answered 200); refused, naming ``reference``, the
+    distance and the plane's scale. 7200 km away (scale 1.4) the answer stays right."""
+    body = _body()
+    body["reference"] = {"lat_deg": reference[0], "lon_deg": reference[1]}
+    body["omit"] = ["samples"]
+    r = client.post("/v1/reconstructions", json=body)
+    assert r.status_code == status, r.text[:500]
+    if status == 422:
+        err = r.json()["detail"][0]
+        assert err["loc"] == ["reference"]
+        assert "km from the data" in err["msg"] and "plane's scale would be" in err["msg"]
