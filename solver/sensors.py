@@ -26,8 +26,11 @@ from .frames import LocalFrame, check_lat_lon, radar_plot_position, slant_and_az
 from .geometry import Ellipses, ground_range_error
 from .inputs import MAX_RANGE_ERROR_M, FloatArray, InputError, Radar
 
-ALTITUDE_RANGE_M = (-500.0, 15_000.0)
-"""Heights above the ellipsoid an unknown altitude may take (m) when it is estimated."""
+ALTITUDE_RANGE_M = (-500.0, 20_000.0)
+"""Heights above the ellipsoid an unknown altitude may take (m) when it is estimated: up to
+FL650, the top of controlled airspace (15 km cut business jets at FL510: 0.5-3 km low and
+kilometres off, a tester measured). Known altitudes widen it for their track
+(:meth:`solver.refine.nodes.NodeData.assemble`)."""
 MAX_ELEVATION_FRACTION = 0.96
 """A plot's reach: the heights within ``0.96 r`` of its radar's at slant range ``r`` (elevations
 within 74 deg: an aircraft at 10 km passing 3 km from the radar), where its centre follows the
@@ -124,8 +127,8 @@ class PlaneFixes:
     ``ellipses``: centres at the plot's altitude (known) or at the nominal altitude (unknown,
     see ``altitude_free``), with one-sigma semi-axes along (``B``) and across (``A``) the
     sensor's ray; a position plot has a circle. For a radar plot with unknown altitude the
-    centre at height ``h`` is, exactly up to a quintic's fit error (< 0.08 m at 12 km, < 1 mm
-    from 30 km; tested)::
+    centre at height ``h`` is, exactly up to a quintic's fit error (< 0.08 m at 12 km, 0.21 m
+    at 20 km, < 2 mm from 30 km; tested)::
 
         c(h) = ray * sqrt(r^2 - (h' - h_site)^2) + sum_j poly[:, j] * s^j,
         s = (h' - h_mid) / h_half,  h' = reach(h) in [h_lo, h_hi] = h_mid -+ h_half

@@ -33,7 +33,9 @@ Q_VERTICAL = 0.5
 """m^2/s^3: spectral density of vertical-rate changes (integrated random walk of the height):
 a level-off from 10 m/s within 30 s costs about 7 chi-square units."""
 MIN_NODE_DT = 1.0  # s: the vertical-rate change across a zero-length interval is weighted as 1 s
-ALTITUDE_GUESSES = np.arange(0.0, 14_001.0, 1000.0)  # m: constant heights tried for the start
+ALTITUDE_GUESSES = np.arange(0.0, 19_001.0, 1000.0)  # m: constant heights tried for the start
+KNOWN_ALTITUDE_MARGIN_M = 500.0
+"""The nodes' heights may go this far (plus 5 sigmas) beyond the track's known altitudes."""
 
 
 def node_grid(t_plots: FloatArray, max_step: float) -> tuple[FloatArray, np.ndarray]:
@@ -85,13 +87,17 @@ class NodeData:
         e = fixes.ellipses
         free = np.zeros(n, bool)
         free[plot_node] = fixes.altitude_free
-        # heights each node may take: the general range (a free centre follows the height
-        # within its plot's reach only, solver.sensors.reach)
-        h_lo = np.full(n, ALTITUDE_RANGE_M[0])
-        h_hi = np.full(n, ALTITUDE_RANGE_M[1])
+        # heights each node may take: the general range, widened to the track's known
+        # altitudes (ADS-B at 17 km was held at 15 km, 2 km low) (a free centre follows the
+        # height within its plot's reach only, solver.sensors.reach)
         alt_sigma = np.array([s.altitude_sigma_m if isinstance(s, PositionSensor)
                               else ALTITUDE_SIGMA_RADAR_M for s in table.sensors])[table.sensor]
         known = np.isfinite(table.altitude_m)
+        margin = KNOWN_ALTITUDE_MARGIN_M + 5 * alt_sigma[known]
+        h_lo = np.full(n, np.min(np.append(table.altitude_m[known] - margin,
+                                           ALTITUDE_RANGE_M[0])))
+        h_hi = np.full(n, np.max(np.append(table.altitude_m[known] + margin,
+                                           ALTITUDE_RANGE_M[1])))
         onehot = np.zeros((len(table), variant.biases))
         for j, k in enumerate(bias_sensors):
             onehot[table.sensor == k, j] = 1.0
