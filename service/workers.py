@@ -217,6 +217,9 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
             job.plots, rec.at_plots.h) if job.radar is None else job.plots,
             job.radar) if job.filters else {}
         filters_ms = (time.perf_counter() - t0) * 1e3
+        if estimates and rec.diagnostics.extra.get("rejected_plots", 0):  # no gate of theirs
+            rec.diagnostics.warnings.append(
+                "the filters weigh every plot, also those the reconstruction gave no weight")
         _armed = False
         if _expired:  # the limit fired inside a solve, where CasADi swallowed the exception
             raise _TimeLimit

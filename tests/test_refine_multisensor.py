@@ -832,3 +832,20 @@ def test_the_hessian_by_parts_is_casadis_whole_hessian(variant):
         a, b = parts(*args), ref(*args)
         assert a.sparsity() == b.sparsity()
         np.testing.assert_allclose(a.nonzeros(), b.nonzeros(), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode_c", [False, True])
+def test_a_lone_radar_without_altitude_says_its_plots_sit_at_its_height(mode_c):
+    """One radar on the earth, no other sensor: without Mode C its plots are placed at the
+    radar's height (nothing to estimate the height from), their ground range too long by
+    h^2 / 2r; the answer says so (a tester's PSR alone: 1 km off, no warning). With Mode C,
+    nothing to say."""
+    table, x, z, _ = _simulate((SSR_A,), ((4.8, 0.3),), noise=0.0, mode_c=mode_c,
+                               t_end=300.0)
+    rec = reconstruct(table)
+    said = [w for w in rec.diagnostics.warnings if "placed at the radar's height" in w]
+    if mode_c:
+        assert not said and _rms(rec, x, z) < 1.0
+    else:
+        assert len(said) == 1 and said[0].startswith(f"{len(table)} plot(s) of radar 'A'")
+        assert _rms(rec, x, z) > 200.0  # what the warning is about

@@ -376,3 +376,21 @@ def test_a_reference_near_the_datas_antipode_is_refused(client, reference, statu
         err = r.json()["detail"][0]
         assert err["loc"] == ["reference"]
         assert "km from the data" in err["msg"] and "plane's scale would be" in err["msg"]
+
+
+@pytest.mark.parametrize("wild", [False, True])
+def test_filters_beside_gated_plots_say_they_weigh_them(client, wild):
+    """A plot at 1 m range (left out of the reconstruction, said) is still weighed by the
+    filters, which have no gate: the answer says that too (a tester read 'given no weight' as
+    true of the filters, whose states were 55-248 km off there)."""
+    body = _body()
+    body["filters"] = ["cv_rts"]
+    body["omit"] = ["samples"]
+    if wild:
+        first = next(i for i, p in enumerate(body["plots"]) if p["sensor"] == "LJLJ")
+        body["plots"][first + 5]["range_m"] = 1.0
+    r = client.post("/v1/reconstructions", json=body)
+    assert r.status_code == 200, r.text[:300]
+    warnings = r.json()["diagnostics"]["warnings"]
+    said = [w for w in warnings if w.startswith("the filters weigh every plot")]
+    assert len(said) == int(wild), warnings
