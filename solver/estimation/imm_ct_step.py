@@ -9,11 +9,11 @@ smoother's steps (:mod:`.imm_step`, whose position update it shares). The numpy 
 is the tests' reference (``tests/imm_reference.py``).
 
 Step ``k`` (``T = t_k - t_{k-1}``), the equations of :func:`.imm.run_imm`: the chain's
-``Pi(T)`` (:func:`.imm.switching_matrix`), ``c = Pi^T mu``, ``W_ij = Pi_ij mu_i / c_j``, the
-mixed moments, the CV prediction (``omega`` held at 0) and the coordinated turn's
-(:func:`.models.ct_predict`, its series near ``omega T = 0``), the position update of each
-(:func:`.imm_step.update_terms`), the turn rate projected on ``|omega| <= omega_max`` and
-``mu_j`` proportional to ``c_j L_j``, floored at ``1e-12``.
+``Pi(T)`` (:func:`.imm_smoother.switching_matrices`), ``c = Pi^T mu``,
+``W_ij = Pi_ij mu_i / c_j``, the mixed moments, the CV prediction (``omega`` held at 0) and
+the coordinated turn's (:func:`.models.ct_predict`, its series near ``omega T = 0``), the
+position update of each (:func:`.imm_step.update_terms`), the turn rate projected on
+``|omega| <= omega_max`` and ``mu_j`` proportional to ``c_j L_j``, floored at ``1e-12``.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ STEP = _blocks(T=1, plot=11, q_cv=1, q_ct=1, q_omega=1, tau_cv=1, tau_ct=1, omeg
 
 
 def _cv_noise(T: ca.SX, q: ca.SX) -> ca.SX:
-    """White-acceleration ``Q`` of :func:`.imm._cv_noise` (5x5, the ``omega`` row zero)."""
+    """White-acceleration ``Q`` of :func:`.models.cv` per axis (5x5, the ``omega`` row zero)."""
     Q = ca.SX.zeros(N_X, N_X)
     for p, v in ((0, 2), (1, 3)):
         Q[p, p], Q[p, v], Q[v, p], Q[v, v] = q * T**3 / 3, q * T**2 / 2, q * T**2 / 2, q * T
