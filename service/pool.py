@@ -249,6 +249,9 @@ class SolverPool:
             async with self._slots:
                 for attempt in (1, 2):
                     worker = await self._idle.get()
+                    while not worker.process.is_alive():  # died idle: not this job's doing
+                        self._replace(worker)  # (killed from outside); wait for the next
+                        worker = await self._idle.get()
                     try:
                         result = await self._solve_on(worker, job, enqueued)
                     except asyncio.CancelledError:
@@ -289,11 +292,15 @@ def _overran(job: Job, limit_s: float) -> Outcome:
 
 
 def _died_twice(job: Job, exitcode: int | None) -> Outcome:
-    """Two workers ended under this job. Killed (SIGKILL: the kernel's OOM killer, or a memory
-    limit) means it needs more memory than the service has: the client's to change (422).
-    Anything else is a crash of the solver, a bug (500)."""
+    """Two workers ended under this job (a worker found dead while idle is not counted: it is
+    replaced and the job waits for the next). Killed (SIGKILL: the kernel's OOM killer; the
+    worker's own memory cap raises MemoryError instead, answered 422 by the worker) most likely
+    means it needs more memory than the service has: the client's to change (422), said with
+    the other cause, a kill from outside. Anything else is a crash of the solver, a bug
+    (500)."""
     if exitcode == -signal.SIGKILL:
         return Outcome(None, error_loc=("plots",), error_message=(
-            f"needs more memory than this service has ({len(job.plots)} plots): the solve "
-            f"was killed twice; {remedy(job)}, or raise sample_step_s"))
+            f"needs more memory than this service has, most likely ({len(job.plots)} plots): "
+            f"the solve's worker was killed (SIGKILL: the system's out-of-memory killer, or "
+            f"from outside) twice; {remedy(job)}, or raise sample_step_s"))
     raise SolveError(f"the solver worker crashed twice on this request (exit code {exitcode})")

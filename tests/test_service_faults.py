@@ -74,6 +74,28 @@ def test_a_dead_worker_disturbs_no_other_solve_and_its_solve_is_retried():
     asyncio.run(scenario())
 
 
+def test_idle_workers_killed_from_outside_are_replaced_not_blamed_on_the_request():
+    """Both idle, warmed workers killed (SIGKILL from outside), then a request: it took both
+    dead workers as two deaths under it and answered 422 'needs more memory' in 7 ms without
+    solving (a tester). A worker found dead while idle is replaced and the request waits for
+    the replacement: answered normally."""
+    job = job_of(SEED_BATCH)
+
+    async def scenario() -> None:
+        pool = SolverPool(Settings(workers=2, warmup=False), Metrics())
+        pool.start()
+        await ready(pool)
+        for w in list(pool._workers):
+            os.kill(w.process.pid, signal.SIGKILL)
+            w.process.join(10)
+        out = await pool.run(job)
+        assert out.body is not None, out.error_message
+        assert len(pool._workers) >= 1
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
 def test_solve_time_limit_stops_a_sliding_solve_with_a_422():
     """A sliding solve stopped by the limit is the documented input error (it was a 500), and
     ends within a small margin of the limit."""
