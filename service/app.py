@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import sqlite3
 import time
 import uuid
 from collections.abc import AsyncIterator
@@ -355,6 +356,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             return _error(422, "body: could not be decoded as UTF-8 JSON",
                           [{"loc": ["body"], "msg": str(exc.detail), "type": "json_invalid"}])
         return _error(exc.status_code, str(exc.detail), headers=exc.headers)
+
+    @app.exception_handler(sqlite3.OperationalError)
+    async def store_error(request: Request, exc: sqlite3.OperationalError) -> JSONResponse:
+        LOGGER.error("job store error", exc_info=exc)
+        return _error(503, f"the job store cannot be written now ({exc}): free room on its "
+                      "disk or retry later", headers={"Retry-After": str(settings.retry_after_s)})
 
     @app.exception_handler(Exception)
     async def internal_error(request: Request, exc: Exception) -> JSONResponse:

@@ -101,6 +101,10 @@ def default_data_dir() -> Path:
         return Path("trajrecon-data").resolve()
 
 
+STORE_RETRY_S = 5.0
+"""The runner's wait before it tries the store again after a write failed (a full disk)."""
+
+
 class Full(Exception):
     """No room for another job (running and queued at their limits)."""
 
@@ -524,7 +528,12 @@ class JobRunner:
             with self._wake:
                 if self._stopping:
                     return
-                job = self._db().claim()
+                try:
+                    job = self._db().claim()
+                except Exception as e:  # e.g. the disk full: the runner lives on and retries
+                    LOGGER.error("job runner could not claim a job", exc_info=e)
+                    self._wake.wait(timeout=STORE_RETRY_S)
+                    continue
                 if job is None:
                     self._wake.wait(timeout=5.0)
                     continue
@@ -537,8 +546,12 @@ class JobRunner:
                 if self._stopping:  # e.g. the store closed under it: resumed at next start
                     return
                 LOGGER.error("job runner error", exc_info=e)
-                self._db().finish(job.id, "failed", self._public(
-                    job.id, f"internal error: {type(e).__name__}: {e}"))
+                try:
+                    self._db().finish(job.id, "failed", self._public(
+                        job.id, f"internal error: {type(e).__name__}: {e}"))
+                except Exception as e2:  # the store cannot write either (a full disk): the
+                    # job stays running in it, resumed at the next start; the runner goes on
+                    LOGGER.error("job runner could not record a failed job", exc_info=e2)
             finally:
                 with self._wake:
                     self._running.pop(job.id, None)
@@ -723,9 +736,11 @@ class JobRunner:
             with self._wake:
                 if job_id in self._running:  # its thread is still winding down
                     return job
-            db.delete(job_id)
+            # the data first: on a full disk that frees the room the store needs to delete
+            # the row (a DELETE again finishes what a failed one began)
             shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
             self._progress_cache.pop(job_id, None)
+            db.delete(job_id)
             return None
         with self._wake:
             self._cancelled.add(job_id)

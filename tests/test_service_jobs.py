@@ -753,3 +753,43 @@ def test_a_jobs_track_has_the_manoeuvres_of_the_single_track_answer(client):
         assert float(m["lat_start_deg"]) == pytest.approx(46.0 + e["x_start"] / 111_200,
                                                           abs=0.02)
     assert client.delete(loc).status_code == 204
+
+
+def test_a_full_disk_neither_stops_the_runner_nor_gives_a_500(client, monkeypatch):
+    """The store failing to write (SQLite's 'database or disk is full', as on a tester's 3-MB
+    tmpfs): the runner's thread died on it, leaving later jobs queued or running until a
+    restart, and DELETE answered 500. Now the runner retries and runs the job; DELETE answers
+    503 with Retry-After, and again, once the store writes, 204."""
+    import sqlite3
+
+    import service.jobs as jobs_module
+
+    full = sqlite3.OperationalError("database or disk is full")
+    real_claim, real_delete = jobs_module.JobStore.claim, jobs_module.JobStore.delete
+    fails = {"claim": 1, "delete": 1}
+
+    def claim(self):
+        if fails["claim"]:
+            fails["claim"] -= 1
+            raise full
+        return real_claim(self)
+
+    def delete(self, job_id):
+        if fails["delete"]:
+            fails["delete"] -= 1
+            raise full
+        return real_delete(self, job_id)
+
+    monkeypatch.setattr(jobs_module, "STORE_RETRY_S", 0.2)
+    monkeypatch.setattr(jobs_module.JobStore, "claim", claim)
+    monkeypatch.setattr(jobs_module.JobStore, "delete", delete)
+    sensors, tracks = json_tracks(encode_recording(duration=40.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"A": tracks["A"]}})
+    assert r.status_code == 202, r.text
+    status = wait(client, r.headers["location"], timeout=60.0)
+    assert status["state"] == "done" and fails["claim"] == 0, status
+    gone = client.delete(r.headers["location"])
+    assert gone.status_code == 503 and "Retry-After" in gone.headers, gone.text
+    assert "job store cannot be written" in gone.json()["message"]
+    assert client.delete(r.headers["location"]).status_code == 204
+    assert client.get(r.headers["location"]).status_code == 404
