@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import sqlite3
 import time
@@ -71,6 +72,22 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 
 
 DOCS_ASSETS = "/docs/assets"
+
+
+async def _undecodable(request: Request) -> str:
+    """Why FastAPI could not decode a body (it says only 'There was an error parsing the
+    body'): not UTF-8 text, nested too deep for Python's parser, or an integer too long."""
+    try:
+        json.loads(await request.body())
+    except UnicodeDecodeError:
+        return "could not be decoded as UTF-8 JSON"
+    except RecursionError:
+        return "is nested too deeply for the JSON parser (at most several hundred levels)"
+    except ValueError as e:  # e.g. 'Exceeds the limit (4300 digits) for integer string ...'
+        return f"could not be decoded as JSON: {str(e).split(';')[0]}"
+    except Exception as e:
+        return f"could not be decoded as JSON ({type(e).__name__})"
+    return "could not be decoded as JSON"
 
 
 def _error(status: int, message: str, detail: list[dict[str, Any]] | None = None,
@@ -352,9 +369,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def http_error(request: Request, exc: HTTPException) -> JSONResponse:
         if exc.status_code == 413:
             return _too_large(settings.max_body_bytes)
-        if exc.status_code == 400:  # FastAPI: a body that is not UTF-8 text
-            return _error(422, "body: could not be decoded as UTF-8 JSON",
-                          [{"loc": ["body"], "msg": str(exc.detail), "type": "json_invalid"}])
+        if exc.status_code == 400:  # FastAPI: a body json.loads refused (not its JSON errors)
+            why = await _undecodable(request)
+            return _error(422, f"body: {why}",
+                          [{"loc": ["body"], "msg": why, "type": "json_invalid"}])
         return _error(exc.status_code, str(exc.detail), headers=exc.headers)
 
     @app.exception_handler(sqlite3.OperationalError)

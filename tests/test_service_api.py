@@ -590,3 +590,18 @@ def test_values_no_radar_or_aircraft_has_are_422_not_500(client, change, loc):
     r = post(client, {**batch(200.0), **change})
     assert r.status_code == 422, r.text
     assert r.json()["detail"][0]["loc"] == loc
+
+
+@pytest.mark.parametrize("body, said", [
+    (b"[" * 1200 + b"]" * 1200, "is nested too deeply for the JSON parser"),
+    (b'{"plots": [' + b"1" * 5001 + b"]}", "Exceeds the limit (4300 digits)"),
+    (b"\xff\xfe{", "could not be decoded as UTF-8 JSON"),
+])
+def test_a_body_pythons_parser_refuses_is_named_for_why(client, body, said):
+    """FastAPI says only 'There was an error parsing the body' when json.loads raises something
+    other than its JSON errors; every such body was answered 'could not be decoded as UTF-8
+    JSON' (a tester's 1200-deep nesting and 5001-digit integer). Now the reason."""
+    r = client.post("/v1/reconstructions", content=body,
+                    headers={"content-type": "application/json"})
+    assert r.status_code == 422 and said in r.json()["message"], r.text
+    assert r.json()["detail"][0]["loc"] == ["body"]
