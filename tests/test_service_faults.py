@@ -7,6 +7,7 @@ import asyncio
 import copy
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -324,3 +325,35 @@ def test_a_cancelled_solve_gives_its_worker_back():
         await pool.close()
 
     asyncio.run(scenario())
+
+
+def test_requests_whose_clients_left_leave_the_queue():
+    """Three slow requests (3 plots over 6000 s: about 7 s each) on one worker, their clients
+    gone after 1 s: the two queued behind the first stayed in flight and took the worker in
+    turn (a tester: a quick request behind six such took 28 s instead of 0.35 s). Now they
+    leave once their clients are gone: no request in flight (the running solve finishes in
+    its worker, which then takes the next request)."""
+    slow = copy.deepcopy(SEED_BATCH)
+    slow["plots"] = slow["plots"][:3]
+    slow["plots"][2]["t"] = 6000.0
+    slow["omit"] = ["samples"]
+    proc, url = start_service({"TRAJRECON_WORKERS": "1", "TRAJRECON_WARMUP": "false",
+                               "TRAJRECON_LOG_LEVEL": "WARNING"})
+    try:
+        def abandon() -> None:
+            with pytest.raises(httpx.TimeoutException):
+                httpx.post(url + "/v1/reconstructions", json=slow, timeout=1.0)
+
+        clients = [threading.Thread(target=abandon) for _ in range(3)]
+        for c in clients:
+            c.start()
+            time.sleep(0.1)
+        for c in clients:
+            c.join()
+        time.sleep(1.5)  # three polls of the disconnect check
+        metrics = httpx.get(url + "/metrics", timeout=5).text
+        in_flight = float(re.search(r"^trajrecon_solves_in_flight (\S+)$", metrics,
+                                    re.M).group(1))  # type: ignore[union-attr]
+        assert in_flight == 0.0, in_flight
+    finally:
+        stop(proc)
