@@ -165,10 +165,12 @@ async def create_job(request: Request) -> Response:
     except Full as e:
         return _busy(runner, str(e))
     limit = runner.settings.jobs_max_upload_bytes
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype == "application/json":  # validated in memory: its own, smaller limit
+        limit = min(limit, runner.settings.jobs_max_json_bytes)
     length = request.headers.get("content-length", "")
     if length.isdigit() and int(length) > limit:
-        return _too_large(limit)
-    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        return _too_large(limit, ctype)
     if ctype not in ("multipart/form-data", "application/json"):
         return _error(415, "send the recording as multipart/form-data (parts `recording` and "
                       "`sensors`) or the tracks as application/json", ["headers",
@@ -186,7 +188,7 @@ async def create_job(request: Request) -> Response:
         record = await run_in_threadpool(runner.accept, incoming, kind)
         accepted = True
     except TooLarge:
-        return _too_large(limit)
+        return _too_large(limit, ctype)
     except Full as e:
         return _busy(runner, str(e))
     finally:
@@ -197,7 +199,12 @@ async def create_job(request: Request) -> Response:
                         headers={"Location": f"{JOBS_PATH}/{record.id}"})
 
 
-def _too_large(limit: int) -> JSONResponse:
+def _too_large(limit: int, ctype: str = "") -> JSONResponse:
+    if ctype == "application/json":
+        return _error(413, f"request body is larger than the jobs' limit of {limit} bytes for "
+                      "a JSON body of tracks (jobs_max_json_bytes: validating JSON takes about "
+                      "14 times its size in memory); send the plots as a CSV or Parquet table "
+                      "(multipart/form-data, part `recording`) instead")
     return _error(413, f"request body is larger than the jobs' upload limit of {limit} bytes")
 
 

@@ -87,7 +87,12 @@ class Settings(BaseSettings):
     jobs_max_queued: int = Field(16, ge=0, description="Jobs allowed to wait beyond the running "
                                  "ones; beyond this POST /v1/jobs answers 503 with Retry-After.")
     jobs_max_upload_bytes: int = Field(1 << 30, ge=1024, description="Largest accepted job "
-                                       "upload or JSON body (bytes); larger ones get 413.")
+                                       "upload (bytes); larger ones get 413.")
+    jobs_max_json_bytes: int = Field(
+        32 << 20, ge=1024, description="Largest accepted JSON body of tracks (bytes; at most "
+        "jobs_max_upload_bytes); larger ones get 413. Validating JSON takes about 14 times its "
+        "size in the server's memory (a 99-MB body: 1.5 GB); send more plots as a CSV or "
+        "Parquet table.")
     jobs_track_time_limit_s: float = Field(300.0, ge=0, description="Longest one track of a "
                                            "job may be solved (s); then it fails. 0 = none.")
     jobs_track_figures: bool = Field(True, description="Draw every job track's figure on the "

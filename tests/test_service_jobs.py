@@ -446,6 +446,21 @@ def test_upload_over_the_limit_is_413(client):
     assert r.status_code == 413 and r.json()["detail"] == []
 
 
+def test_a_json_body_of_tracks_has_its_own_smaller_limit(tmp_path):
+    """A JSON body is validated in memory, about 14 times its size (a tester's 99-MB body took
+    the server to 1.5 GB, under the 1-GiB upload limit): it has its own limit, and the 413 says
+    to send a table instead; an upload of the same size is not held to it."""
+    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
+                        data_dir=tmp_path, jobs_max_upload_bytes=200_000,
+                        jobs_max_json_bytes=50_000)
+    with TestClient(create_app(settings)) as c:
+        r = c.post("/v1/jobs", content=b" " * 60_000, headers={"content-type": "application/json"})
+        assert r.status_code == 413, r.text
+        assert "limit of 50000 bytes for a JSON body" in r.json()["message"]
+        assert "CSV or Parquet" in r.json()["message"]
+        assert upload(c, b"\x00" * 60_000, name="x.csv").status_code == 202
+
+
 @pytest.mark.parametrize(("files", "field"), [
     ({"sensors": ("s.json", json.dumps(SENSOR_FILE))}, "recording"),
     ({"recording": ("r.ast", b"\x30\x00\x03")}, "sensors"),
