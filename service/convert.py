@@ -75,7 +75,7 @@ def to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
     """Validate a request into solver inputs; raise :class:`InputError` (client field names).
 
     Beyond the solver's checks: the service's size limits (plots, samples, the refinement's
-    nodes) and a window no longer than the track."""
+    nodes)."""
     if max_nodes is None:  # the service's default (one source: Settings)
         from .settings import Settings
 

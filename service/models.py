@@ -178,7 +178,8 @@ class WindowIn(_In):
         None, description="Plots per window `m` (>= 2). The seed used 3-5; 3 follows hard "
         "manoeuvres best. Default (null): 3, or the whole track when it is shorter (one plot "
         "gives only its position, two plots one straight constant-speed segment; see "
-        "`diagnostics.warnings`). An explicit value longer than the track is refused (422).",
+        "`diagnostics.warnings`). An explicit value longer than the track makes one window "
+        "over the whole track, with a warning.",
         examples=[3])
     trial_step_s: float = Field(
         5.0, description="Spacing (s, > 0) of the extra trial start points between plots, "
