@@ -43,6 +43,8 @@ from .models import ErrorResponse
 from .settings import Settings
 
 JOBS_PATH = "/v1/jobs"
+MAX_TRACK_KEY_CHARS = 200
+"""Longest name of a JSON job's track (the ``aircraft`` option's limit too)."""
 TABLE_SUFFIXES = {".csv": ".csv", ".parquet": ".parquet", ".pq": ".parquet"}
 MAX_SENSORS_PART = 16 << 20  # a sensor file sent as a plain form field (bytes)
 _COV_NAMES = ("x", "z", "vx", "vz")
@@ -340,6 +342,10 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
     for key, plots in req.tracks.items():
         if not key.strip():
             raise InputError(("tracks",), "has an empty key: every track needs a name")
+        if len(key) > MAX_TRACK_KEY_CHARS or not key.isprintable():
+            raise InputError(("tracks", key[:40]), f"is not a track name: at most "
+                             f"{MAX_TRACK_KEY_CHARS} printable characters (as the aircraft "
+                             "option's)")
         if not plots:
             raise InputError(("tracks", key), "has no plots (a track needs at least 3)")
         for i, p in enumerate(plots):

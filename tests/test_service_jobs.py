@@ -808,3 +808,13 @@ def test_a_full_disk_neither_stops_the_runner_nor_gives_a_500(client, monkeypatc
     assert "job store cannot be written" in gone.json()["message"]
     assert client.delete(r.headers["location"]).status_code == 204
     assert client.get(r.headers["location"]).status_code == 404
+
+
+@pytest.mark.parametrize("key", ["A" * 201, "A\x00B", "tab\there"])
+def test_a_json_track_key_is_a_printable_name_of_at_most_200_characters(client, key):
+    """A tester's 100,000-character key and a key with NUL were accepted and the job ran: the
+    keys name the tracks in every answer and file, like the aircraft option (200 characters)."""
+    sensors, tracks = json_tracks(encode_recording(duration=40.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {key: tracks["A"]}})
+    assert r.status_code == 422, r.text
+    assert "at most 200 printable characters" in r.json()["message"]
