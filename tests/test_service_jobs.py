@@ -814,7 +814,8 @@ def test_a_full_disk_neither_stops_the_runner_nor_gives_a_500(client, monkeypatc
 def test_a_json_track_key_is_a_printable_name_of_at_most_200_characters(client, key):
     """A tester's 100,000-character key and a key with NUL were accepted and the job ran: the
     keys name the tracks in every answer and file, like the aircraft option (200 characters)."""
-    sensors, tracks = json_tracks(encode_recording(duration=40.0))
-    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {key: tracks["A"]}})
+    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
+    plot = {"t": 0.0, "sensor": sensors[0]["id"], "range_m": 5e4, "azimuth_deg": 10.0}
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {key: [plot] * 3}})
     assert r.status_code == 422, r.text
     assert "at most 200 printable characters" in r.json()["message"]
