@@ -52,6 +52,7 @@ from .config import ReconstructionConfig
 from .inputs import FloatArray
 from .plots import PlotTable
 from .results import PlotResiduals, StateSeries, full_turn
+from .stopping import STOP_SIGNALS
 
 COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
@@ -661,14 +662,18 @@ class _engine:
             import dask
             from distributed import Client
 
-            with dask.config.set(dask_settings()):
-                if self.scheduler is not None:
-                    ex = Client(self.scheduler)
-                else:
-                    cluster = embedded_cluster(self.workers)
-                    self.owned.append(cluster)
-                    ex = Client(cluster)
-            self.owned.insert(0, ex)
+            try:  # a stop while the cluster starts: held until it can be closed
+                with STOP_SIGNALS.deferred(), dask.config.set(dask_settings()):
+                    if self.scheduler is not None:
+                        ex = Client(self.scheduler)
+                    else:
+                        cluster = embedded_cluster(self.workers)
+                        self.owned.append(cluster)
+                        ex = Client(cluster)
+                    self.owned.insert(0, ex)
+            except BaseException:
+                self._close()
+                raise
         from distributed import Client
         from distributed import wait as dask_wait
 
@@ -696,8 +701,14 @@ class _engine:
     def __exit__(self, *exc: object) -> None:
         if self.warming:  # done long ago, or pinned to a worker that died: not left behind
             self.client.cancel(self.warming)
-        for thing in self.owned:
-            thing.close()
+        self._close()
+
+    def _close(self) -> None:
+        """Close the client and cluster started here; a stop meanwhile is held (a stop
+        inside Dask's close left a worker process behind, :mod:`solver.stopping`)."""
+        with STOP_SIGNALS.deferred():
+            for thing in self.owned:
+                thing.close()
 
 
 def warm_workers(client: Any, config: ReconstructionConfig | None = None) -> list[Any]:

@@ -43,12 +43,11 @@ import math
 import os
 import queue
 import re
-import signal
 import sys
 import threading
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
@@ -92,6 +91,7 @@ from .run_settings import RunSettings, parse_bounds
 from .run_settings import keep as keep_settings
 from .run_settings import stored as stored_settings
 from .sensors import RadarSensor
+from .stopping import STOP_SIGNALS, Stopped
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
 SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "plots_wild", "scan_period_s",
@@ -696,22 +696,27 @@ def _check_out(out: Path, sensors: Path) -> None:
 def _cluster(scheduler: str | None, workers: int | None) -> Iterator[Any]:
     """A Dask client of the scheduler at ``scheduler``, else of an embedded ``LocalCluster``
     of ``workers`` processes (default: the usable cores; as :func:`solver.batch.
-    reconstruct_many` would start), closed at the end."""
+    reconstruct_many` would start), closed at the end. A stop (SIGINT, SIGTERM) while it
+    starts or closes is held until it has (:mod:`solver.stopping`)."""
     import dask
     from distributed import Client
 
-    with dask.config.set(dask_settings()):
-        if scheduler is not None:
-            try:
-                client = Client(scheduler)
-            except OSError as e:  # distributed's connection timeout is an OSError too
-                raise InputError(("scheduler",), f"no Dask scheduler answers at {scheduler} "
-                                 f"({e})") from None
-            with client:
-                yield client
-            return
-        with embedded_cluster(workers) as cluster, Client(cluster) as client:
-            yield client
+    stack = ExitStack()
+    try:
+        with STOP_SIGNALS.deferred(), dask.config.set(dask_settings()):
+            if scheduler is not None:
+                try:
+                    client = stack.enter_context(Client(scheduler))
+                except OSError as e:  # distributed's connection timeout is an OSError too
+                    raise InputError(("scheduler",), f"no Dask scheduler answers at "
+                                     f"{scheduler} ({e})") from None
+            else:
+                cluster = stack.enter_context(embedded_cluster(workers))
+                client = stack.enter_context(Client(cluster))
+        yield client
+    finally:
+        with STOP_SIGNALS.deferred():
+            stack.close()
 
 
 def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: Streamed,
@@ -1072,14 +1077,6 @@ def plot(args: argparse.Namespace) -> list[Path]:
     return written
 
 
-class Stopped(KeyboardInterrupt):
-    """SIGTERM (a batch scheduler's or a container's stop), unwound like Ctrl-C."""
-
-
-def _stop_on_sigterm(signum: int, frame: Any) -> None:
-    raise Stopped()
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Exit status: 0 all tracks done (or figures drawn), 1 some failed (in this run, or in an
     earlier one of the output directory and not retried), 2 bad input (also a recording of
@@ -1098,11 +1095,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"trajrecon: {e}", file=sys.stderr)
             return 2
         return 0
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _stop_on_sigterm) if main_thread else None
     quiet_interrupted_sync()
     try:
-        result = run(args)
+        with STOP_SIGNALS.installed():
+            result = run(args)
     except (InputError, *UNUSABLE_PATH) as e:
         print(f"trajrecon: {e}", file=sys.stderr)
         return 2
@@ -1112,9 +1108,6 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"tracks are kept in {args.out}: the same command resumes from there",
               file=sys.stderr)
         return 143 if isinstance(e, Stopped) else 130
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
     print_summary(result)
     if not result["tracks"] and result.get("aircraft") is None:
         print(f"trajrecon: no aircraft's track could be read from {args.recording} (what was "
