@@ -10,7 +10,7 @@ import time
 import psutil
 import pytest
 
-from solver.stopping import StopSignals, Stopped
+from solver.stopping import Stopped, StopSignals
 
 
 def _signal(signum: int) -> None:
