@@ -35,7 +35,25 @@ def recording(tmp_path_factory):
     return d, enc
 
 
-def test_recording_to_tables_statistics_and_map(recording, capsys):
+@pytest.fixture(scope="module")
+def scheduler():
+    """The address of a cluster as the command line embeds (one worker process, its
+    settings), for the runs whose point is not the embedded cluster: named with
+    ``--scheduler`` (as a user names an existing cluster), each run saves the cluster's start
+    and close (3.9 s measured). The embedded cluster is the first test's, and the SIGTERM,
+    ``python -m`` and memory tests'."""
+    import dask
+    import distributed  # noqa: F401  (its defaults in dask's config before the set below)
+
+    from solver.batch import dask_settings, embedded_cluster
+
+    with dask.config.set(dask_settings()):
+        cluster = embedded_cluster(1)
+    with cluster:
+        yield cluster.scheduler_address
+
+
+def test_recording_to_tables_statistics_and_map(recording, capsys, scheduler):
     d, enc = recording
     out = d / "out"
     code = main(["reconstruct", str(d / "day.ast"), "--sensors", str(d / "sensors.json"),
@@ -148,14 +166,14 @@ def test_recording_to_tables_statistics_and_map(recording, capsys):
 
     # a rerun with other settings would mix two runs' tracks: refused, nothing touched
     code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
-                 "--workers", "2", "--no-progress", "--filters", "cv_rts"])
+                 "--scheduler", scheduler, "--no-progress", "--filters", "cv_rts"])
     assert code == 2 and json.loads((out / "summary.json").read_text()) == summary
     err = capsys.readouterr().err
     assert "holds a run made with filters ['imm_smoother', 'cv_rts', 'fusion_a']" in err
     # a rerun resumes: nothing redone, outputs the same (the form without the subcommand; the
     # filters in another order are the same run)
     code = main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
-                 "--workers", "2", "--no-progress", "--filters", "fusion_a", "imm_smoother",
+                 "--scheduler", scheduler, "--no-progress", "--filters", "fusion_a", "imm_smoother",
                  "cv_rts", "--samples", "2.5"])
     again = json.loads((out / "summary.json").read_text())
     assert code == 0 and again["skipped"] == len(FLIGHTS) and again["done"] == 0
@@ -205,7 +223,7 @@ def _record_at(data: bytes, at: int) -> tuple[int, float, float | None]:
     return cat, tod, rho
 
 
-def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys):
+def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys, scheduler):
     """`trajrecon plot`: the named aircraft's figures and the map of a finished run's tracks;
     an aircraft not in the recording, or a map without tracks, is a clear error (exit 2)."""
     d, _ = recording
@@ -221,7 +239,7 @@ def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys):
     assert "ABC123 not in the recording" in capsys.readouterr().err
     assert main(["plot", *args, "--map"]) == 2
     assert "holds no reconstructed track" in capsys.readouterr().err
-    assert main(["reconstruct", *args, "--workers", "1", "--no-progress"]) == 0
+    assert main(["reconstruct", *args, "--scheduler", scheduler, "--no-progress"]) == 0
     (out / "map.png").unlink()
     (out / "sensors.png").unlink()
     assert main(["plot", *args, "--map"]) == 0
@@ -236,13 +254,13 @@ def _first_t(enc, k: int) -> float:
     return float(t.min())
 
 
-def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
+def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys, scheduler):
     d, _ = recording
     rec = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE))
     write_table(rec.rows, tmp_path / "plots.csv")
     thresholds = gc.get_threshold()
     code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
-                 str(tmp_path / "out"), "--workers", "1", "--no-progress", "--bounds",
+                 str(tmp_path / "out"), "--scheduler", scheduler, "--no-progress", "--bounds",
                  "v=30,200"])  # the flights fly 206 and 234 m/s: held under 200
     assert code == 0
     assert gc.get_threshold() == thresholds  # the run's collector setting is undone
@@ -300,14 +318,14 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys):
             (tmp_path, tmp_path / "out4", "Is a directory"),
             (tmp_path / "plots.csv", text, f"out {text} is a file, not a directory")):
         code = main([str(recording), "--sensors", str(d / "sensors.json"), "--out", str(out),
-                     "--workers", "1", "--no-progress"])
+                     "--scheduler", scheduler, "--no-progress"])
         err = capsys.readouterr().err
         assert code == 2 and message in err and "Traceback" not in err, err
     # a table of which no plot can be read: said, exit 2, and the outputs still complete
     empty = tmp_path / "empty.csv"
     empty.write_text("t,sensor,range_m,azimuth_deg\n1,NOPE,50000,10\n")
     code = main([str(empty), "--sensors", str(d / "sensors.json"), "--out",
-                 str(tmp_path / "out6"), "--workers", "1", "--no-progress"])
+                 str(tmp_path / "out6"), "--scheduler", scheduler, "--no-progress"])
     assert code == 2 and "no aircraft's track could be read from" in capsys.readouterr().err
     assert (tmp_path / "out6" / "tracks.csv").read_text().startswith('"aircraft","plot"')
     assert "unknown_sensor" in (tmp_path / "out6" / "problems.txt").read_text()
@@ -473,12 +491,12 @@ def test_sigterm_closes_the_cluster_and_the_same_command_resumes(tmp_path):
     assert sorted(ledger()) == sorted(f"{f.address:06X}" for f in flights)
 
 
-def test_named_aircraft_alone_are_reconstructed(recording, tmp_path, capsys):
+def test_named_aircraft_alone_are_reconstructed(recording, tmp_path, capsys, scheduler):
     """`--aircraft`: only the named tracks (a Mode S address in either case); a name the
     recording does not hold: the others written, exit status 2 naming it."""
     d, _ = recording
     key = f"{FLIGHTS[1].address:06X}"
-    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--workers", "1",
+    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--scheduler", scheduler,
             "--no-progress"]
     assert main([*args, "--out", str(tmp_path / "one"), "--aircraft", key.lower()]) == 0
     summary = json.loads((tmp_path / "one" / "summary.json").read_text())
@@ -493,13 +511,13 @@ def test_named_aircraft_alone_are_reconstructed(recording, tmp_path, capsys):
     assert summary["done"] == 1 and summary["aircraft_not_found"] == ["ABC123"]
 
 
-def test_sliding_windows_reconstruct_the_recording(recording, tmp_path, capsys):
+def test_sliding_windows_reconstruct_the_recording(recording, tmp_path, capsys, scheduler):
     """`--method sliding`: the seed's windows over every sensor's plots of each aircraft (two
     radars and ADS-B on the earth, across midnight): every track within 60 m of its flight
     (exact plots), no covariance, the method in the summary and each track's diagnostics."""
     d, enc = recording
     out = tmp_path / "sliding"
-    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--workers", "1",
+    args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--scheduler", scheduler,
             "--no-progress", "--out", str(out), "--method", "sliding"]
     assert main([*args, "--window-plots", "4", "--criterion", "R1"]) == 0
     summary = json.loads((out / "summary.json").read_text())
@@ -559,13 +577,13 @@ def test_sensor_statistics_pool_a_position_sensors_time_offset():
     assert row["range_bias_m"] is None and row["azimuth_bias_deg"] is None
 
 
-def test_a_rerun_reports_the_tracks_earlier_runs_failed(recording, tmp_path, capsys):
+def test_a_rerun_reports_the_tracks_earlier_runs_failed(recording, tmp_path, capsys, scheduler):
     """A resumed run keeps earlier failures in view: exit status 1 and their reasons until
     `--retry-failed` redoes them; `output` in summary.json is the whole directory's state."""
     d, _ = recording
     key = f"{FLIGHTS[0].address:06X}"
     args = [str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out",
-            str(tmp_path / "out"), "--workers", "1", "--no-progress", "--aircraft", key]
+            str(tmp_path / "out"), "--scheduler", scheduler, "--no-progress", "--aircraft", key]
     assert main([*args, "--time-limit", "0.001"]) == 1
     capsys.readouterr()
     assert main(args) == 1  # nothing redone: the failure stays
