@@ -490,7 +490,9 @@ class ErrorResponse(BaseModel):
     """Every 4xx/5xx answer of the service."""
 
     message: str = Field(description="Summary naming the field (and plot index).")
-    detail: list[ErrorItem] = Field(default_factory=list, description="All problems found.")
+    detail: list[ErrorItem] = Field(default_factory=list, description="The problems found "
+                                    "(of an invalid body, the first 100; `message` counts them "
+                                    "all).")
 
 
 class Health(BaseModel):

@@ -165,11 +165,27 @@ def test_a_request_with_many_errors_logs_a_bounded_summary(server):
     before = len(server.log)
     r = httpx.post(server.url + "/v1/reconstructions", timeout=30,
                    json={"radar": {"range_error_m": 1, "azimuth_error_deg": 1}, "plots": plots})
-    assert r.status_code == 422 and r.json()["message"].endswith("(and 8999 more)")
+    assert r.status_code == 422
+    assert r.json()["message"].endswith("(and 8999 more); the first 100 are listed")
+    detail = r.json()["detail"]
+    assert len(detail) == 100 and detail[-1]["loc"] == ["plots", 33, "t"]
+    assert len(r.content) < 20_000, len(r.content)  # 9000 listed: 0.8 MB
     time.sleep(0.5)
     new = server.log[before:]
     assert any('"invalid request"' in ln and '"errors": 9000' in ln for ln in new), new
     assert all(len(ln) < 10_000 for ln in new), max(map(len, new))
+
+
+def test_a_long_unknown_key_is_not_echoed_whole(server):
+    """A megabyte's key was echoed in the message and the field path: a 2-MB answer."""
+    key = "k" * 1_000_000
+    r = httpx.post(server.url + "/v1/reconstructions", timeout=30,
+                   json={"radar": {"range_error_m": 1, "azimuth_error_deg": 1, key: 1},
+                         "plots": SEED_BATCH["plots"][:5]})
+    assert r.status_code == 422 and len(r.content) < 1_000, len(r.content)
+    short = "k" * 50 + "... (1000000 characters)"
+    assert r.json()["message"] == f"radar.{short}: Extra inputs are not permitted"
+    assert r.json()["detail"][0]["loc"] == ["radar", short]
 
 
 def test_answers_are_gzip_compressed_when_accepted(server):
