@@ -246,7 +246,11 @@ class SolverPool:
         self.metrics.in_flight.inc()
         enqueued = time.time()
         try:
-            async with self._slots:
+            if not await self._take_slot(s.max_queue_wait_s):
+                self.metrics.rejected.inc()
+                raise Busy(f"waited {s.max_queue_wait_s:g} s for a solver ({self._pending} "
+                           "reconstructions are running or queued); retry later")
+            try:
                 for attempt in (1, 2):
                     worker = await self._idle.get()
                     while not worker.process.is_alive():  # died idle: not this job's doing
@@ -272,9 +276,24 @@ class SolverPool:
                     assert isinstance(result, Outcome)
                     return result
                 raise AssertionError("unreachable")
+            finally:
+                self._slots.release()
         finally:
             self._pending -= 1
             self.metrics.in_flight.dec()
+
+    async def _take_slot(self, wait_s: float) -> bool:
+        """A solve slot within ``wait_s`` seconds (0: however long it takes); False if none."""
+        assert self._slots is not None
+        if wait_s <= 0:
+            await self._slots.acquire()
+            return True
+        try:
+            async with asyncio.timeout(wait_s):
+                await self._slots.acquire()
+        except TimeoutError:
+            return False
+        return True
 
     async def _solve_on(self, worker: Worker, job: Job, enqueued: float) -> object:
         limit = self.settings.solve_time_limit_s

@@ -41,6 +41,9 @@ class Settings(BaseSettings):
     max_queued_solves: int = Field(
         32, ge=0, description="Requests allowed to wait for a solver slot; beyond this the "
         "service answers 503 with Retry-After.")
+    max_queue_wait_s: float = Field(
+        120.0, ge=0, description="Longest a request waits for a solver slot (s); beyond this the "
+        "service answers 503 with Retry-After. 0 = as long as it takes.")
     retry_after_s: int = Field(2, ge=1, description="Retry-After value of a 503 (s).")
     max_body_bytes: int = Field(2_000_000, ge=1024, description="Largest accepted request "
                                 "body (bytes); larger bodies get 413.")

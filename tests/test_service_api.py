@@ -438,6 +438,37 @@ def test_full_queue_is_refused_at_once():
     asyncio.run(scenario())
 
 
+def test_a_request_waits_for_a_solver_at_most_max_queue_wait_s():
+    """One slot held by a long solve: a queued request is refused (Busy -> 503) after
+    max_queue_wait_s, not when the first solve ends; it leaves the queue; the first is
+    unharmed and the slot free again afterwards."""
+    import time
+
+    settings = Settings(workers=1, max_concurrent_solves=1, warmup=False, max_queue_wait_s=0.3)
+    body = ReconstructionRequest.model_validate(batch(200.0))
+    job = to_job(body, "sqpmethod", 500, 20_000)
+    long = to_job(ReconstructionRequest.model_validate(batch(3000.0)), "sqpmethod", 500, 20_000)
+
+    async def scenario() -> None:
+        from service.metrics import Metrics
+
+        pool = SolverPool(settings, Metrics())
+        pool.start()
+        first = asyncio.create_task(pool.run(long))
+        await asyncio.sleep(0)  # the long solve holds the only slot
+        started = time.monotonic()
+        with pytest.raises(Busy, match=r"waited 0\.3 s for a solver"):
+            await pool.run(job)
+        waited = time.monotonic() - started
+        assert 0.3 <= waited < 1.0 and not first.done(), waited
+        assert pool._pending == 1  # the refused one left the queue
+        assert (await first).body is not None
+        assert (await pool.run(job)).body is not None  # free again
+        await pool.close()
+
+    asyncio.run(scenario())
+
+
 def test_solve_time_limit_is_a_422_and_frees_the_worker():
     settings = Settings(workers=1, warmup=False, solve_time_limit_s=0.05)
     job = to_job(ReconstructionRequest.model_validate(batch(3000.0)), "sqpmethod", 500, 20_000)
