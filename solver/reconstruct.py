@@ -11,6 +11,7 @@ from .config import ReconstructionConfig
 from .inputs import InputError, Plots, Radar
 from .plots import PlotTable
 from .results import Reconstruction
+from .sensors import RadarSensor
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +66,7 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
         else:
             result = refine_table(table, config, deadline=deadline)
         _warn_heights_not_estimated(table, result)
+        _warn_mirrored_heights(table, result)
     if table.frame is not None:
         result.frame = table.frame
         for s in (result.at_plots, result.samples):
@@ -89,6 +91,54 @@ def _warn_heights_not_estimated(table: PlotTable, result: Reconstruction) -> Non
             "sensor sees the aircraft: they are placed at the radar's height, so their ground "
             "range is too long by about h^2 / 2r for an aircraft at height h (1 km at 50 km "
             "range and 10 km, 200 m at 250 km); give their Mode C altitude or a second sensor")
+
+
+MIRROR_CHI2 = 9.0
+"""The mirrored heights' increase of the range residuals' chi-square below which the heights
+are called ambiguous (3 sigma of one plot)."""
+
+
+def _warn_mirrored_heights(table: PlotTable, result: Reconstruction) -> None:
+    """Radar plots without altitude fix a height through ``(h - h_site)^2`` only: for an
+    aircraft near its radars' height (a TMA radar on a hill, an approach) the height mirrored
+    about the sites' height fits the slant ranges about as well, and only the sites' different
+    heights tell the two apart. A tester's two radars at 450 and 500 m saw an aircraft at 900 m
+    estimated at 0 +- 90 m (positions within 15 m). Said when the mirrored heights, with the
+    same horizontal positions (the re-fitted mirror could only fit better), raise the range
+    residuals' chi-square by less than :data:`MIRROR_CHI2` and differ from the estimate by
+    more than 3 of its sigmas."""
+    s, res = result.at_plots, result.residuals
+    if (not table.estimate_altitude() or table.frame is None or s.h is None or res is None
+            or np.isfinite(table.altitude_m).any()):
+        return
+    rows = np.flatnonzero(table.radar_rows() & ~res.gated & np.isfinite(res.range_m))
+    if rows.size < 3:
+        return
+    radars = [table.sensors[k] for k in table.sensor[rows]]
+    site_h = np.array([r.site_in(table.frame)[2] for r in radars])
+    sigma_r = np.array([r.sigma_r for r in radars])
+    h = s.h[rows]
+    mirror = 2.0 * np.average(site_h, weights=sigma_r**-2) - h
+    sd = s.h_sigma[rows] if s.h_sigma is not None else np.zeros(rows.size)
+    if np.median(np.abs(mirror - h)) <= 3.0 * max(float(np.median(sd)), 10.0):
+        return  # at the sites' height: the mirror is the same place
+    dr = np.empty(rows.size)
+    for k in np.unique(table.sensor[rows]):
+        m = table.sensor[rows] == k
+        radar = table.sensors[k]
+        assert isinstance(radar, RadarSensor)
+        x, z = s.x[rows][m], s.z[rows][m]
+        dr[m] = radar.measure(table.frame, x, z, mirror[m])[0] - radar.measure(
+            table.frame, x, z, h[m])[0]
+    e = res.range_m[rows] / sigma_r
+    worse = float(np.sum((e - dr / sigma_r) ** 2 - e**2))
+    if worse < MIRROR_CHI2:
+        result.diagnostics.warnings.append(
+            f"the height is ambiguous: the radars see the aircraft near their own height, "
+            f"where heights mirrored about it fit their slant ranges as well (median "
+            f"{float(np.median(h)):.0f} m estimated, {float(np.median(mirror)):.0f} m mirrored: "
+            f"chi-square +{worse:.1f}); positions are not affected. Give the plots' Mode C "
+            "altitude to decide")
 
 
 def _warn_far_from_reference(result: Reconstruction) -> None:

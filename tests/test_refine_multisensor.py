@@ -849,3 +849,47 @@ def test_a_lone_radar_without_altitude_says_its_plots_sit_at_its_height(mode_c):
     else:
         assert len(said) == 1 and said[0].startswith(f"{len(table)} plot(s) of radar 'A'")
         assert _rms(rec, x, z) > 200.0  # what the warning is about
+
+
+def _tma(h: float, seed: int) -> tuple[PlotTable, np.ndarray, np.ndarray]:
+    """Two radars on hills (450 and 500 m, 15 km apart), no altitude, an aircraft at ``h``
+    flying north 3 km west of the first (a tester's case): the table and the true positions."""
+    frame = LocalFrame(48.35, 11.78)
+    r0 = RadarSensor(45.0, np.deg2rad(0.05), id="R0", site=Site(48.35, 11.78, 450.0))
+    r1 = RadarSensor(45.0, np.deg2rad(0.05), id="R1", site=Site(48.45, 11.60, 500.0))
+    segs = [Segment(0.0, 300.0, -12_000.0, -3_000.0, 0.0, 80.0, 0.0, 0.0)]
+    rng = np.random.default_rng(seed)
+    cols: dict[str, list] = {k: [] for k in ("t", "s", "r", "a", "x", "z")}
+    for sensor, (period, offset) in ((r0, (4.0, 0.3)), (r1, (5.0, 0.7))):
+        t = np.arange(offset, 300.0, period)
+        st = evaluate(segs, t)
+        r, a = sensor.measure(frame, st.x, st.z, np.full(t.size, h))
+        r = r + rng.normal(0, sensor.sigma_r, t.size)
+        a = a + rng.normal(0, sensor.sigma_psi, t.size)
+        for key, val in zip(cols, (t, [sensor.id] * t.size, r, a, st.x, st.z), strict=True):
+            cols[key].append(np.asarray(val))
+    c = {k: np.concatenate(v) for k, v in cols.items()}
+    table = PlotTable.build((r0, r1), c["t"], c["s"], c["r"], c["a"], reference=frame)
+    return table, c["x"], c["z"]
+
+
+@pytest.mark.parametrize("seed", [1, 7])
+def test_heights_mirrored_about_the_radars_are_said_to_be_ambiguous(seed):
+    """An aircraft at 900 m seen by two radars at 450 and 500 m: its height mirrored about
+    theirs fits the slant ranges about as well (seed 1 is estimated at 9 m, seed 7 at 903 m);
+    the answer says so. Positions within 30 m either way. At
+    3 km (mirrored: -2 km, chi-square +120 or more) nothing is said."""
+    table, x, z = _tma(900.0, seed)
+    rec = reconstruct(table)
+    assert np.hypot(rec.at_plots.x - x, rec.at_plots.z - z).max() < 30.0
+    said = [w for w in rec.diagnostics.warnings if w.startswith("the height is ambiguous")]
+    assert len(said) == 1, rec.diagnostics.warnings
+    assert rec.at_plots.h is not None
+    h = float(np.median(rec.at_plots.h))
+    assert min(abs(h), abs(h - 900.0)) < 100.0, h  # the truth or its mirror
+    # mirrored about the sites' height, weighed by their plots (equal sigmas)
+    centre = float(np.mean(np.where(table.sensor == 0, 450.0, 500.0)))
+    assert f"median {h:.0f} m estimated, {2 * centre - h:.0f} m mirrored" in said[0], said[0]
+    table, _, _ = _tma(3000.0, seed)
+    rec = reconstruct(table)
+    assert not [w for w in rec.diagnostics.warnings if "ambiguous" in w]
