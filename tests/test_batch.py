@@ -82,8 +82,9 @@ def test_local_cluster_two_workers(tmp_path, tracks, client):
     assert {e["aircraft"]: e["status"] for e in entries}["TOO-SHORT"] == "failed"
     for e in entries:  # the task thread's CPU time: a solve on a worker, not waiting
         assert 0.0 < e["cpu_s"] <= e["elapsed_s"] + 1e-3
-        if e["status"] == "done":
-            assert e["cpu_s"] > 0.5 * e["elapsed_s"]
+        if e["status"] == "done":  # a waiting thread's is about 1e-3 of it; a solve's 0.4-1
+            assert e["cpu_s"] > 0.1 * e["elapsed_s"]  # (0.43 with the other tests' process
+            # and both workers on two cores)
     assert pq.read_table(out / "segments.parquet").num_rows > 0
 
 
