@@ -464,9 +464,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/readyz", response_model=Health, tags=["operations"], summary="Readiness",
              responses={503: {"model": Health, "description": "Not ready (yet)."}})
     async def readyz() -> Response:
-        """Ready once every worker has built and warmed the CasADi solvers."""
+        """Ready once every worker has built and warmed the CasADi solvers, and while one of
+        them is alive (dead idle workers are replaced here)."""
         health = Health(status=pool.state, detail=pool.detail)  # type: ignore[arg-type]
-        return JSONResponse(health.model_dump(), status_code=200 if pool.state == "ready"
+        if pool.state == "ready" and not pool.serving():
+            health = Health(status="starting", detail="no solver worker is alive: their "
+                            "replacements are warming up")
+        return JSONResponse(health.model_dump(), status_code=200 if health.status == "ready"
                             else 503)
 
     @app.head("/healthz", include_in_schema=False)

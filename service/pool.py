@@ -126,6 +126,7 @@ class SolverPool:
         self._slots: asyncio.Semaphore | None = None
         self._idle: asyncio.Queue[Worker] | None = None
         self._workers: set[Worker] = set()
+        self._warming: set[Worker] = set()
         self._starting: set[asyncio.Task[None]] = set()
         self._pending = 0
         self._count = 0
@@ -167,11 +168,14 @@ class SolverPool:
         self._count += 1
         worker = Worker(self.settings, self._count, self._readers)
         self._workers.add(worker)
+        self._warming.add(worker)
         try:
             _, error = await worker.receive()  # type: ignore[misc]
         except WorkerDied as e:
             self._workers.discard(worker)
             return str(e)
+        finally:
+            self._warming.discard(worker)
         if error is not None or self._closing:
             self._workers.discard(worker)
             await worker.stop()
@@ -179,6 +183,20 @@ class SolverPool:
         assert self._idle is not None
         self._idle.put_nowait(worker)
         return None
+
+    def serving(self) -> int:
+        """Warm workers alive now (idle or solving); idle ones found dead are replaced here
+        (killed from outside, they were found only when a request took them: until then
+        ``/readyz`` said ready with no worker alive)."""
+        if self._idle is None or self._closing:
+            return 0
+        idle = [self._idle.get_nowait() for _ in range(self._idle.qsize())]
+        for worker in idle:
+            if worker.process.is_alive():
+                self._idle.put_nowait(worker)
+            else:
+                self._replace(worker)
+        return sum(w.process.is_alive() for w in self._workers - self._warming)
 
     def _replace(self, worker: Worker) -> None:
         """Forget a dead worker and start its successor in the background."""

@@ -197,6 +197,37 @@ def test_workers_exit_when_the_server_is_killed():
         stop(proc)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_readyz_sees_the_only_worker_killed_and_its_replacement():
+    """The only worker, idle and warm, killed from outside: /readyz said ready until a request
+    found it dead. It now answers 503 at once, the replacement starts then, and /readyz is
+    ready again once it is warm; a request is then answered."""
+    proc, url = start_service({"TRAJRECON_WORKERS": "1", "TRAJRECON_WARMUP": "false",
+                               "TRAJRECON_LOG_LEVEL": "ERROR"})
+    try:
+        assert httpx.get(url + "/readyz", timeout=10).status_code == 200
+        workers = [c for c in children(proc.pid)
+                   if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+        assert len(workers) == 1, workers
+        os.kill(workers[0], signal.SIGKILL)
+        end = time.monotonic() + 5
+        while alive(workers[0]):
+            assert time.monotonic() < end
+            time.sleep(0.05)
+        r = httpx.get(url + "/readyz", timeout=10)
+        assert r.status_code == 503, r.text
+        assert r.json() == {"status": "starting", "detail": "no solver worker is alive: their "
+                            "replacements are warming up"}
+        end = time.monotonic() + 60
+        while httpx.get(url + "/readyz", timeout=10).status_code != 200:
+            assert time.monotonic() < end, "the replacement never became ready"
+            time.sleep(0.2)
+        body = dict(SEED_BATCH, plots=SEED_BATCH["plots"][:8])
+        assert httpx.post(url + "/v1/reconstructions", json=body, timeout=60).status_code == 200
+    finally:
+        stop(proc)
+
+
 def test_shutdown_while_solving_ends_in_bounded_time():
     """SIGTERM with a long solve running: the server is gone within the shutdown timeout plus
     the workers' stop grace, not after the solve."""
