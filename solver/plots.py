@@ -181,7 +181,7 @@ class PlotTable:
                 raise InputError(("plots", i, "altitude_m"),
                                  f"must be finite, >= 0 and below the slant range ({alt[i]})")
         else:
-            bad = rad[alt[rad] - self._site_heights()[rad] >= r[rad]]
+            bad = rad[alt[rad] - self.site_heights()[rad] >= r[rad]]
             if bad.size:
                 i = int(bad[0])
                 raise InputError(("plots", i, "altitude_m"), f"({alt[i]}) is further above "
@@ -195,7 +195,8 @@ class PlotTable:
                                  f"plot of sensor {self.sensors[k].id!r} ({self.t[i]:g} <= "
                                  f"{self.t[j]:g})")
 
-    def _site_heights(self) -> FloatArray:
+    def site_heights(self) -> FloatArray:
+        """Each row's radar site height (m; 0 for other sensors) on a table with a frame."""
         assert self.frame is not None
         h = np.array([s.site_in(self.frame)[2] if isinstance(s, RadarSensor) else 0.0
                       for s in self.sensors])

@@ -114,9 +114,8 @@ def _warn_mirrored_heights(table: PlotTable, result: Reconstruction) -> None:
     rows = np.flatnonzero(table.radar_rows() & ~res.gated & np.isfinite(res.range_m))
     if rows.size < 3:
         return
-    radars = [table.sensors[k] for k in table.sensor[rows]]
-    site_h = np.array([r.site_in(table.frame)[2] for r in radars])
-    sigma_r = np.array([r.sigma_r for r in radars])
+    site_h = table.site_heights()[rows]
+    sigma_r = np.array([getattr(s, "sigma_r", np.nan) for s in table.sensors])[table.sensor[rows]]
     h = s.h[rows]
     mirror = 2.0 * np.average(site_h, weights=sigma_r**-2) - h
     sd = s.h_sigma[rows] if s.h_sigma is not None else np.zeros(rows.size)

@@ -2,9 +2,10 @@
 container's stop) without leaving a half-closed cluster behind.
 
 Python raises the stop wherever the main thread happens to be. Landing inside Dask's closing
-of the embedded cluster, it left the cluster half closed: a worker process still alive 10 s
-later and the interpreter's exit waiting on it (measured: a SIGTERM 0.02, 0.1 or 0.3 s into the
-close, every time; the SIGTERM test of the command line hung 60 s that way on a slow machine).
+of the embedded cluster, it left the cluster half closed: the worker process still alive when
+the stop came out, and the interpreter's exit 10.7 s longer, waiting on Dask's timeouts
+(measured: a SIGTERM 0.05 or 0.3 s into the close; the SIGTERM test of the command line hung
+60 s that way on the CI's slower machine).
 Inside :meth:`StopSignals.deferred` (starting and closing the cluster) a stop is held and
 raised when the section ends; everywhere else it is raised at once, as Python does.
 """
