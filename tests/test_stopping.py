@@ -62,8 +62,8 @@ def test_the_previous_handlers_come_back():
 
 def test_a_sigterm_while_the_cluster_closes_leaves_no_worker_behind():
     """Measured before the fix: a SIGTERM 0.05 s into the close left the worker process alive
-    and the interpreter's exit took 10.7 s more (11 s of Dask's timeouts at exit); the command
-    line's SIGTERM test hung 60 s on a slow machine."""
+    and the interpreter's exit took 10.7 s more; the command line's SIGTERM test hung 60 s
+    on a slow machine."""
     from solver import cli
     from solver.stopping import STOP_SIGNALS
 
