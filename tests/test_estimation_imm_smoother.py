@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 from scipy.stats import chi2
-from tracks import make_track
+from tracks import held, make_track
 
 from solver import FilterEstimate, Plots, Radar
 from solver.estimation import FILTER_NAMES, run_filter
@@ -336,15 +336,18 @@ def mixed_sensor_plots(polar: PolarPlots, simultaneous: bool = False) -> SensorP
                        centre=centre[rows], cov=cov[rows])
 
 
-@pytest.mark.parametrize("case", ["ekf", "converted", "sensors", "kim"])
+@pytest.mark.parametrize("case", ["ekf", "converted", "sensors", "kim", "gap"])
 def test_compiled_passes_equal_the_numpy_reference(case):
     """The passes' steps as compiled CasADi functions (``imm_step``) give what the plain-numpy
     passes they replaced give (``tests/imm_reference.py``: one ``kalman.position_update`` per
     mode, the future-mode weights as tested above): polar plots (EKF and converted), polar plots
-    mixed with position fixes (``SensorPlots``), Kim's weights."""
+    mixed with position fixes (``SensorPlots``), Kim's weights, a long gap after which the EKF
+    update iterates."""
     measurement, future = ("converted" if case == "converted" else "ekf"), case != "kim"
     if case == "sensors":
         meas = mixed_sensor_plots(PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR))
+    elif case == "gap":
+        meas = held(PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR))
     else:
         meas = PolarPlots.from_plots(noisy_track(1, scan_s=4.0).plots, RADAR)
     dt = np.diff(meas.t)

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from solver.estimation.measurements import PolarPlots
 from solver.inputs import FloatArray, Plots, Radar
 from solver.motion import propagate
 
@@ -90,3 +91,12 @@ def make_track(legs=None, start=SEED_LIKE_START, scan_s: float = 19.0,
     psi = np.arctan2(z, x) + sigma_psi * rng.standard_normal(t.size)
     plots = Plots.from_arrays(t, r, psi)
     return Track(t, x, z, phi, v, edges[1:-1], plots)
+
+
+def held(meas: PolarPlots, after: int = 30, gap_s: float = 600.0) -> PolarPlots:
+    """``meas`` with the plots after ``after`` ``gap_s`` later (the aircraft held): the first
+    plot after the gap is kilometres from every model's prediction, so the EKF update
+    iterates (``measurements.LINEARISATION_TOLERANCE``)."""
+    t = meas.t.copy()
+    t[after + 1:] += gap_s
+    return replace(meas, t=t)

@@ -63,13 +63,19 @@ def run_imm(meas: PolarPlots | SensorPlots, q_cv: float = Q_CV, q_ct: float = Q_
     if n > 1:
         A = imm_step.pack(imm_ct_step.STEP, n - 1, T=np.diff(t),
                              plot=imm_step.plot_rows(meas)[1:], q_cv=q_cv, q_ct=q_ct,
-                             q_omega=q_omega, tau_cv=tau_cv, tau_ct=tau_ct, omega_max=omega_max)
+                             q_omega=q_omega, tau_cv=tau_cv, tau_ct=tau_ct, omega_max=omega_max,
+                             lin=0.0, relin=0.0)
+        again = np.zeros(imm_ct_step.N_MODES + 1)
         buf, evaluate = imm_ct_step.step(measurement).buffer()
+        buf.set_res(1, memoryview(again))
         for k in range(1, n):  # each step reads and writes the arrays' rows in place
             buf.set_arg(0, memoryview(S[k - 1]))
             buf.set_arg(1, memoryview(A[k - 1]))
             buf.set_res(0, memoryview(S[k]))
             evaluate()
+            if again[0]:  # the iterated EKF update (a plot far from the prediction)
+                imm_step.relinearise(evaluate, A[k - 1], S[k], again, imm_ct_step.STEP,
+                                     imm_ct_step.STATE, imm_ct_step.N_X)
     xs, Ps, mu = imm_ct_step.unpack(S)
     x = np.einsum("ni,nij->nj", mu, xs)
     d = xs - x[:, None, :]

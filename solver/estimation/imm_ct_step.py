@@ -36,8 +36,11 @@ MU_FLOOR = 1e-12
 
 STATE = _blocks(x=N_MODES * N_X, P=N_MODES * N_X * N_X, mu=N_MODES)
 """The filter's state after a plot: each mode's mean and covariance, the probabilities."""
-STEP = _blocks(T=1, plot=11, q_cv=1, q_ct=1, q_omega=1, tau_cv=1, tau_ct=1, omega_max=1)
-"""A step's inputs: the time step, the plot (:func:`.imm_step.plot_rows`), the settings."""
+STEP = _blocks(T=1, plot=11, q_cv=1, q_ct=1, q_omega=1, tau_cv=1, tau_ct=1, omega_max=1,
+              lin=N_MODES * 2, relin=N_MODES)
+"""A step's inputs: the time step, the plot (:func:`.imm_step.plot_rows`), the settings, where
+each mode's EKF update is linearised (:func:`.imm_step.update_terms`; ``relin`` 0: at the
+prediction)."""
 
 
 def _cv_noise(T: ca.SX, q: ca.SX) -> ca.SX:
@@ -76,6 +79,7 @@ def _step(measurement: str) -> ca.Function:
           for j in range(N_MODES)]
     mu = s[STATE["mu"]]
     T, plot = a[STEP["T"]], a[STEP["plot"]]
+    lin, relin = a[STEP["lin"]], a[STEP["relin"]]
     q_cv, q_ct, q_omega = a[STEP["q_cv"]], a[STEP["q_ct"]], a[STEP["q_omega"]]
     tau_cv, tau_ct, omega_max = a[STEP["tau_cv"]], a[STEP["tau_ct"]], a[STEP["omega_max"]]
     ra, rb = 1 / tau_cv, 1 / tau_ct  # the chain's leaving rates
@@ -94,26 +98,29 @@ def _step(measurement: str) -> ca.Function:
     Q = _cv_noise(T, q_cv)
     Q[4, 4] = 1e-12
     xm, Pm = mixed[0]
-    x_cv, P_cv, l_cv = update_terms(ca.mtimes(F, xm), ca.mtimes([F, Pm, F.T]) + Q, plot,
-                                    measurement)
+    x_cv, P_cv, l_cv, a_cv = update_terms(ca.mtimes(F, xm), ca.mtimes([F, Pm, F.T]) + Q, plot,
+                                          measurement, lin[:2], relin[0])
     fx, J = _turn(mixed[1][0], T)
     Q = _cv_noise(T, q_ct)
     Q[4, 4] = q_omega * T
-    x_ct, P_ct, l_ct = update_terms(fx, ca.mtimes([J, mixed[1][1], J.T]) + Q, plot,
-                                    measurement)
+    x_ct, P_ct, l_ct, a_ct = update_terms(fx, ca.mtimes([J, mixed[1][1], J.T]) + Q, plot,
+                                          measurement, lin[2:], relin[1])
     x_ct[4] = ca.fmin(ca.fmax(x_ct[4], -omega_max), omega_max)  # projection on the bound
     ll = ca.vertcat(l_cv, l_ct)
     post = c * ca.exp(ll - ca.mmax(ll))
     mun = ca.fmax(post / ca.sum1(post), MU_FLOOR)
     mun = mun / ca.sum1(mun)
     out = ca.vertcat(x_cv, x_ct, _flat(P_cv), _flat(P_ct), mun)
-    return compiled.function(f"imm_ct_{measurement}", [s, a], [out], ["s", "a"],
-                             ["s_next"], derivatives=False)
+    again = ca.vertcat(ca.fmax(a_cv, a_ct), a_cv, a_ct)
+    return compiled.function(f"imm_ct_{measurement}", [s, a], [out, again], ["s", "a"],
+                             ["s_next", "again"], derivatives=False)
 
 
 @cache
 def step(measurement: str) -> ca.Function:
-    """One step: ``(s_{k-1}, inputs_k) -> s_k`` (layouts :data:`STATE`, :data:`STEP`)."""
+    """One step: ``(s_{k-1}, inputs_k) -> (s_k, again_k)`` (layouts :data:`STATE`,
+    :data:`STEP`); ``again`` ``[any, per mode]`` asks for the step to be repeated
+    (:func:`.imm_step.relinearise`)."""
     return _step(measurement)
 
 

@@ -173,18 +173,24 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
     if m == 0:
         return ForwardPass(xf, Pf, mu, np.empty((0, N_MODES, N_MODES)),
                            np.empty((0, N_MODES, 4)), np.empty((0, N_MODES, 4, 4)))
-    A = imm_step.pack(imm_step.STEP, m, Phi=Phi, Q=Q, Pi=Pi, plot=imm_step.plot_rows(meas)[1:])
+    A = imm_step.pack(imm_step.STEP, m, Phi=Phi, Q=Q, Pi=Pi, plot=imm_step.plot_rows(meas)[1:],
+                      lin=0.0, relin=0.0)
     S = np.empty((n, imm_step.size(imm_step.STATE)))  # row k: the state after plot k
     S[:1] = imm_step.pack(imm_step.STATE, 1, x=np.repeat(x0[None], N_MODES, 0),
                           P=np.repeat(P0[None], N_MODES, 0), mu=mu0)
     E = np.empty((m, imm_step.size(imm_step.EXTRA)))
+    again = np.zeros(N_MODES + 1)
     buf, evaluate = imm_step.forward_step(measurement).buffer()
+    buf.set_res(2, memoryview(again))
     for k in range(1, n):  # each step reads and writes the arrays' rows in place
         buf.set_arg(0, memoryview(S[k - 1]))
         buf.set_arg(1, memoryview(A[k - 1]))
         buf.set_res(0, memoryview(S[k]))
         buf.set_res(1, memoryview(E[k - 1]))
         evaluate()
+        if again[0]:  # the iterated EKF update (a plot far from the prediction)
+            imm_step.relinearise(evaluate, A[k - 1], S[k], again, imm_step.STEP,
+                                 imm_step.STATE, 4)
     xf[1:], Pf[1:], mu[1:] = _states(S[1:])
     ex = imm_step.EXTRA
     return ForwardPass(xf, Pf, mu, E[:, ex["W"]].reshape(m, N_MODES, N_MODES),

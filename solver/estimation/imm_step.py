@@ -25,13 +25,19 @@ are the one source for both the functions and the passes that fill them (:func:`
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 
 import casadi as ca
 import numpy as np
 
 from .. import compiled
-from .measurements import PolarPlots, SensorPlots
+from .measurements import (
+    LINEARISATION_TOLERANCE,
+    MAX_LINEARISATIONS,
+    PolarPlots,
+    SensorPlots,
+)
 
 N_MODES = 3
 """CV, right turn, left turn."""
@@ -49,8 +55,9 @@ def _blocks(**sizes: int) -> dict[str, slice]:
 _M, _PAIRS = N_MODES, N_MODES * N_MODES
 STATE = _blocks(x=_M * 4, P=_M * 16, mu=_M)
 """A pass's state at one plot (forward: filtered; backward: smoothed)."""
-STEP = _blocks(Phi=_M * 16, Q=_M * 16, Pi=_M * _M, plot=11)
-"""The forward step's inputs; ``plot`` as :func:`plot_rows`."""
+STEP = _blocks(Phi=_M * 16, Q=_M * 16, Pi=_M * _M, plot=11, lin=_M * 2, relin=_M)
+"""The forward step's inputs; ``plot`` as :func:`plot_rows`; ``lin``, ``relin`` where each mode's
+EKF update is linearised (:func:`update_terms`; 0: at the prediction)."""
 EXTRA = _blocks(W=_M * _M, xp=_M * 4, Pp=_M * 16)
 """The forward step's outputs for the backward pass."""
 EIGEN = _blocks(s=_M * 4, V=_M * 16)
@@ -113,10 +120,33 @@ def _flat(m: ca.SX) -> ca.SX:
     return ca.vec(m.T)
 
 
-def update_terms(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
-                 ) -> tuple[ca.SX, ca.SX, ca.SX]:
+def _wrap(a: ca.SX) -> ca.SX:
+    """numpy's ``mod(a + pi, 2 pi) - pi``: an angle in ``[-pi, pi)``."""
+    a = ca.fmod(a + ca.pi, 2 * ca.pi)
+    return ca.if_else(a < 0, a + 2 * ca.pi, a) - ca.pi
+
+
+def _polar(at: ca.SX, d: ca.SX, psi: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """:func:`.measurements.polar_innovation` at position ``at``: ``z - h(at)`` and ``J``."""
+    ax, az = at[0], at[1]
+    rho2 = ax * ax + az * az
+    rho = ca.sqrt(rho2)
+    nu = ca.vertcat(d - rho, _wrap(psi - ca.atan2(az, ax)))
+    J = ca.vertcat(ca.horzcat(ax / rho, az / rho), ca.horzcat(-az / rho2, ax / rho2))
+    return nu, J
+
+
+def update_terms(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str, lin: ca.SX | None = None,
+                 relin: ca.SX | None = None) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
     """Position update of one mode's ``(m,)``, ``(m, m)`` prediction (the position first):
-    updated state, covariance, ``-(nu^T S^-1 nu + log det S) / 2``."""
+    updated state, covariance, ``-(nu^T S^-1 nu + log det S) / 2`` and whether to update again.
+
+    The EKF update of a polar plot is linearised at the position ``lin`` where ``relin`` is
+    nonzero, else at the prediction's; it is :func:`.kalman.position_update`'s iterated update
+    when the caller repeats the step, relinearised at the updated position, while the last
+    output (1: the linearisation error at the updated position exceeds
+    :data:`.measurements.LINEARISATION_TOLERANCE` sigma; always 0 for the converted
+    measurement and for fixes) asks for it (:func:`relinearise`)."""
     polar, d, psi, sigma_d, sigma_psi = (plot[i] for i in range(5))
     centre, cov = plot[5:7], _mat(plot[7:11], 2, 2)
     px, pz = xp[0], xp[1]
@@ -124,10 +154,9 @@ def update_terms(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
     rho = ca.sqrt(rho2)
     eye2 = ca.SX.eye(2)
     if measurement == "ekf":
-        dpsi = ca.fmod(psi - ca.atan2(pz, px) + ca.pi, 2 * ca.pi)
-        dpsi = ca.if_else(dpsi < 0, dpsi + 2 * ca.pi, dpsi) - ca.pi  # numpy's mod: in [0, 2 pi)
-        nu_polar = ca.vertcat(d - rho, dpsi)
-        H_polar = ca.vertcat(ca.horzcat(px / rho, pz / rho), ca.horzcat(-pz / rho2, px / rho2))
+        at = xp[:2] if lin is None else ca.if_else(relin, lin, xp[:2])
+        nu_at, H_polar = _polar(at, d, psi)
+        nu_polar = nu_at - ca.mtimes(H_polar, xp[:2] - at)
         R_polar = ca.diag(ca.vertcat(sigma_d**2, sigma_psi**2))
     else:  # converted: the plot point, the covariance's Jacobian at the prediction
         nu_polar = ca.vertcat(d * ca.cos(psi), d * ca.sin(psi)) - xp[:2]
@@ -148,7 +177,34 @@ def update_terms(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str
     IKH = ca.SX.eye(m) - ca.horzcat(ca.mtimes(K, Hp), ca.SX.zeros(m, m - 2))
     P = ca.mtimes([IKH, Pp, IKH.T]) + ca.mtimes([K, R, K.T])
     nis = ca.mtimes([nu.T, Sinv, nu])
-    return xp + ca.mtimes(K, nu), P, -0.5 * (nis + ca.log(det))
+    x = xp + ca.mtimes(K, nu)
+    again = ca.SX(0)
+    if measurement == "ekf":
+        nu_new, _ = _polar(x[:2], d, psi)
+        error = (nu_at - nu_new) - ca.mtimes(H_polar, x[:2] - at)  # h(new) - h(at) - J (new - at)
+        tol = LINEARISATION_TOLERANCE
+        again = ca.logic_and(polar, ca.logic_or(ca.fabs(error[0]) > tol * sigma_d,
+                                                ca.fabs(_wrap(error[1])) > tol * sigma_psi))
+    return x, P, -0.5 * (nis + ca.log(det)), again
+
+
+def relinearise(evaluate: Callable[[], None], a: np.ndarray, s_next: np.ndarray,
+                again: np.ndarray, step: dict[str, slice], state: dict[str, slice],
+                n_x: int) -> None:
+    """Repeat a step whose ``again`` output (``[any, per mode]``) asks for it: each mode that
+    asks is linearised at its updated position (inputs ``lin``, ``relin`` of the step's row
+    ``a``, changed in place), the others where they were, until none asks or
+    :data:`.measurements.MAX_LINEARISATIONS` updates were made; ``s_next`` holds the result."""
+    lin = a[step["lin"]].reshape(-1, 2)
+    relin = a[step["relin"]]
+    x = s_next[state["x"]].reshape(-1, n_x)
+    for _ in range(MAX_LINEARISATIONS - 1):
+        redo = again[1:] > 0
+        lin[redo] = x[redo, :2]
+        relin[redo] = 1.0
+        evaluate()
+        if not again[0]:
+            return
 
 
 def _step(measurement: str) -> ca.Function:
@@ -156,17 +212,18 @@ def _step(measurement: str) -> ca.Function:
     x, P, mu = _modes(s[STATE["x"]], 4), _modes(s[STATE["P"]], 16), s[STATE["mu"]]
     Phi, Q = _modes(a[STEP["Phi"]], 16), _modes(a[STEP["Q"]], 16)
     Pi = _mat(a[STEP["Pi"]], N_MODES, N_MODES)
-    plot = a[STEP["plot"]]
+    plot, lin, relin = a[STEP["plot"]], _modes(a[STEP["lin"]], 2), a[STEP["relin"]]
     joint = Pi * ca.repmat(mu, 1, N_MODES)  # joint[i, j] = Pi_ij mu_i
     c = ca.sum1(joint).T
     W = ca.horzcat(*(ca.if_else(c[j] > 0, joint[:, j] / c[j], mu) for j in range(N_MODES)))
-    xn, Pn, XP, PP, loglik = [], [], [], [], []
+    xn, Pn, XP, PP, loglik, again = [], [], [], [], [], []
     for j in range(N_MODES):
         xm = sum(W[i, j] * x[i] for i in range(N_MODES))
         Pm = sum(W[i, j] * (P[i] + ca.mtimes(x[i] - xm, (x[i] - xm).T)) for i in range(N_MODES))
         xp = ca.mtimes(Phi[j], xm)
         Pp = ca.mtimes([Phi[j], Pm, Phi[j].T]) + Q[j]
-        xj, Pj, lj = update_terms(xp, Pp, plot, measurement)
+        xj, Pj, lj, aj = update_terms(xp, Pp, plot, measurement, lin[j], relin[j])
+        again.append(aj)
         xn.append(xj)
         Pn.append(Pj)
         XP.append(xp)
@@ -179,13 +236,15 @@ def _step(measurement: str) -> ca.Function:
     mun = ca.if_else(ok, post / total, c)
     out = ca.vertcat(*xn, *(_flat(p) for p in Pn), mun)
     extra = ca.vertcat(_flat(W), *XP, *PP)
-    return compiled.function(f"imm_forward_{measurement}", [s, a], [out, extra],
-                             ["s", "a"], ["s_next", "extra"], derivatives=False)
+    flags = ca.vertcat(ca.mmax(ca.vertcat(*again)), *again)
+    return compiled.function(f"imm_forward_{measurement}", [s, a], [out, extra, flags],
+                             ["s", "a"], ["s_next", "extra", "again"], derivatives=False)
 
 
 @cache
 def forward_step(measurement: str) -> ca.Function:
-    """One forward step: ``(s_{k-1}, inputs_k) -> (s_k, extras_k)``."""
+    """One forward step: ``(s_{k-1}, inputs_k) -> (s_k, extras_k, again_k)``; ``again``
+    ``[any, per mode]`` asks for the step to be repeated (:func:`relinearise`)."""
     return _step(measurement)
 
 

@@ -13,12 +13,15 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
 
 from ..inputs import FloatArray
 from .measurements import (
+    LINEARISATION_TOLERANCE,
+    MAX_LINEARISATIONS,
     MEASUREMENT_MODES,
     PolarPlots,
     SensorPlots,
@@ -85,9 +88,41 @@ def position_update(x: FloatArray, P: FloatArray, meas: PolarPlots | SensorPlots
         z = np.array([d * np.cos(psi), d * np.sin(psi)])
         R = converted_cov(np.hypot(p[0], p[1]), np.arctan2(p[1], p[0]), sigma_d, sigma_psi)
         return update(x, P, z - p, H, R)
-    nu, J = polar_innovation(p, d, psi)
+    return _iterated_polar_update(x, P, H, p, pos, d, psi, float(sigma_d), float(sigma_psi))
+
+
+def _iterated_polar_update(x: FloatArray, P: FloatArray, H: FloatArray, p: FloatArray,
+                           pos: tuple[int, int], d: float, psi: float, sigma_d: float, sigma_psi: float
+                           ) -> tuple[FloatArray, FloatArray, float, float]:
+    """The EKF update of ``(x, P)`` (position ``p = x[pos] = H x``) by the polar plot ``(d, psi)``,
+    relinearised at the updated position (the iterated EKF, Gauss-Newton on the posterior
+    mode: ``x_{i+1} = x + K_i (z - h(p_i) - J_i (p - p_i))``, ``K_i`` from ``J_i H``) while
+    the linearisation error exceeds :data:`.measurements.LINEARISATION_TOLERANCE` sigma; at
+    most :data:`.measurements.MAX_LINEARISATIONS` updates. The first is the EKF's update."""
     R = np.diag([sigma_d**2, sigma_psi**2])
-    return update(x, P, nu, J @ H, R)
+    tol_d, tol_psi = LINEARISATION_TOLERANCE * sigma_d, LINEARISATION_TOLERANCE * sigma_psi
+    at = p
+    nu, J = polar_innovation(at, d, psi)
+    out = update(x, P, nu, J @ H, R)
+    for _ in range(MAX_LINEARISATIONS - 1):
+        ax, az = float(at[0]), float(at[1])
+        nx, nz = float(out[0][pos[0]]), float(out[0][pos[1]])
+        # a bound first (cheap, most updates stop here): along the step |h''| <= 1 / rho_min
+        # in range and 1 / rho_min^2 in azimuth, so the error is at most step^2 / 2 of these
+        step2 = (nx - ax) ** 2 + (nz - az) ** 2
+        rho_min = math.hypot(ax, az) - math.sqrt(step2)
+        if rho_min > 0 and step2 <= 2 * rho_min * tol_d and step2 <= 2 * rho_min**2 * tol_psi:
+            break
+        new = np.array([nx, nz])
+        nu_new, J_new = polar_innovation(new, d, psi)
+        # h(new) - h(at) - J (new - at), from the innovations (z - h): wrapped in azimuth
+        error = (nu - nu_new) - J @ (new - at)
+        if (abs(error[0]) <= tol_d
+                and abs((error[1] + math.pi) % (2 * math.pi) - math.pi) <= tol_psi):
+            break
+        at, nu, J = new, nu_new, J_new
+        out = update(x, P, nu - J @ (p - at), J @ H, R)
+    return out
 
 
 def filter_track(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
