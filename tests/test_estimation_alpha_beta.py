@@ -3,7 +3,12 @@
 import numpy as np
 import pytest
 
-from solver.estimation.alpha_beta import closed_form_gains, gain_sequence, run_alpha_beta
+from solver.estimation.alpha_beta import (
+    closed_form_gains,
+    gain_sequence,
+    memory_starts,
+    run_alpha_beta,
+)
 from solver.estimation.measurements import PolarPlots
 
 
@@ -58,6 +63,34 @@ def test_memory_cap_holds_the_gains():
     e_cap = np.hypot(capped.x - x, capped.z - z)[-20:].mean()
     e_grow = np.hypot(grown.x - x, grown.z - z)[-20:].mean()
     assert e_cap < 0.2 * e_grow
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_a_long_gap_starts_the_memory_afresh(order):
+    """An aircraft flying 150 m/s north holds for 900 s between plots 15 and 16 (10-s scans;
+    plots resume where they stopped). With the frozen gains the prediction ran 135 km ahead
+    and only alpha of it was corrected (the seed track: 26, 79 and 314 km off after 300, 900
+    and 3,600 s); now the memory starts at the plot after the gap: its state is the plot, the
+    next is the line through the two, and then the fit of the plots since the gap, as from the
+    first plot. A step within ``k_max - 1/2`` median steps keeps the memory."""
+    t = 10.0 * np.arange(30)
+    t[16:] += 900.0
+    y = 60_000 + 150.0 * np.minimum(np.arange(30), 15) * 10.0
+    meas = polar(t, y, np.full(30, 20_000.0))
+    starts = memory_starts(t, 4)
+    assert starts.nonzero()[0].tolist() == [0, 16]
+    est = run_alpha_beta(meas, order=order).states
+    pts = meas.points()
+    np.testing.assert_allclose([est.x[16], est.z[16]], pts[16], atol=1e-6)
+    np.testing.assert_allclose(est.vx[17], (pts[17, 0] - pts[16, 0]) / 10.0, atol=1e-9)
+    restarted = run_alpha_beta(polar(t[16:] - t[16], y[16:], np.full(14, 20_000.0)),
+                               order=order).states
+    np.testing.assert_allclose(est.x[16:], restarted.x, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(est.vx[16:], restarted.vx, rtol=0, atol=1e-9)
+    # a memory of 4 plots (35 s at 10-s scans) keeps 2 missed scans (a 30-s step), not 3
+    tt = np.array([0.0, 10, 20, 50, 60, 70, 110, 120])
+    assert memory_starts(tt, 4).nonzero()[0].tolist() == [0, 6]
+    assert not memory_starts(t, None)[1:].any()  # growing memory: every plot kept
 
 
 def test_bad_parameters():

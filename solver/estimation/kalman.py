@@ -92,8 +92,8 @@ def position_update(x: FloatArray, P: FloatArray, meas: PolarPlots | SensorPlots
 
 
 def _iterated_polar_update(x: FloatArray, P: FloatArray, H: FloatArray, p: FloatArray,
-                           pos: tuple[int, int], d: float, psi: float, sigma_d: float, sigma_psi: float
-                           ) -> tuple[FloatArray, FloatArray, float, float]:
+                           pos: tuple[int, int], d: float, psi: float, sigma_d: float,
+                           sigma_psi: float) -> tuple[FloatArray, FloatArray, float, float]:
     """The EKF update of ``(x, P)`` (position ``p = x[pos] = H x``) by the polar plot ``(d, psi)``,
     relinearised at the updated position (the iterated EKF, Gauss-Newton on the posterior
     mode: ``x_{i+1} = x + K_i (z - h(p_i) - J_i (p - p_i))``, ``K_i`` from ``J_i H``) while
