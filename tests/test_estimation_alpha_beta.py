@@ -93,6 +93,20 @@ def test_a_long_gap_starts_the_memory_afresh(order):
     assert not memory_starts(t, None)[1:].any()  # growing memory: every plot kept
 
 
+def test_a_split_plot_does_not_become_a_velocity():
+    """A noise-free straight track (150 m/s, 10-s scans) with a second plot 19 us before plot
+    15, 300 m off: with the frozen gains' ``beta / T`` it became 4e6 m/s and the state went
+    20,000 km away; the gains' step is at least half the median step, so the velocity moves by
+    at most ``beta / 5 s * 300 m`` = 12 m/s."""
+    t = 10.0 * np.arange(30)
+    x, z = 60_000 + 150.0 * t, np.full(30, 20_000.0)
+    t, x, z = np.insert(t, 15, t[15] - 19e-6), np.insert(x, 15, x[15]), np.insert(z, 15, z[15])
+    x[15] += 300.0
+    est = run_alpha_beta(polar(t, x, z)).states
+    assert np.abs(np.hypot(est.vx, est.vz)[1:] - 150.0).max() < 13.0  # plot 0: unknown
+    assert np.hypot(est.x - x, est.z - z).max() < 300.0
+
+
 def test_bad_parameters():
     meas = polar(np.arange(5.0), 1e4 + np.arange(5.0), np.ones(5))
     with pytest.raises(ValueError):

@@ -7,9 +7,10 @@ process noise and unit measurement noise from an exact first fit (2 or 3 plots).
 step ``T`` they equal the closed forms ``alpha_k = 2(2k+1)/((k+1)(k+2))``,
 ``beta_k = 6/((k+1)(k+2))`` (and ``g, h, kappa`` for ``order=3``, acceleration gain
 ``2 kappa / T^2``). From plot ``k_max`` on the gains stay at the closed-form values for
-``k_max`` (velocity gain ``beta / T`` with the actual step) so the filter keeps following
-manoeuvres. Both axes use the same scalar gains (unweighted fit, as the paper). A gap longer
-than ``k_max - 1/2`` median steps starts the memory afresh (:func:`memory_starts`).
+``k_max`` (velocity gain ``beta / T`` with the actual step, at least half the median step)
+so the filter keeps following manoeuvres. Both axes use the same scalar gains (unweighted
+fit, as the paper). A gap longer than ``k_max - 1/2`` median steps starts the memory afresh
+(:func:`memory_starts`).
 
 The covariance reported is that of these gains under the straight-line model with the plots'
 converted measurement covariances (Joseph form, no process noise): honest on straight legs,
@@ -86,13 +87,16 @@ def gain_sequence(t: FloatArray, order: int = 2, k_max: int | None = K_MAX) -> F
     Counting ``j`` from the last start of the memory (:func:`memory_starts`): ``K = e_0`` at a
     start; the next fits the line through two plots; for ``order=3`` the one after fits the
     parabola through three; then the recursive least-squares (unit-noise Kalman) gains until
-    ``j = k_max``, the capped closed-form gains after.
+    ``j = k_max``, the capped closed-form gains after, with the actual step ``T`` but at least
+    half the median step: a plot 19 us after the one before (a split plot) made the velocity
+    gain ``beta / T`` turn its few hundred metres of noise into 4e6 m/s.
     """
     n, m = t.shape[0], order
     K = np.zeros((n, m))
     if n == 0:
         return K
     starts = memory_starts(t, k_max)
+    step = float(np.median(np.diff(t))) if n > 1 else 0.0
     M: FloatArray | None = None  # unit-noise covariance of the current fit
     j = 0
     for k in range(n):
@@ -103,7 +107,8 @@ def gain_sequence(t: FloatArray, order: int = 2, k_max: int | None = K_MAX) -> F
         T = t[k] - t[k - 1]
         if k_max is not None and j >= k_max:
             g = closed_form_gains(k_max, order)
-            K[k] = g / np.array([1.0, T, T * T / 2][:m])
+            Tg = max(T, 0.5 * step)  # the gains' step: a split plot's noise is not a velocity
+            K[k] = g / np.array([1.0, Tg, Tg * Tg / 2][:m])
             continue
         if j == 1:
             K[k, 0], K[k, 1] = 1.0, 1.0 / T
