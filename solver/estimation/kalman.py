@@ -99,7 +99,7 @@ def _iterated_polar_update(x: FloatArray, P: FloatArray, H: FloatArray, p: Float
     mode: ``x_{i+1} = x + K_i (z - h(p_i) - J_i (p - p_i))``, ``K_i`` from ``J_i H``) while
     the linearisation error exceeds :data:`.measurements.LINEARISATION_TOLERANCE` sigma; at
     most :data:`.measurements.MAX_LINEARISATIONS` updates. The first is the EKF's update."""
-    R = np.diag([sigma_d**2, sigma_psi**2])
+    R = np.diag(np.square([sigma_d, sigma_psi]))  # numpy: inf, not OverflowError, if absurd
     tol_d, tol_psi = LINEARISATION_TOLERANCE * sigma_d, LINEARISATION_TOLERANCE * sigma_psi
     at = p
     nu, J = polar_innovation(at, d, psi)
@@ -109,9 +109,11 @@ def _iterated_polar_update(x: FloatArray, P: FloatArray, H: FloatArray, p: Float
         nx, nz = float(out[0][pos[0]]), float(out[0][pos[1]])
         # a bound first (cheap, most updates stop here): along the step |h''| <= 1 / rho_min
         # in range and 1 / rho_min^2 in azimuth, so the error is at most step^2 / 2 of these
-        step2 = (nx - ax) ** 2 + (nz - az) ** 2
-        rho_min = math.hypot(ax, az) - math.sqrt(step2)
-        if rho_min > 0 and step2 <= 2 * rho_min * tol_d and step2 <= 2 * rho_min**2 * tol_psi:
+        # (products, not powers: a float's ** raises on overflow, absurd sigmas reach it)
+        step = math.hypot(nx - ax, nz - az)
+        rho_min = math.hypot(ax, az) - step
+        if (rho_min > 0 and step * step <= 2 * rho_min * tol_d
+                and step * step <= 2 * rho_min * rho_min * tol_psi):
             break
         new = np.array([nx, nz])
         nu_new, J_new = polar_innovation(new, d, psi)
