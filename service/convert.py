@@ -155,6 +155,7 @@ def _radar(r: RadarIn) -> dict:
                               else np.deg2rad(r.azimuth_sigma_deg)),
         "max_altitude_m": r.max_altitude_m,
         "max_elevation_rad": np.deg2rad(r.max_elevation_deg),
+        "altitude_sigma_m": r.altitude_sigma_m,
     }
 
 

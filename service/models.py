@@ -62,6 +62,12 @@ class RadarIn(_In):
     max_elevation_deg: float = Field(
         0.0, description="Highest elevation angle `alpha_max` (degrees, 0 <= value < 90) for "
         "the unknown-altitude correction. 0 = no correction.", examples=[60.0])
+    altitude_sigma_m: float = Field(
+        0.0, description="Standard deviation (m, >= 0) of the plots' `altitude_m` as a height "
+        "above the radar (flat plane) or the ellipsoid (`sensors`). 0 = exact (the default). "
+        "A Mode C flight level is a pressure altitude, some 100-300 m from the geometric "
+        "height: a plot's ground range moves by that times `h / d` (elevation), so near the "
+        "radar the plot's along-ray sigma grows accordingly.", examples=[150.0])
 
 
 class SiteFields(_In):

@@ -69,7 +69,7 @@ def uncertainty_ellipses(plots: Plots, radar: Radar) -> Ellipses:
     with ``delta_h = (r - eps_r)(1 - cos alpha_max)`` when ``(r - eps_r) sin alpha_max <= h_max``,
     else ``(r - eps_r) - sqrt((r - eps_r)^2 - h_max^2)``. Known altitude ``h``: the ground range
     ``d = sqrt(r^2 - h^2)`` is exact up to the range error, whose ground projection is
-    ``eps_r r / d``.
+    ``eps_r r / d``, and the altitude's (:func:`height_error` of ``3 altitude_sigma_m``).
     """
     r, psi = plots.range_m, plots.azimuth_rad
     eps_r, eps_psi = radar.range_error_m, radar.azimuth_error_rad
@@ -85,20 +85,36 @@ def uncertainty_ellipses(plots: Plots, radar: Radar) -> Ellipses:
         known = ~np.isnan(plots.altitude_m)
         d = ground_range(plots)
         centre = np.where(known, d, centre)
-        B = np.where(known, ground_range_error(eps_r, r, d), B)
+        h = np.nan_to_num(plots.altitude_m, nan=0.0)
+        B = np.where(known, np.hypot(ground_range_error(eps_r, r, d),
+                                     height_error(3 * radar.altitude_sigma_m, h, d)), B)
     A = np.maximum(eps_psi * centre, 1e-3)
     return Ellipses(centre * np.cos(psi), centre * np.sin(psi), psi, A, np.maximum(B, 1e-3))
 
 
 def statistical_ellipses(plots: Plots, radar: Radar) -> Ellipses:
     """One-sigma ellipses for statistical weighting: centre at the plot point (ground range if the
-    altitude is known), ``B = sigma_r r / d`` along the ray (see :func:`ground_range_error`),
-    ``A = sigma_psi d`` across it (at least 1 m)."""
+    altitude is known), ``B = sigma_r r / d`` along the ray (see :func:`ground_range_error`; with
+    the altitude's own sigma, ``hypot`` of that and :func:`height_error`), ``A = sigma_psi d``
+    across it (at least 1 m)."""
     d = ground_range(plots)
     psi = plots.azimuth_rad
     B = ground_range_error(radar.sigma_r, plots.range_m, d)
+    if plots.altitude_m is not None:
+        h = np.nan_to_num(plots.altitude_m, nan=0.0)
+        B = np.hypot(B, height_error(radar.altitude_sigma_m, h, d))
     A = np.maximum(radar.sigma_psi * d, 1.0)
     return Ellipses(d * np.cos(psi), d * np.sin(psi), psi, A, B)
+
+
+def height_error(e_h: float | FloatArray, h: FloatArray, d: FloatArray) -> FloatArray:
+    """Ground-range error of a height error ``e_h`` at height ``h`` above the radar, ground
+    range ``d``: ``e_h |h| / d`` to first order (``d^2 = r^2 - h^2`` at a fixed slant range),
+    which diverges overhead: ``d`` is floored at ``sqrt(2 |h| e_h)``, the ground range a height
+    error ``e_h`` reaches from overhead (as :func:`ground_range_error`); 0 where ``e_h h = 0``."""
+    h = np.abs(h)
+    den = np.maximum(d, np.sqrt(2 * h * e_h))
+    return np.where(e_h * h > 0, e_h * h / np.where(den > 0, den, 1.0), 0.0)
 
 
 def ground_range_error(e_r: float | FloatArray, r: FloatArray, d: FloatArray) -> FloatArray:

@@ -19,6 +19,7 @@ MAX_RANGE_M = 1e7  # 10 000 km: beyond any radar's horizon
 MAX_RANGE_ERROR_M = 1e5  # a radar's range error or sigma, and a position sensor's sigma
 MAX_AZIMUTH_ERROR_RAD = float(np.deg2rad(30.0))
 MAX_ALTITUDE_M = 1e5  # a radar's max_altitude_m
+MAX_ALTITUDE_SIGMA_M = 1e4  # a radar's altitude_sigma_m
 MAX_ACCELERATION = 100.0  # m/s^2 (10 g): the bounds on u and w
 MAX_SPEED = 2000.0  # m/s: the bound on v
 MAX_AZIMUTH_DEG = 1e6  # a plot's azimuth: normalised to [0, 360) to 1e-10 degrees
@@ -60,6 +61,11 @@ class Radar:
     that size the uncertainty ellipses; the sigmas are standard deviations for statistical
     weighting (default one third of the maximum errors). ``max_altitude_m`` and
     ``max_elevation_rad`` (``h_max``, ``alpha_max``) drive the unknown-altitude correction.
+    ``altitude_sigma_m``: the standard deviation of the plots' altitude as a height above the
+    radar (0: exact, the default); a Mode C flight level is a pressure altitude, some 100-300
+    m from the geometric height (temperature, QNH), which moves a plot's ground range by that
+    times ``h / d``: the plot's along-ray sigma grows by it (:func:`geometry.height_error`;
+    three times it in the maximum errors).
     """
 
     range_error_m: float
@@ -69,6 +75,7 @@ class Radar:
     azimuth_sigma_rad: float | None = field(default=None, kw_only=True)
     max_altitude_m: float = field(default=0.0, kw_only=True)
     max_elevation_rad: float = field(default=0.0, kw_only=True)
+    altitude_sigma_m: float = field(default=0.0, kw_only=True)
 
     @property
     def sigma_r(self) -> float:
@@ -94,6 +101,7 @@ class Radar:
             ("azimuth_sigma_rad", self.azimuth_sigma_rad, 1e-9, MAX_AZIMUTH_ERROR_RAD),
             ("max_altitude_m", self.max_altitude_m, 0.0, MAX_ALTITUDE_M),
             ("max_elevation_rad", self.max_elevation_rad, 0.0, np.inf),
+            ("altitude_sigma_m", self.altitude_sigma_m, 0.0, MAX_ALTITUDE_SIGMA_M),
         ]
         for name, value, least, most in checks:
             if value is None:

@@ -122,7 +122,7 @@ class PlotTable:
         sensor = radar if isinstance(radar, RadarSensor) else RadarSensor(
             radar.range_error_m, radar.azimuth_error_rad, range_sigma_m=radar.range_sigma_m,
             azimuth_sigma_rad=radar.azimuth_sigma_rad, max_altitude_m=radar.max_altitude_m,
-            max_elevation_rad=radar.max_elevation_rad)
+            max_elevation_rad=radar.max_elevation_rad, altitude_sigma_m=radar.altitude_sigma_m)
         n = len(plots)
         return cls.build((sensor,), plots.t, np.zeros(n, dtype=int), plots.range_m,
                          plots.azimuth_rad, altitude_m=plots.altitude_m)

@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .frames import LocalFrame, check_lat_lon, radar_plot_position, slant_and_azimuth
-from .geometry import Ellipses, ground_range_error
+from .geometry import Ellipses, ground_range_error, height_error
 from .inputs import MAX_RANGE_ERROR_M, FloatArray, InputError, Radar
 
 ALTITUDE_RANGE_M = (-500.0, 20_000.0)
@@ -217,8 +217,9 @@ class RadarSensor(Radar):
         slant range taken for the ground range, the seed's convention, whose ``h^2 / 2r`` bias
         a single radar cannot remove), and with ``estimate_altitude`` the position as a function
         of the height (:class:`PlaneFixes`). One-sigma ellipse: along the ray ``sigma_r |dc/dr|``
-        (at most ``sqrt(2 r sigma_r) |dc/dr| d / r`` overhead, :func:`ground_range_error`),
-        across ``max(sigma_psi |dc/dpsi|, 1 m)``.
+        (at most ``sqrt(2 r sigma_r) |dc/dr| d / r`` overhead, :func:`ground_range_error`) and,
+        where the altitude is known, the ``hypot`` of that and ``altitude_sigma_m |dc/dh|``
+        (:meth:`_height_term`); across ``max(sigma_psi |dc/dpsi|, 1 m)``.
         """
         r = np.asarray(range_m, float)
         psi = np.asarray(azimuth_rad, float)
@@ -244,6 +245,10 @@ class RadarSensor(Radar):
         d = len_c  # |dc/dpsi| is the ground distance times the plane's scale
         B = ground_range_error(self.sigma_r, r, np.maximum(d, 1e-9)) * len_r * d / r
         B = np.where(len_r * d / r > 0, B, self.sigma_r)
+        if self.altitude_sigma_m > 0 and known.any():
+            B[known] = np.hypot(B[known], self._height_term(frame, r[known], psi[known],
+                                                            alt[known], site_h, d[known],
+                                                            (len_r * d / r)[known]))
         A = np.maximum(self.sigma_psi * len_c, 1.0)
         ell = Ellipses(x0, z0, np.arctan2(ray[:, 1], ray[:, 0]), A, np.maximum(B, 1e-3))
         free = ~known & estimate_altitude
@@ -261,6 +266,23 @@ class RadarSensor(Radar):
                                              site_h, h_mid[free], h_half[free])
         return PlaneFixes(ell, free, np.where(free[:, None], ray, 0.0), slant,
                           np.full(n, site_h), poly, h_mid, h_half, d_range, d_azimuth)
+
+
+    def _height_term(self, frame: LocalFrame | None, r: FloatArray, psi: FloatArray,
+                     h: FloatArray, site_h: float, d: FloatArray, scale: FloatArray
+                     ) -> FloatArray:
+        """The along-ray sigma of known heights ``h`` with ``altitude_sigma_m``:
+        ``sigma_h |dc/dh|``, ``dc/dh`` by central differences (on the earth the curvature
+        adds to the height above the radar's horizon), written as :func:`height_error` of the
+        effective height ``h_eff = |dc/dh| d_g / scale`` (the flat ``h``; ``d_g`` the ground
+        distance) so that it keeps that function's second-order bound overhead."""
+        h_rel = h - site_h
+        dh = np.clip(0.25 * (r - np.abs(h_rel)), 1e-6, 1.0)
+        x1, z1 = self.positions(frame, r, psi, h + dh)
+        x0, z0 = self.positions(frame, r, psi, h - dh)
+        len_h = np.hypot(x1 - x0, z1 - z0) / (2 * dh)
+        safe = np.maximum(scale, 1e-12)
+        return height_error(self.altitude_sigma_m, len_h * d / safe**2, d / safe) * scale
 
 
 def _altitude_remainder(sensor: RadarSensor, frame: LocalFrame | None, r: FloatArray,

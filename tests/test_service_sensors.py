@@ -211,6 +211,7 @@ LAST = len(_body()["plots"]) - 1  # an ADS-B plot
     (lambda b: b["sensors"][1].update(id="LJLJ"), ["sensors", 1, "id"]),
     (lambda b: b["sensors"][0].update(azimuth_error_deg=-1.0),
      ["sensors", 0, "azimuth_error_deg"]),
+    (lambda b: b["sensors"][0].update(altitude_sigma_m=-1.0), ["sensors", 0, "altitude_sigma_m"]),
     (lambda b: b["reference"].update(lat_deg=-91.0), ["reference", "lat_deg"]),
 ])
 def test_bad_sensor_input_gets_a_422_naming_the_field(client, change, loc):

@@ -1,5 +1,7 @@
 """Polar measurement model: plots ``(d, psi)`` with ``d`` the ground range where the altitude is
-known (``sqrt(r^2 - h^2)``, sigma ``sigma_r r / d``), else the slant range (sigma ``sigma_r``).
+known (``sqrt(r^2 - h^2)``, sigma ``sigma_r r / d``, with the radar's ``altitude_sigma_m`` the
+``hypot`` of that and :func:`~solver.geometry.height_error`), else the slant range (sigma
+``sigma_r``).
 
 Two ways to use them in a Cartesian filter:
 
@@ -43,7 +45,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..geometry import ground_range
+from ..geometry import ground_range, height_error
 from ..inputs import FloatArray, Plots, Radar
 
 if TYPE_CHECKING:
@@ -79,8 +81,11 @@ class PolarPlots:
     @classmethod
     def from_plots(cls, plots: Plots, radar: Radar) -> PolarPlots:
         d = ground_range(plots)
-        return cls(t=np.asarray(plots.t, dtype=float), d=d,
-                   sigma_d=radar.sigma_r * plots.range_m / d,
+        sigma_d = radar.sigma_r * plots.range_m / d
+        if plots.altitude_m is not None:
+            h = np.nan_to_num(plots.altitude_m, nan=0.0)
+            sigma_d = np.hypot(sigma_d, height_error(radar.altitude_sigma_m, h, d))
+        return cls(t=np.asarray(plots.t, dtype=float), d=d, sigma_d=sigma_d,
                    psi=np.unwrap(plots.azimuth_rad), sigma_psi=float(radar.sigma_psi))
 
     def __len__(self) -> int:
@@ -174,9 +179,13 @@ class SensorPlots:
         d = np.where(np.isfinite(h), np.sqrt(np.maximum(r**2 - np.nan_to_num(h) ** 2, 0.0)), r)
         sig_r = np.array([s.sigma_r if isinstance(s, RadarSensor) else np.nan
                           for s in table.sensors])[table.sensor]
+        sig_h = np.array([s.altitude_sigma_m if isinstance(s, RadarSensor) else 0.0
+                          for s in table.sensors])[table.sensor]
         sig_psi = np.array([s.sigma_psi if isinstance(s, RadarSensor) else np.nan
                             for s in table.sensors])[table.sensor]
-        sigma_d = np.where(polar, sig_r * r / np.where(polar, d, 1.0), np.nan)
+        d_safe = np.where(polar, d, 1.0)
+        sigma_d = np.where(polar, np.hypot(sig_r * r / d_safe,
+                                           height_error(sig_h, np.nan_to_num(h), d_safe)), np.nan)
         d, psi = np.where(polar, d, np.nan), np.where(polar, table.azimuth_rad, np.nan)
         sig_psi = np.where(polar, sig_psi, np.nan)
         centre, cov = np.empty((n, 2)), np.empty((n, 2, 2))

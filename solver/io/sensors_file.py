@@ -37,7 +37,7 @@ Loc = tuple[str | int, ...]
 
 _RADAR_KEYS = {"id", "kind", "sac", "sic", "lat_deg", "lon_deg", "height_m", "range_error_m",
                "azimuth_error_deg", "range_sigma_m", "azimuth_sigma_deg", "max_altitude_m",
-               "max_elevation_deg", "estimate_bias"}
+               "max_elevation_deg", "altitude_sigma_m", "estimate_bias"}
 _POSITION_KEYS = {"id", "kind", "sac", "sic", "position_sigma_m", "altitude_sigma_m",
                   "estimate_bias"}
 
@@ -171,6 +171,7 @@ def _sensor(obj: object, loc: Loc) -> tuple[Sensor, tuple[int, int] | None]:
         azimuth_sigma_rad=None if sigma_psi is None else sigma_psi * deg,
         max_altitude_m=_number(obj, "max_altitude_m", loc, default=0.0),  # type: ignore[arg-type]
         max_elevation_rad=_number(obj, "max_elevation_deg", loc, default=0.0) * deg,  # type: ignore[operator]
+        altitude_sigma_m=_number(obj, "altitude_sigma_m", loc, default=0.0),  # type: ignore[arg-type]
         id=sid, site=site, estimate_bias=bias)
     return sensor, code
 
