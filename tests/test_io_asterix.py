@@ -530,6 +530,26 @@ def test_encode_rows_reads_back_exactly():
         encode_rows(far, SENSORS)
 
 
+def test_adsb_geometric_height_is_the_altitude_the_flight_level_kept_beside():
+    """CAT021 with both I145 (FL, a pressure altitude) and I140 (geometric height, GNSS):
+    ``altitude_m`` is the geometric height, which is what the geometry needs (a pressure
+    altitude is 100-300 m off), ``flight_level`` the FL; with I145 alone the FL's pressure
+    altitude, as before. Encoded back, both items are written and read the same."""
+    from solver.io.asterix import encode_rows
+
+    sac, sic = CODES["ADSB"]
+    head = {"010": (("SAC", sac), ("SIC", sic)), "071": (36_000.0, "s"),
+            "131": (("LAT", (46.1, "°")), ("LON", (14.9, "°"))), "080": 0x3C6DD4}
+    both = C021.cv_record.create({**head, "145": (350.0, "FL"), "140": (35_600.0, "ft")})
+    fl_only = C021.cv_record.create({**head, "145": (350.0, "FL")})
+    rows = decode_blocks(C021.create([both, fl_only]).unparse().to_bytes(), SENSORS).rows
+    np.testing.assert_allclose(rows.flight_level, [350.0, 350.0])
+    np.testing.assert_allclose(rows.altitude_m, [35_600.0 * 0.3048, 350.0 * FL_M])
+    back = read_recording(encode_rows(rows, SENSORS), SENSORS).rows
+    np.testing.assert_array_equal(back.altitude_m, rows.altitude_m)
+    np.testing.assert_array_equal(back.flight_level, rows.flight_level)
+
+
 def test_recording_read_and_split_as_a_stream():
     """iter_recording's parts, fed to split_stream, give read_recording + split_aircraft's
     rows, times (across midnight) and tracks; each problem is in the part where it occurs."""

@@ -24,7 +24,8 @@ Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=``
   fixed transponder (RAB) are not aircraft: counted as ``not_aircraft`` and left out.
 - CAT021 ADS-B: I010 SAC/SIC (ground station) -> sensor, time of applicability for position
   I071 (else time of message reception I073), position I131 (high resolution) or I130,
-  flight level I145 (pressure altitude as above) or else geometric height I140 (ft -> m),
+  geometric height I140 (ft -> m) for ``altitude_m``, else the flight level I145 as the
+  pressure altitude (I145 always gives ``flight_level``),
   target address I080, Mode 3/A I070, track number I161. SIM/TST flagged reports are left out
   (counted).
 - CAT034 service messages: per sensor the count of messages, north markers and sector
@@ -636,7 +637,7 @@ class _Decoder:
         if i145 is not None:
             fl = self._memo_quantity("145", i145, "FL")
             alt = fl * FL_M
-        elif i140 is not None:
+        if i140 is not None:  # geometric (GNSS): the height the geometry needs, not the FL's
             alt = self._memo_quantity("140/21", i140, "ft") * FT_M
         i080 = get("080")
         trn = self._track_number(get("161"), "161/21", "TRNUM")
@@ -701,12 +702,13 @@ def _names(variation: Any) -> set[str]:
 def encode_rows(rows: PlotRows, sensors: SensorSet, *, max_block_records: int = 16) -> bytes:
     """Plot rows -> a raw ASTERIX recording (libasterix encodes): radar rows as CAT048
     (I010, I140, I040, I090 from ``flight_level``, I220, I070, I161), position rows as CAT021
-    2.7 (I010, I071, I131, I145 from ``flight_level`` else I140 from ``altitude_m``, I080,
-    I070, I161); consecutive rows of one sensor share a data block of at most
-    ``max_block_records`` records. The time of day is ``time_of_day_s``, else ``t`` modulo a
-    day. For test and benchmark recordings; :func:`read_recording` reads them back to the
-    encoding resolution. Raises ``ValueError`` naming the row for what cannot be encoded
-    (a sensor without SAC/SIC, a slant range beyond 256 NM)."""
+    2.7 (I010, I071, I131, I145 from ``flight_level``, I140 from an ``altitude_m`` that is not
+    the flight level's pressure altitude, I080, I070, I161); consecutive rows of one sensor
+    share a data block of at most ``max_block_records`` records. The time of day is
+    ``time_of_day_s``, else ``t`` modulo a day. For test and benchmark recordings;
+    :func:`read_recording` reads them back to the encoding resolution. Raises ``ValueError``
+    naming the row for what cannot be encoded (a sensor without SAC/SIC, a slant range beyond
+    256 NM)."""
     c048, c021 = DEFAULT_EDITIONS[48], DEFAULT_EDITIONS[21]
     code_of = {sensors.sensors[j].id: code for code, j in sensors.codes.items()}
     out: list[bytes] = []
@@ -752,8 +754,8 @@ def encode_rows(rows: PlotRows, sensors: SensorSet, *, max_block_records: int = 
                             ("LON", (float(rows.lon_deg[i]), "°")))
             if np.isfinite(fl):
                 items["145"] = (fl, "FL")
-            elif np.isfinite(alt):
-                items["140"] = (alt / FT_M, "ft")
+            if np.isfinite(alt) and not (np.isfinite(fl) and alt == fl * FL_M):
+                items["140"] = (alt / FT_M, "ft")  # a geometric height beside the FL
             if rows.mode_s[i] >= 0:
                 items["080"] = int(rows.mode_s[i])
             if rows.mode_3a[i] >= 0:
