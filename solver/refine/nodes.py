@@ -91,7 +91,8 @@ class NodeData:
         # altitudes (ADS-B at 17 km was held at 15 km, 2 km low) (a free centre follows the
         # height within its plot's reach only, solver.sensors.reach)
         alt_sigma = np.array([s.altitude_sigma_m if isinstance(s, PositionSensor)
-                              else ALTITUDE_SIGMA_RADAR_M for s in table.sensors])[table.sensor]
+                              or s.altitude_sigma_m > 0 else ALTITUDE_SIGMA_RADAR_M
+                              for s in table.sensors])[table.sensor]
         known = np.isfinite(table.altitude_m)
         margin = KNOWN_ALTITUDE_MARGIN_M + 5 * alt_sigma[known]
         h_lo = np.full(n, np.min(np.append(table.altitude_m[known] - margin,
@@ -238,7 +239,8 @@ class NodeData:
 
 ALTITUDE_SIGMA_RADAR_M = 30.0
 """m: a radar plot's reported altitude (Mode C: 100-ft steps, 25 ft with Mode S; pressure,
-not geometric, altitude) as a measurement of the height in the altitude-estimating variant."""
+not geometric, altitude) as a measurement of the height in the altitude-estimating variant,
+when its radar's ``altitude_sigma_m`` is 0 (exact for the plot's placement); else that."""
 
 
 def hd_information(t_nodes: FloatArray) -> FloatArray:
