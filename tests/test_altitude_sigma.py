@@ -11,7 +11,7 @@ import pytest
 from solver import Plots, Radar
 from solver.estimation.measurements import PolarPlots, SensorPlots
 from solver.frames import LocalFrame
-from solver.geometry import height_error, statistical_ellipses
+from solver.geometry import height_error, statistical_ellipses, uncertainty_ellipses
 from solver.inputs import InputError
 from solver.io.sensors_file import parse_sensors
 from solver.plots import PlotTable
@@ -53,8 +53,8 @@ def _plots() -> Plots:
 def test_one_along_ray_sigma_for_the_filters_the_ellipses_and_the_plane_fixes():
     """The single flat radar: the filters' ground-range sigma, the statistical ellipses' ``B``
     and the plane fixes' ``B`` are one value: ``hypot(sigma_r r / d, sigma_h h / d)`` where
-    the altitude is known, ``sigma_r`` where it is not; with ``altitude_sigma_m = 0`` the
-    values of before."""
+    the altitude is known, ``sigma_r`` where it is not (the a priori ellipses the same with the
+    maximum errors); with ``altitude_sigma_m = 0`` the values of before."""
     plots = _plots()
     radar = Radar(**SSR, altitude_sigma_m=150.0)
     d = np.where(np.isnan(plots.altitude_m), plots.range_m,
@@ -67,6 +67,10 @@ def test_one_along_ray_sigma_for_the_filters_the_ellipses_and_the_plane_fixes():
     np.testing.assert_allclose(table.fixes().ellipses.B, want, rtol=1e-6)
     np.testing.assert_allclose(SensorPlots.from_table(table).sigma_d[np.argsort(
         SensorPlots.from_table(table).rows)], want, rtol=1e-12)
+    # the sliding windows' a priori ellipses: the maximum errors, 3 sigma of the altitude
+    eps = np.hypot(150.0 * plots.range_m / d, 450.0 * h / d)
+    np.testing.assert_allclose(uncertainty_ellipses(plots, radar).B[~np.isnan(plots.altitude_m)],
+                               eps[~np.isnan(plots.altitude_m)], rtol=1e-12)
     exact = Radar(**SSR)
     np.testing.assert_array_equal(PolarPlots.from_plots(plots, exact).sigma_d,
                                   50.0 * plots.range_m / d)
