@@ -229,10 +229,15 @@ class PlotTable:
         return Plots(self.t, self.range_m, self.azimuth_rad, alt), radar
 
     def estimate_altitude(self) -> bool:
-        """Whether the unknown altitude of radar plots is estimated: when some radar plots
-        lack it and another sensor sees the aircraft too (a single radar cannot observe it)."""
-        radar = self.radar_rows()
-        return bool(len(self.sensors) > 1 and np.any(radar & np.isnan(self.altitude_m)))
+        """Whether the aircraft's height is estimated: when another sensor sees the aircraft
+        too (a single radar cannot observe it) and some radar plots lack an altitude or carry
+        one their radar calls uncertain (``altitude_sigma_m > 0``: a Mode C pressure altitude,
+        then a measurement of the height; the plots stay at their own altitude)."""
+        if len(self.sensors) < 2:
+            return False
+        soft = np.array([isinstance(s, RadarSensor) and s.altitude_sigma_m > 0
+                         for s in self.sensors])[self.sensor]
+        return bool(np.any(self.radar_rows() & (np.isnan(self.altitude_m) | soft)))
 
     def corrected(self, offsets: dict[int, tuple[float, float]]) -> PlotTable:
         """A copy whose radar plots of sensor ``k`` measured ``(r - b_r, psi - b_psi)`` for

@@ -311,10 +311,11 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
         heights = h_nodes[plot_node]
         centres = fixes.centre_at(heights)
         free = fixes.altitude_free
-        diag.warnings.append(
-            f"{int(free.sum())} radar plot(s) without an altitude placed at "
-            f"{float(np.median(heights[free])):.0f} m (median), the height the plots fit best; "
-            "the sliding windows do not estimate it (the refined method does)")
+        if free.any():  # (the height is also estimated for an uncertain Mode C)
+            diag.warnings.append(
+                f"{int(free.sum())} radar plot(s) without an altitude placed at "
+                f"{float(np.median(heights[free])):.0f} m (median), the height the plots fit "
+                "best; the sliding windows do not estimate it (the refined method does)")
     else:
         centres = np.column_stack([fixes.ellipses.cx, fixes.ellipses.cz])
     asked = [s.id for s in table.sensors if s.estimate_bias]

@@ -200,10 +200,14 @@ def sensor_reports(table: PlotTable, residuals: PlotResiduals, biases: np.ndarra
 
 def _heights(table: PlotTable, at_plots: StateSeries, rows: np.ndarray,
              sensor: RadarSensor) -> FloatArray:
-    """The aircraft's height at radar plots: reported, else estimated, else the convention of a
-    single radar (the radar's own height: slant range taken for ground range)."""
+    """The aircraft's height at radar plots: reported (estimated instead where the radar calls
+    its altitudes uncertain, ``altitude_sigma_m > 0``, and the height was estimated: a Mode C
+    250 m high, against a track that ADS-B's geometric heights hold, showed as a -55 m range
+    bias of a radar without one), else estimated, else the convention of a single radar (the
+    radar's own height: slant range taken for ground range)."""
     alt = table.altitude_m[rows]
     if at_plots.h is not None:
-        return np.where(np.isfinite(alt), alt, at_plots.h[rows])
+        own = np.isfinite(alt) & (sensor.altitude_sigma_m == 0)
+        return np.where(own, alt, at_plots.h[rows])
     site_h = 0.0 if table.frame is None else sensor.site_in(table.frame)[2]
     return np.where(np.isfinite(alt), alt, site_h)
