@@ -67,7 +67,10 @@ class RadarIn(_In):
         "above the radar (flat plane) or the ellipsoid (`sensors`). 0 = exact (the default). "
         "A Mode C flight level is a pressure altitude, some 100-300 m from the geometric "
         "height: a plot's ground range moves by that times `h / d` (elevation), so near the "
-        "radar the plot's along-ray sigma grows accordingly.", examples=[150.0])
+        "radar the plot's along-ray sigma grows accordingly. With another sensor (`sensors`) "
+        "the height is then estimated, this radar's altitudes a measurement of it with this "
+        "sigma, and its residuals (`sensors[]` statistics) taken at the estimate.",
+        examples=[150.0])
 
 
 class SiteFields(_In):
