@@ -267,7 +267,6 @@ class RadarSensor(Radar):
         return PlaneFixes(ell, free, np.where(free[:, None], ray, 0.0), slant,
                           np.full(n, site_h), poly, h_mid, h_half, d_range, d_azimuth)
 
-
     def _height_term(self, frame: LocalFrame | None, r: FloatArray, psi: FloatArray,
                      h: FloatArray, site_h: float, d: FloatArray, scale: FloatArray
                      ) -> FloatArray:
@@ -275,7 +274,7 @@ class RadarSensor(Radar):
         ``sigma_h |dc/dh|``, ``dc/dh`` by central differences (on the earth the curvature
         adds to the height above the radar's horizon), written as :func:`height_error` of the
         effective height ``h_eff = |dc/dh| d_g / scale`` (the flat ``h``; ``d_g`` the ground
-        distance) so that it keeps that function's second-order bound overhead."""
+        distance) so that it keeps that function's floor overhead."""
         h_rel = h - site_h
         dh = np.clip(0.25 * (r - np.abs(h_rel)), 1e-6, 1.0)
         x1, z1 = self.positions(frame, r, psi, h + dh)

@@ -202,8 +202,8 @@ def _heights(table: PlotTable, at_plots: StateSeries, rows: np.ndarray,
              sensor: RadarSensor) -> FloatArray:
     """The aircraft's height at radar plots: reported (estimated instead where the radar calls
     its altitudes uncertain, ``altitude_sigma_m > 0``, and the height was estimated: a Mode C
-    250 m high, against a track that ADS-B's geometric heights hold, showed as a -55 m range
-    bias of a radar without one), else estimated, else the convention of a single radar (the
+    250 m high, against a track that ADS-B's geometric heights hold, showed as a -54 to -60 m
+    range bias of a radar without one), else estimated, else the convention of a single radar (the
     radar's own height: slant range taken for ground range)."""
     alt = table.altitude_m[rows]
     if at_plots.h is not None:
