@@ -70,10 +70,7 @@ def main(argv: list[str] | None = None) -> int:
           "|---|" + "---:|" * len(args.profiles)]
     md += [f"| {name} | " + " | ".join(f"{rate[pr, name]:,.0f}" for pr in args.profiles) + " |"
            for name in args.filters]
-    if args.out:
-        publish(args.out, md)
-    else:
-        print("\n".join(md))
+    publish(args.out, md)
     return 0
 
 

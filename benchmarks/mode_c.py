@@ -84,10 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         for case in cases:
             e = np.concatenate(errs[est, case])
             md.append(f"| {est} | {case} | {rms(e):.1f} | {rms(e[mask]):.1f} |")
-    if args.out:
-        publish(args.out, md)
-    else:
-        print("\n".join(md))
+    publish(args.out, md)
     return 0
 
 

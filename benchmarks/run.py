@@ -40,8 +40,12 @@ from .truth import SYNTHETIC, load_truth, truth_names
 RESULTS_DIR = Path(__file__).parent / "results"
 
 
-def publish(name: str, md: list[str]) -> Path:
-    """Write the markdown lines ``md`` to ``results/<name>`` and print them."""
+def publish(name: str, md: list[str]) -> Path | None:
+    """Write the markdown lines ``md`` to ``results/<name>`` and print them (``name`` empty:
+    only print them)."""
+    if not name:
+        print("\n".join(md))
+        return None
     out = RESULTS_DIR / name
     out.write_text("\n".join(md) + "\n")
     print("\n".join(md))
