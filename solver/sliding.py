@@ -298,7 +298,8 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
     order = table.time_order()
     fixes = table.fixes()
     heights = None
-    if table.estimate_altitude():
+    free = fixes.altitude_free  # radar plots without altitude whose height is estimated
+    if free.any():
         t_nodes, node_of_sorted = node_grid(table.t[order], config.refine.max_node_step_s)
         plot_node = np.empty(len(table), dtype=int)
         plot_node[order] = node_of_sorted
@@ -310,12 +311,10 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
         _, h_nodes = altitude_guess(table, data, plot_node, t_nodes, config.bounds)
         heights = h_nodes[plot_node]
         centres = fixes.centre_at(heights)
-        free = fixes.altitude_free
-        if free.any():  # (the height is also estimated for an uncertain Mode C)
-            diag.warnings.append(
-                f"{int(free.sum())} radar plot(s) without an altitude placed at "
-                f"{float(np.median(heights[free])):.0f} m (median), the height the plots fit "
-                "best; the sliding windows do not estimate it (the refined method does)")
+        diag.warnings.append(
+            f"{int(free.sum())} radar plot(s) without an altitude placed at "
+            f"{float(np.median(heights[free])):.0f} m (median), the height the plots fit best; "
+            "the sliding windows do not estimate it (the refined method does)")
     else:
         centres = np.column_stack([fixes.ellipses.cx, fixes.ellipses.cz])
     asked = [s.id for s in table.sensors if s.estimate_bias]

@@ -5,10 +5,14 @@ through the exact geometry (flat and pyproj's earth), one value wherever the plo
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
+from test_refine_multisensor import FRAME, _simulate
 
 from solver import Plots, Radar
+from solver.config import ReconstructionConfig
 from solver.estimation.measurements import PolarPlots, SensorPlots
 from solver.frames import LocalFrame
 from solver.geometry import height_error, statistical_ellipses, uncertainty_ellipses
@@ -16,7 +20,7 @@ from solver.inputs import InputError
 from solver.io.sensors_file import parse_sensors
 from solver.plots import PlotTable
 from solver.reconstruct import reconstruct
-from solver.sensors import RadarSensor, Site
+from solver.sensors import PositionSensor, RadarSensor, Site
 
 SSR = dict(range_error_m=150.0, azimuth_error_rad=np.radians(0.24), range_sigma_m=50.0,
            azimuth_sigma_rad=np.radians(0.08))
@@ -145,14 +149,6 @@ def test_with_several_sensors_the_radar_sigma_weighs_its_mode_c_as_a_height():
     measurement with 30 m (the default for an exact Mode C) pulled the estimated height 25 m
     up; with ``altitude_sigma_m = 150`` it is 3 m off (ad hoc, 1200 s, ADS-B every second,
     seeds 1 and 2: 13 -> 1 m, RMS position 10.1 -> 9.6 m; without ADS-B 104 -> 93 m)."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_refine_multisensor import FRAME, _simulate
-
-    from solver.sensors import PositionSensor
-
     psr = RadarSensor(500.0, np.deg2rad(1.5), id="PSR", site=Site(46.2, 14.4, 380.0))
     got = {}
     for sigma in (0.0, 150.0):
@@ -178,14 +174,6 @@ def test_a_radars_range_statistics_do_not_take_the_mode_c_error_for_a_range_bias
     there: 3.5 m and 49 m. (Ad hoc, ADS-B every second, seeds 1-2: -60 / -57 m and 65 / 67 m
     before, -3.3 / 0.1 m and 45 / 50 m after; -5.1 / -1.7 m and 45 / 50 m with an exact Mode
     C.)"""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_refine_multisensor import FRAME, _simulate
-
-    from solver.sensors import PositionSensor
-
     stats = {}
     for sigma in (0.0, 150.0):
         ssr = RadarSensor(**SSR, id="A", site=Site(45.9, 14.7, 380.0), altitude_sigma_m=sigma)
@@ -203,18 +191,9 @@ def test_a_radars_range_statistics_do_not_take_the_mode_c_error_for_a_range_bias
 
 def test_the_sliding_windows_keep_an_uncertain_mode_c_and_say_nothing_of_missing_altitudes():
     """With the height estimated only because a Mode C is uncertain, no plot lacks an altitude:
-    the sliding windows place every plot at its own and warn of none without one (the warning
-    took the median of no heights)."""
-    import sys
-    import warnings
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_refine_multisensor import _simulate
-
-    from solver.config import ReconstructionConfig
-    from solver.sensors import PositionSensor
-
+    the sliding windows place every plot at its own, guess no height (they guess one for plots
+    without altitude only) and warn of none without one (the warning took the median of no
+    heights)."""
     ssr = RadarSensor(**SSR, id="A", site=Site(45.9, 14.7, 380.0), altitude_sigma_m=150.0)
     table, x, z, _ = _simulate((ssr, PositionSensor("ADSB", 30.0)), ((4.8, 1.0), (5.0, 0.5)),
                                noise=1.0, seed=2, mode_c=True, t_end=400.0)
