@@ -107,6 +107,15 @@ def statistical_ellipses(plots: Plots, radar: Radar) -> Ellipses:
     return Ellipses(d * np.cos(psi), d * np.sin(psi), psi, A, B)
 
 
+def ground_range_sigma(sigma_r: float | FloatArray, r: FloatArray, d: FloatArray,
+                       sigma_h: float | FloatArray = 0.0, h: FloatArray | float = 0.0
+                       ) -> FloatArray:
+    """The filters' ground-range sigma of a plot at slant range ``r``, ground range ``d``:
+    ``sigma_r r / d``, with the ``hypot`` of :func:`height_error` for an altitude ``h`` of
+    sigma ``sigma_h`` (0: exact)."""
+    return np.hypot(sigma_r * r / d, height_error(sigma_h, h, d))
+
+
 def height_error(e_h: float | FloatArray, h: FloatArray, d: FloatArray) -> FloatArray:
     """Ground-range error of a height error ``e_h`` at height ``h`` above the radar, ground
     range ``d``: ``e_h |h| / d`` to first order (``d^2 = r^2 - h^2`` at a fixed slant range),

@@ -1,7 +1,6 @@
 """Polar measurement model: plots ``(d, psi)`` with ``d`` the ground range where the altitude is
-known (``sqrt(r^2 - h^2)``, sigma ``sigma_r r / d``, with the radar's ``altitude_sigma_m`` the
-``hypot`` of that and :func:`~solver.geometry.height_error`), else the slant range (sigma
-``sigma_r``).
+known (``sqrt(r^2 - h^2)``, sigma :func:`~solver.geometry.ground_range_sigma`: ``sigma_r r / d``
+and the radar's ``altitude_sigma_m``), else the slant range (sigma ``sigma_r``).
 
 Two ways to use them in a Cartesian filter:
 
@@ -45,7 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..geometry import ground_range, height_error
+from ..geometry import ground_range, ground_range_sigma
 from ..inputs import FloatArray, Plots, Radar
 
 if TYPE_CHECKING:
@@ -81,10 +80,8 @@ class PolarPlots:
     @classmethod
     def from_plots(cls, plots: Plots, radar: Radar) -> PolarPlots:
         d = ground_range(plots)
-        sigma_d = radar.sigma_r * plots.range_m / d
-        if plots.altitude_m is not None:
-            h = np.nan_to_num(plots.altitude_m, nan=0.0)
-            sigma_d = np.hypot(sigma_d, height_error(radar.altitude_sigma_m, h, d))
+        h = 0.0 if plots.altitude_m is None else np.nan_to_num(plots.altitude_m, nan=0.0)
+        sigma_d = ground_range_sigma(radar.sigma_r, plots.range_m, d, radar.altitude_sigma_m, h)
         return cls(t=np.asarray(plots.t, dtype=float), d=d, sigma_d=sigma_d,
                    psi=np.unwrap(plots.azimuth_rad), sigma_psi=float(radar.sigma_psi))
 
@@ -184,8 +181,8 @@ class SensorPlots:
         sig_psi = np.array([s.sigma_psi if isinstance(s, RadarSensor) else np.nan
                             for s in table.sensors])[table.sensor]
         d_safe = np.where(polar, d, 1.0)
-        sigma_d = np.where(polar, np.hypot(sig_r * r / d_safe,
-                                           height_error(sig_h, np.nan_to_num(h), d_safe)), np.nan)
+        sigma_d = np.where(polar, ground_range_sigma(sig_r, r, d_safe, sig_h, np.nan_to_num(h)),
+                           np.nan)
         d, psi = np.where(polar, d, np.nan), np.where(polar, table.azimuth_rad, np.nan)
         sig_psi = np.where(polar, sig_psi, np.nan)
         centre, cov = np.empty((n, 2)), np.empty((n, 2, 2))
