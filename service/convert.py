@@ -307,6 +307,13 @@ def _states(s: StateSeries, with_heading: bool, frame: LocalFrame | None = None)
     return rows
 
 
+def gated_warning(name: str, gated: list[int]) -> str:
+    """The operator's line for a filter that left plots out (the indexes are in the answer)."""
+    shown = ", ".join(map(str, gated[:10])) + (", ..." if len(gated) > 10 else "")
+    return (f"filters.{name}: {len(gated)} plot(s) left out, far from the filter's prediction "
+            f"(wild plots?): {shown}")
+
+
 def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
                   omit: frozenset[str] = frozenset(), notes: tuple[str, ...] = (),
                   sensors: Sequence[tuple[str, str]] = ()) -> dict:
@@ -335,9 +342,12 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
     diagnostics["warnings"] = [*notes, *diagnostics["warnings"]]
     diagnostics["warnings"] += [f"filters.{name}: {e.info['warning']}"
                                 for name, e in estimates.items() if e.info.get("warning")]
+    gated = {name: np.flatnonzero(e.info.get("gated", ())).tolist()
+             for name, e in estimates.items()}
+    diagnostics["warnings"] += [gated_warning(name, g) for name, g in gated.items() if g]
     return {
         "trajectory": trajectory,
-        "filters": {name: {"states": _states(e.states, False, rec.frame)}
+        "filters": {name: {"states": _states(e.states, False, rec.frame), "gated": gated[name]}
                     for name, e in estimates.items()},
         "sensors": _in_request_order(rec.sensors, sensors),
         "diagnostics": diagnostics,

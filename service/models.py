@@ -447,6 +447,11 @@ class FilterOut(_Out):
     """Output of one recursive estimator."""
 
     states: list[FilterStateOut] = Field(description="One estimate per plot, in input order.")
+    gated: list[int] = Field(
+        default_factory=list,
+        description="Indexes of the plots (in input order) the filter left out: more than its "
+        "gate (6 sigma) from its prediction, wild plots; its state there is the prediction. "
+        "Empty for `alpha_beta` and the `fusion_*` filters, which use every plot.")
 
 
 class DiagnosticsOut(_Out):

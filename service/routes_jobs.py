@@ -594,12 +594,17 @@ def _filter_rows(t: Any, cov: bool = True) -> dict[str, dict[str, list[dict[str,
     if t is None:
         return {}
     cols = t.to_pydict()
+    gated_col = cols.get("gated") or [False] * t.num_rows  # parts written before the column
     out: dict[str, list[tuple[int, dict[str, Any]]]] = {}
+    gated: dict[str, list[int]] = {}
     for i in range(t.num_rows):
         row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg")}
         row["cov"] = _cov(cols, i) if cov else None
         out.setdefault(cols["filter"][i], []).append((cols["plot"][i], row))
-    return {name: {"states": [r for _, r in sorted(rows, key=lambda p: p[0])]}
+        if gated_col[i]:
+            gated.setdefault(cols["filter"][i], []).append(cols["plot"][i])
+    return {name: {"states": [r for _, r in sorted(rows, key=lambda p: p[0])],
+                   "gated": sorted(gated.get(name, []))}
             for name, rows in out.items()}
 
 

@@ -80,9 +80,10 @@ ahead of the state positive, a late report's is negative; ``cross_track_residual
 the track positive); null where they do not apply or the method gives none; ``gated``: given no
 weight as wild."""
 FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
-                  "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS)
+                  "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS, "gated")
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
-:data:`solver.estimation.FILTER_NAMES`), as ``tracks.parquet``."""
+:data:`solver.estimation.FILTER_NAMES`), as ``tracks.parquet``; ``gated``: the filter left the
+plot out, far from its prediction (:mod:`solver.estimation.gating`)."""
 SAMPLE_COLUMNS = ("aircraft", "t", "time_of_day_s", "x", "z", "lat_deg", "lon_deg", "vx", "vz",
                   "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m")
 """Columns of ``samples.parquet``: the reconstructed state every ``sample_step_s`` from the
@@ -327,6 +328,7 @@ def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_da
             warnings.append(f"filters.{name}: {est.info['warning']}")
         cols = _state_columns(key, table, est.states, times_of_day)
         cols["filter"] = pa.array([name] * len(table), pa.string())
+        cols["gated"] = pa.array(est.info.get("gated", np.zeros(len(table), bool)), pa.bool_())
         parts.append(_arrow(cols, FILTER_COLUMNS, len(table)))
     return pa.concat_tables(parts) if parts else None
 

@@ -6,6 +6,7 @@ Equations in ``solver.estimation.imm_smoother`` and ``imm_ct_step``."""
 import numpy as np
 
 from solver.estimation.common import estimate
+from solver.estimation.gating import GATE_SIGMA, gated_pass
 from solver.estimation.imm import OMEGA_MAX, Q_CT, Q_CV, Q_OMEGA, TAU_CT, TAU_CV, prior
 from solver.estimation.imm_smoother import N_MODES, ForwardPass, _prior, pair_terms
 from solver.estimation.kalman import position_update
@@ -15,8 +16,10 @@ _POS = (0, 1)
 _EYE4 = np.eye(4)
 
 
-def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf") -> ForwardPass:
-    """The forward IMM of ``imm_smoother.imm_forward``: one ``position_update`` per mode."""
+def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf",
+                gate: float | None = GATE_SIGMA) -> ForwardPass:
+    """The forward IMM of ``imm_smoother.imm_forward``: one ``position_update`` per mode; a plot
+    whose least NIS over the modes exceeds ``gate^2`` left out as ``gating.gated_pass`` says."""
     n = len(meas)
     x0, P0 = _prior(meas)
     xf = np.empty((n, N_MODES, 4))
@@ -27,9 +30,10 @@ def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf") -> ForwardPass:
     PP = np.empty((max(n - 1, 0), N_MODES, 4, 4))
     xf[0], Pf[0], mu[0] = x0, P0, mu0
     PhiT = np.swapaxes(Phi, -1, -2)
-    loglik = np.empty(N_MODES)
-    m, x, P = mu[0], xf[0], Pf[0]
-    for k in range(1, n):
+    loglik, nis = np.empty(N_MODES), np.empty(N_MODES)
+
+    def step(k: int, lanes, use: bool):
+        m, x, P = mu[k - 1], xf[k - 1], Pf[k - 1]
         joint = Pi[k - 1] * m[:, None]
         c = joint.sum(0)
         if c.min() > 0:
@@ -45,14 +49,20 @@ def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf") -> ForwardPass:
         xp = (Phi[k - 1] @ xm[:, :, None])[:, :, 0]
         Pp = Phi[k - 1] @ Pm @ PhiT[k - 1] + Q[k - 1]
         XP[k - 1], PP[k - 1] = xp, Pp
+        if not use:
+            xf[k], Pf[k], mu[k] = xp, Pp, c
+            return nis[:1]
         x, P = xf[k], Pf[k]
         for j in range(N_MODES):
-            x[j], P[j], nis, logdet = position_update(xp[j], Pp[j], meas, k, _POS, measurement)
-            loglik[j] = -0.5 * (nis + logdet)
+            x[j], P[j], nis[j], logdet = position_update(xp[j], Pp[j], meas, k, _POS, measurement)
+            loglik[j] = -0.5 * (nis[j] + logdet)
         post = c * np.exp(loglik - loglik.max())
         total = post.sum()
-        m = mu[k] = post / total if total > 0 and np.isfinite(total) else c
-    return ForwardPass(xf, Pf, mu, W, XP, PP)
+        mu[k] = post / total if total > 0 and np.isfinite(total) else c
+        return np.array([nis.min()])
+
+    gated = gated_pass(n, 1, step, gate)[:, 0]
+    return ForwardPass(xf, Pf, mu, W, XP, PP, gated)
 
 
 def imm_backward(fw: ForwardPass, Phi, Q, future_modes: bool = True):
@@ -136,31 +146,26 @@ def _cv_noise(T: float, q: float):
 
 
 def run_imm(meas, q_cv=Q_CV, q_ct=Q_CT, q_omega=Q_OMEGA, tau_cv=TAU_CV, tau_ct=TAU_CT,
-            omega_max=OMEGA_MAX, measurement: str = "ekf"):
-    """``solver.estimation.imm.run_imm`` in numpy: one ``position_update`` per mode."""
+            omega_max=OMEGA_MAX, measurement: str = "ekf", gate: float | None = GATE_SIGMA):
+    """``solver.estimation.imm.run_imm`` in numpy: one ``position_update`` per mode; the gate
+    on the modes' least NIS (``gating.gated_pass``)."""
     n = len(meas)
     t = meas.t
     x0, P0 = prior(meas)
-    xs = np.stack([x0, x0])
-    Ps = np.stack([P0, P0])
-    P0[4, 4] = 1e-12  # the CV model's omega is 0
-    Ps[0] = P0
-    xs[0, 4] = 0.0
-    mu = np.array([tau_cv, tau_ct]) / (tau_cv + tau_ct)
-    out_x, out_P = np.empty((n, 4)), np.empty((n, 4, 4))
-    probs, omega = np.empty((n, 2)), np.zeros(n)
+    XS = np.empty((n, 2, 5))
+    PS = np.empty((n, 2, 5, 5))
+    MU = np.empty((n, 2))
+    XS[0] = np.stack([x0, x0])
+    PS[0] = np.stack([P0, P0])
+    PS[0, 0, 4, 4] = 1e-12  # the CV model's omega is 0
+    XS[0, 0, 4] = 0.0
+    MU[0] = np.array([tau_cv, tau_ct]) / (tau_cv + tau_ct)
     F_cv = np.eye(5)
     F_cv[4, 4] = 0.0
+    nis = np.empty(2)
 
-    def combine(k: int) -> None:
-        x = mu @ xs
-        d = xs - x
-        P = np.einsum("i,ijk->jk", mu, Ps + d[:, :, None] * d[:, None, :])
-        out_x[k], out_P[k] = x[:4], P[:4, :4]
-        probs[k], omega[k] = mu, x[4]
-
-    combine(0)
-    for k in range(1, n):
+    def step(k: int, lanes, use: bool):
+        xs, Ps, mu = XS[k - 1], PS[k - 1], MU[k - 1]
         T = t[k] - t[k - 1]
         Pi = switching_matrix(T, tau_cv, tau_ct)
         c = mu @ Pi  # predicted model probabilities
@@ -170,23 +175,32 @@ def run_imm(meas, q_cv=Q_CV, q_ct=Q_CT, q_omega=Q_OMEGA, tau_cv=TAU_CV, tau_ct=T
         for j in range(2):
             d = xs - xm[j]
             Pm[j] = np.einsum("i,ijk->jk", w[:, j], Ps + d[:, :, None] * d[:, None, :])
-        loglik = np.empty(2)
+        loglik = np.zeros(2)
         F_cv[0, 2] = F_cv[1, 3] = T
         Q_cv = _cv_noise(T, q_cv)
         Q_cv[4, 4] = 1e-12
-        xp, Pp = F_cv @ xm[0], F_cv @ Pm[0] @ F_cv.T + Q_cv
-        xs[0], Ps[0], nis, logdet = position_update(xp, Pp, meas, k, (0, 1), measurement)
-        loglik[0] = -0.5 * (nis + logdet)
+        preds = [(F_cv @ xm[0], F_cv @ Pm[0] @ F_cv.T + Q_cv)]
         fx, J = ct_predict(xm[1], T)
         Q_ct = _cv_noise(T, q_ct)
         Q_ct[4, 4] = q_omega * T
-        xs[1], Ps[1], nis, logdet = position_update(fx, J @ Pm[1] @ J.T + Q_ct, meas, k, (0, 1),
-                                                    measurement)
-        xs[1, 4] = np.clip(xs[1, 4], -omega_max, omega_max)  # projection on the bound
-        loglik[1] = -0.5 * (nis + logdet)
+        preds.append((fx, J @ Pm[1] @ J.T + Q_ct))
+        for j, (xp, Pp) in enumerate(preds):
+            if use:
+                XS[k, j], PS[k, j], nis[j], logdet = position_update(xp, Pp, meas, k, (0, 1),
+                                                                     measurement)
+                loglik[j] = -0.5 * (nis[j] + logdet)
+            else:
+                XS[k, j], PS[k, j] = xp, Pp
+        XS[k, 1, 4] = np.clip(XS[k, 1, 4], -omega_max, omega_max)  # projection on the bound
         lik = np.exp(loglik - loglik.max())
-        mu = c * lik
-        mu = np.maximum(mu / mu.sum(), 1e-12)
-        mu /= mu.sum()
-        combine(k)
-    return estimate("imm", t, out_x, out_P, model_probabilities=probs, turn_rate=omega)
+        m = c * lik
+        m = np.maximum(m / m.sum(), 1e-12)
+        MU[k] = m / m.sum()
+        return np.array([nis.min()])
+
+    gated = gated_pass(n, 1, step, gate)[:, 0]
+    x = np.einsum("ni,nij->nj", MU, XS)
+    d = XS - x[:, None, :]
+    P = np.einsum("ni,nijk->njk", MU, PS + d[..., :, None] * d[..., None, :])
+    return estimate("imm", t, x[:, :4], P[:, :4, :4], model_probabilities=MU,
+                    turn_rate=x[:, 4], gated=gated)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import asterix.generated as ast
 import numpy as np
+import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
@@ -143,6 +144,8 @@ def test_recording_to_tables_statistics_and_map(recording, capsys, scheduler):
     filters = pq.read_table(out / "filters.parquet")
     assert set(filters.column("filter").to_pylist()) == {"imm_smoother", "cv_rts"}
     assert filters.num_rows == 2 * table.num_rows
+    assert filters.column("gated").type == pa.bool_()  # left out as wild: none, exact plots
+    assert not any(filters.column("gated").to_pylist())
     smoothed = filters.filter(pc.equal(filters.column("filter"), "imm_smoother"))
     assert np.hypot(np.asarray(smoothed.column("x")) - np.asarray(table.column("x")),
                     np.asarray(smoothed.column("z")) - np.asarray(table.column("z"))

@@ -211,6 +211,29 @@ def test_filters_run_beside_the_reconstruction(client):
     assert post(client, batch(300.0)).json()["filters"] == {}
 
 
+def test_filters_report_the_plots_they_left_out(client):
+    """A wild plot (15 km off in range): every gating filter names it in `gated` (input
+    order), the warnings say so, the states stay near the track; alpha_beta uses every plot."""
+    body = batch(600.0)
+    wild = 12
+    body["plots"][wild]["range_m"] += 15_000.0
+    body["filters"] = ["imm_smoother", "cv_rts", "imm", "singer", "quasi_optimal", "fuzzy",
+                       "alpha_beta"]
+    r = post(client, body)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    for name, est in out["filters"].items():
+        if name == "alpha_beta":
+            assert est["gated"] == []
+            continue
+        assert est["gated"] == [wild], name
+        assert any(w.startswith(f"filters.{name}: 1 plot(s) left out") and w.endswith(f": {wild}")
+                   for w in out["diagnostics"]["warnings"]), name
+        rec = out["trajectory"]["at_plots"][wild]
+        assert np.hypot(est["states"][wild]["x"] - rec["x"],
+                        est["states"][wild]["z"] - rec["z"]) < 3_000.0, name
+
+
 # ------------------------------------------------------------------------------ validation
 
 BAD = batch(300.0)

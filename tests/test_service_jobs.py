@@ -286,6 +286,7 @@ def test_job_options_run_the_filters_on_every_track(client):
                                            rtol=0, atol=1e-6, err_msg=f"{key} {name} {field}")
             np.testing.assert_allclose(np.array([s["cov"] for s in got]),
                                        np.array([s["cov"] for s in want]), rtol=1e-9)
+            assert body["filters"][name]["gated"] == single.json()["filters"][name]["gated"]
     table = pq.read_table(io.BytesIO(client.get(loc + "/results/filters.parquet").content))
     assert table.num_rows == len(names) * sum(len(p) for p in tracks.values())
     assert sorted(set(table.column("filter").to_pylist())) == sorted(names)

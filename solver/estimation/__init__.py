@@ -50,7 +50,7 @@ FUSION_NAMES: tuple[str, ...] = ("fusion_a", "fusion_b", "fusion_c")
 """Seed 004's fusion variants: defined for exactly two sensors (``ValueError`` otherwise)."""
 SINGLE_SENSOR_NAMES: tuple[str, ...] = tuple(n for n in FILTER_NAMES if n not in FUSION_NAMES)
 """The filters that run on any number of sensors, one included."""
-_PER_MEASUREMENT = frozenset({"nis", "gains", "gain_level"})
+_PER_MEASUREMENT = frozenset({"nis", "gains", "gain_level", "gated"})
 """``info`` arrays that describe each measurement (not the state after it)."""
 
 

@@ -9,8 +9,12 @@ import numpy as np
 
 from ..inputs import FloatArray
 from ..results import FilterEstimate, StateSeries
+from .gating import GATE_SIGMA
 from .kalman import channel_filter
 from .measurements import PolarPlots, SensorPlots, polar_state_to_cartesian
+
+Gain = Callable[[int, np.ndarray, FloatArray, FloatArray], FloatArray]
+"""A gain rule of :func:`.kalman.channel_filter`: ``(k, lanes, nu / sqrt(S), K_kalman) -> K``."""
 
 SIGMA_V0 = 300.0
 """Prior speed sigma (m/s) at the first plot: the default upper speed bound of the
@@ -42,27 +46,28 @@ def cartesian_output(x: FloatArray, P: FloatArray, per_axis: int) -> tuple[Float
 
 
 def polar_channels(meas: PolarPlots, Phi: FloatArray, Q: FloatArray, prior_var: FloatArray,
-                   gain: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
-                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+                   gain: Gain | None = None, gate: float | None = GATE_SIGMA
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Filter ground range and azimuth as ``B`` separate scalar channels (batch order: range
     channels then azimuth channels, ``B/2`` model variants each).
 
     ``Phi``, ``Q``: ``(n-1, B, m, m)``; ``prior_var (B, m)``: prior variances of the state
-    derivatives (entry 0 is replaced by the measurement variance). Returns the filtered
-    ``xf (n, B, m)``, ``Pf``, the normalised innovations ``(n, B)`` and the measurement
-    variances ``(n, B)``.
+    derivatives (entry 0 is replaced by the measurement variance); ``gain``, ``gate``: as
+    :func:`.kalman.channel_filter`. Returns the filtered ``xf (n, B, m)``, ``Pf``, the normalised
+    innovations ``(n, B)``, the measurement variances ``(n, B)`` and ``(n, B)`` True where a
+    channel left its measurement out (the gate).
     """
     half = prior_var.shape[0] // 2
     z = np.concatenate([np.repeat(meas.d[:, None], half, 1),
                         np.repeat(meas.psi[:, None], half, 1)], axis=1)
     R = np.concatenate([np.repeat(meas.sigma_d[:, None] ** 2, half, 1),
                         np.full((len(meas), half), meas.sigma_psi**2)], axis=1)
-    return _run_channels(z, R, Phi, Q, prior_var, gain)
+    return _run_channels(z, R, Phi, Q, prior_var, gain, gate)
 
 
 def axis_channels(meas: SensorPlots, Phi: FloatArray, Q: FloatArray, prior_var: FloatArray,
-                  gain: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
-                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+                  gain: Gain | None = None, gate: float | None = GATE_SIGMA
+                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """:func:`polar_channels` for several sensors: the plane axes ``x`` (north) and ``z`` (east)
     of the plot positions as ``B`` separate scalar channels (``B/2`` x-channels, then ``B/2``
     z-channels), each plot with its marginal variance ``R_xx`` or ``R_zz`` (the x-z correlation
@@ -72,7 +77,7 @@ def axis_channels(meas: SensorPlots, Phi: FloatArray, Q: FloatArray, prior_var: 
     z = np.concatenate([np.repeat(pts[:, :1], half, 1), np.repeat(pts[:, 1:], half, 1)], axis=1)
     R = np.concatenate([np.repeat(cov[:, 0, 0, None], half, 1),
                         np.repeat(cov[:, 1, 1, None], half, 1)], axis=1)
-    return _run_channels(z, R, Phi, Q, prior_var, gain)
+    return _run_channels(z, R, Phi, Q, prior_var, gain, gate)
 
 
 def axes_to_cartesian(xf: FloatArray, Pf: FloatArray, b_x: int, b_z: int
@@ -109,9 +114,8 @@ def estimate(name: str, t: FloatArray, states: FloatArray, cov: FloatArray,
 
 
 def _run_channels(z: FloatArray, R: FloatArray, Phi: FloatArray, Q: FloatArray,
-                  prior_var: FloatArray,
-                  gain: Callable[[int, FloatArray, FloatArray], FloatArray] | None
-                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+                  prior_var: FloatArray, gain: Gain | None, gate: float | None
+                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """The channels' filter from the first measurement (its variance as the first state's,
     ``prior_var`` for the others)."""
     B, m = prior_var.shape
@@ -121,5 +125,5 @@ def _run_channels(z: FloatArray, R: FloatArray, Phi: FloatArray, Q: FloatArray,
     idx = np.arange(m)
     P0[:, idx, idx] = prior_var
     P0[:, 0, 0] = R[0]
-    xf, Pf, nus = channel_filter(x0, P0, Phi, Q, z, R, gain)
-    return xf, Pf, nus, R
+    xf, Pf, nus, gated = channel_filter(x0, P0, Phi, Q, z, R, gain, gate)
+    return xf, Pf, nus, R, gated

@@ -16,6 +16,7 @@ from scipy.linalg import solveh_banded
 from ..inputs import FloatArray
 from ..results import FilterEstimate
 from .common import cartesian_output, cartesian_prior, estimate
+from .gating import GATE_SIGMA
 from .kalman import filter_track, rts_smoother
 from .measurements import PolarPlots
 from .models import cv, two_axes
@@ -24,17 +25,19 @@ Q_CV = 30.0
 
 
 def run_cv_rts(meas: PolarPlots, q: float = Q_CV, measurement: str = "ekf",
-               smooth: bool = True) -> FilterEstimate:
+               smooth: bool = True, gate: float | None = GATE_SIGMA) -> FilterEstimate:
+    """``gate``: plots further than this many sigmas from the prediction are not used
+    (:mod:`.gating`; the smoother then bridges them); None uses every plot."""
     Phi, Q = cv(np.diff(meas.t), q)
     Phi, Q = two_axes(Phi), two_axes(Q)
     x0, P0 = cartesian_prior(meas, 2)
-    xf, Pf, xp, Pp, nis = filter_track(x0, P0, Phi, Q, meas, (0, 2), measurement)
+    xf, Pf, xp, Pp, nis, gated = filter_track(x0, P0, Phi, Q, meas, (0, 2), measurement, gate)
     sf, Cf = cartesian_output(xf, Pf, 2)
     if not smooth:
-        return estimate("cv_rts", meas.t, sf, Cf, nis=nis)
+        return estimate("cv_rts", meas.t, sf, Cf, nis=nis, gated=gated)
     xs, Ps = rts_smoother(xf, Pf, xp, Pp, Phi)
     s, C = cartesian_output(xs, Ps, 2)
-    return estimate("cv_rts", meas.t, s, C, filtered=sf, nis=nis)
+    return estimate("cv_rts", meas.t, s, C, filtered=sf, nis=nis, gated=gated)
 
 
 def smoothed_means(t: FloatArray, centre: FloatArray, info: FloatArray, q: float = Q_CV

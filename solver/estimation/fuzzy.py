@@ -43,6 +43,7 @@ from .common import (
     estimate,
     polar_channels,
 )
+from .gating import GATE_SIGMA
 from .measurements import PolarPlots, SensorPlots
 from .models import singer
 
@@ -146,7 +147,7 @@ def kalman_gains(P0: FloatArray, Phi: FloatArray, Q: FloatArray, R: FloatArray) 
 
 
 def _run_fuzzy_axes(meas: SensorPlots, kb: FuzzyGain, alpha: float, sigma_low: float,
-                    sigma_high: float, sigma_m: float) -> FilterEstimate:
+                    sigma_high: float, sigma_m: float, gate: float | None) -> FilterEstimate:
     """Per plane axis with time-varying gain bounds (module docstring)."""
     n = len(meas)
     dt = np.diff(meas.t)
@@ -167,26 +168,31 @@ def _run_fuzzy_axes(meas: SensorPlots, kb: FuzzyGain, alpha: float, sigma_low: f
                                        np.concatenate([R, R], 1)), 2, axis=1)
     levels = np.zeros((n, 2))
 
-    def gain(k: int, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
+    def gain(k: int, lanes: np.ndarray, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
         g = kb(u)
-        levels[k] = g
-        K = K_lo[k] + g[:, None] * (K_hi[k] - K_lo[k])
-        initiating = K_kalman[:, 0] > K_hi[k][:, 0]  # track initiation: prior still broad
+        levels[k, lanes] = g
+        lo, hi = K_lo[k][lanes], K_hi[k][lanes]
+        K = lo + g[:, None] * (hi - lo)
+        initiating = K_kalman[:, 0] > hi[:, 0]  # track initiation: prior still broad
         return np.where(initiating[:, None], K_kalman, K)
 
     Phi2, Q2, _ = model(sigma_m)
     prior = np.array([[0.0, SIGMA_V0**2, sigma_m**2]] * 2)
-    xf, Pf, _, _ = axis_channels(meas, Phi2, Q2, prior, gain)
+    xf, Pf, _, _, gated = axis_channels(meas, Phi2, Q2, prior, gain, gate)
     s, P = axes_to_cartesian(xf, Pf, 0, 1)
-    return estimate("fuzzy", meas.t, s, P, gain_level=levels)
+    return estimate("fuzzy", meas.t, s, P, gain_level=levels, gated=gated.any(axis=1))
 
 
 def run_fuzzy(meas: PolarPlots | SensorPlots, n_terms: int = N_TERMS, shape: str = SHAPE,
               crossover: float = CROSSOVER, alpha: float = ALPHA, sigma_low: float = SIGMA_LOW,
-              sigma_high: float = SIGMA_HIGH, sigma_m: float = SIGMA_M) -> FilterEstimate:
+              sigma_high: float = SIGMA_HIGH, sigma_m: float = SIGMA_M,
+              gate: float | None = GATE_SIGMA) -> FilterEstimate:
+    """``gate``: a plot further than this many sigmas from the prediction (both coordinates'
+    normalised innovations together) is not used (:mod:`.gating`), before the knowledge base
+    sees it; None: all."""
     kb = FuzzyGain(n_terms, shape, crossover)
     if isinstance(meas, SensorPlots):
-        return _run_fuzzy_axes(meas, kb, alpha, sigma_low, sigma_high, sigma_m)
+        return _run_fuzzy_axes(meas, kb, alpha, sigma_low, sigma_high, sigma_m, gate)
     dt = np.diff(meas.t)
     d_ref = float(np.median(meas.d))
     r_metric = np.array([np.median(meas.sigma_d) ** 2, (d_ref * meas.sigma_psi) ** 2])
@@ -200,12 +206,13 @@ def run_fuzzy(meas: PolarPlots | SensorPlots, n_terms: int = N_TERMS, shape: str
     K_hi = steady_gain(Phi_b, np.repeat(Q_hi[:, None], 2, 1), r_metric[None, :])
     levels = np.zeros((len(meas), 2))
 
-    def gain(k: int, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
+    def gain(k: int, lanes: np.ndarray, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
         g = kb(u)
-        levels[k] = g
+        levels[k, lanes] = g
         j = inverse[k - 1]
-        K = K_lo[j] + g[:, None] * (K_hi[j] - K_lo[j])
-        initiating = K_kalman[:, 0] > K_hi[j][:, 0]  # track initiation: prior still broad
+        lo, hi = K_lo[j][lanes], K_hi[j][lanes]
+        K = lo + g[:, None] * (hi - lo)
+        initiating = K_kalman[:, 0] > hi[:, 0]  # track initiation: prior still broad
         return np.where(initiating[:, None], K_kalman, K)
 
     Phi, Q = singer(dt, alpha, sigma_m)
@@ -213,6 +220,6 @@ def run_fuzzy(meas: PolarPlots | SensorPlots, n_terms: int = N_TERMS, shape: str
     Q2 = np.stack([Q, Q / d_ref**2], 1)
     prior = np.array([[0.0, SIGMA_V0**2, sigma_m**2],
                       [0.0, (SIGMA_V0 / d_ref) ** 2, (sigma_m / d_ref) ** 2]])
-    xf, Pf, _, _ = polar_channels(meas, Phi2, Q2, prior, gain)
+    xf, Pf, _, _, gated = polar_channels(meas, Phi2, Q2, prior, gain, gate)
     s, P = channels_to_cartesian(xf, Pf, 0, 1)
-    return estimate("fuzzy", meas.t, s, P, gain_level=levels)
+    return estimate("fuzzy", meas.t, s, P, gain_level=levels, gated=gated.any(axis=1))

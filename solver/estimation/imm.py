@@ -20,6 +20,7 @@ from ..inputs import FloatArray
 from ..results import FilterEstimate
 from . import imm_ct_step, imm_step
 from .common import SIGMA_V0, estimate
+from .gating import GATE_SIGMA
 from .measurements import MEASUREMENT_MODES, PolarPlots, SensorPlots
 
 Q_CV, Q_CT, Q_OMEGA, TAU_CV, TAU_CT = 0.5, 30.0, 1e-5, 120.0, 40.0
@@ -43,10 +44,12 @@ def prior(meas: PolarPlots | SensorPlots) -> tuple[FloatArray, FloatArray]:
 
 def run_imm(meas: PolarPlots | SensorPlots, q_cv: float = Q_CV, q_ct: float = Q_CT,
             q_omega: float = Q_OMEGA, tau_cv: float = TAU_CV, tau_ct: float = TAU_CT,
-            omega_max: float = OMEGA_MAX, measurement: str = "ekf") -> FilterEstimate:
+            omega_max: float = OMEGA_MAX, measurement: str = "ekf",
+            gate: float | None = GATE_SIGMA) -> FilterEstimate:
     """The filter over ``meas`` (polar plots, or several sensors' :class:`.SensorPlots`): each
     step one call of a compiled function (:mod:`.imm_ct_step`, the equations there), the
-    combined estimate moment-matched over the modes at every plot."""
+    combined estimate moment-matched over the modes at every plot. ``gate``: a plot further than
+    this many sigmas from both modes' predictions is not used (:mod:`.gating`); None: all."""
     if measurement not in MEASUREMENT_MODES:
         raise ValueError(f"unknown measurement mode {measurement!r} (use 'converted' or 'ekf')")
     n = len(meas)
@@ -60,25 +63,17 @@ def run_imm(meas: PolarPlots | SensorPlots, q_cv: float = Q_CV, q_ct: float = Q_
     S[:1] = imm_step.pack(imm_ct_step.STATE, 1, x=np.stack([x_cv, x0]),
                              P=np.stack([P_cv, P0]),
                              mu=np.array([tau_cv, tau_ct]) / (tau_cv + tau_ct))
+    gated = np.zeros(n, dtype=bool)
     if n > 1:
         A = imm_step.pack(imm_ct_step.STEP, n - 1, T=np.diff(t),
-                             plot=imm_step.plot_rows(meas)[1:], q_cv=q_cv, q_ct=q_ct,
-                             q_omega=q_omega, tau_cv=tau_cv, tau_ct=tau_ct, omega_max=omega_max,
-                             lin=0.0, relin=0.0)
-        again = np.zeros(imm_ct_step.N_MODES + 1)
-        buf, evaluate = imm_ct_step.step(measurement).buffer()
-        buf.set_res(1, memoryview(again))
-        for k in range(1, n):  # each step reads and writes the arrays' rows in place
-            buf.set_arg(0, memoryview(S[k - 1]))
-            buf.set_arg(1, memoryview(A[k - 1]))
-            buf.set_res(0, memoryview(S[k]))
-            evaluate()
-            if again[0]:  # the iterated EKF update (a plot far from the prediction)
-                imm_step.relinearise(evaluate, A[k - 1], S[k], again, imm_ct_step.STEP,
-                                     imm_ct_step.STATE, imm_ct_step.N_X)
+                          plot=imm_step.plot_rows(meas)[1:], q_cv=q_cv, q_ct=q_ct,
+                          q_omega=q_omega, tau_cv=tau_cv, tau_ct=tau_ct, omega_max=omega_max,
+                          lin=0.0, relin=0.0, use=1.0)
+        gated = imm_step.gated_steps(imm_ct_step.step(measurement), S, A, None,
+                                     imm_ct_step.STEP, imm_ct_step.STATE, imm_ct_step.N_X, gate)
     xs, Ps, mu = imm_ct_step.unpack(S)
     x = np.einsum("ni,nij->nj", mu, xs)
     d = xs - x[:, None, :]
     P = np.einsum("ni,nijk->njk", mu, Ps + d[..., :, None] * d[..., None, :])
     return estimate("imm", t, x[:, :4], P[:, :4, :4], model_probabilities=mu,
-                    turn_rate=x[:, 4])
+                    turn_rate=x[:, 4], gated=gated)

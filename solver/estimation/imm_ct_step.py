@@ -37,10 +37,10 @@ MU_FLOOR = 1e-12
 STATE = _blocks(x=N_MODES * N_X, P=N_MODES * N_X * N_X, mu=N_MODES)
 """The filter's state after a plot: each mode's mean and covariance, the probabilities."""
 STEP = _blocks(T=1, plot=11, q_cv=1, q_ct=1, q_omega=1, tau_cv=1, tau_ct=1, omega_max=1,
-              lin=N_MODES * 2, relin=N_MODES)
+              lin=N_MODES * 2, relin=N_MODES, use=1)
 """A step's inputs: the time step, the plot (:func:`.imm_step.plot_rows`), the settings, where
 each mode's EKF update is linearised (:func:`.imm_step.update_terms`; ``relin`` 0: at the
-prediction)."""
+prediction), ``use`` 0 where the validation gate leaves the plot out (:mod:`.gating`)."""
 
 
 def _cv_noise(T: ca.SX, q: ca.SX) -> ca.SX:
@@ -79,7 +79,7 @@ def _step(measurement: str) -> ca.Function:
           for j in range(N_MODES)]
     mu = s[STATE["mu"]]
     T, plot = a[STEP["T"]], a[STEP["plot"]]
-    lin, relin = a[STEP["lin"]], a[STEP["relin"]]
+    lin, relin, use = a[STEP["lin"]], a[STEP["relin"]], a[STEP["use"]]
     q_cv, q_ct, q_omega = a[STEP["q_cv"]], a[STEP["q_ct"]], a[STEP["q_omega"]]
     tau_cv, tau_ct, omega_max = a[STEP["tau_cv"]], a[STEP["tau_ct"]], a[STEP["omega_max"]]
     ra, rb = 1 / tau_cv, 1 / tau_ct  # the chain's leaving rates
@@ -98,13 +98,13 @@ def _step(measurement: str) -> ca.Function:
     Q = _cv_noise(T, q_cv)
     Q[4, 4] = 1e-12
     xm, Pm = mixed[0]
-    x_cv, P_cv, l_cv, a_cv = update_terms(ca.mtimes(F, xm), ca.mtimes([F, Pm, F.T]) + Q, plot,
-                                          measurement, lin[:2], relin[0])
+    x_cv, P_cv, l_cv, a_cv, n_cv = update_terms(ca.mtimes(F, xm), ca.mtimes([F, Pm, F.T]) + Q,
+                                                plot, measurement, lin[:2], relin[0], use)
     fx, J = _turn(mixed[1][0], T)
     Q = _cv_noise(T, q_ct)
     Q[4, 4] = q_omega * T
-    x_ct, P_ct, l_ct, a_ct = update_terms(fx, ca.mtimes([J, mixed[1][1], J.T]) + Q, plot,
-                                          measurement, lin[2:], relin[1])
+    x_ct, P_ct, l_ct, a_ct, n_ct = update_terms(fx, ca.mtimes([J, mixed[1][1], J.T]) + Q, plot,
+                                                measurement, lin[2:], relin[1], use)
     x_ct[4] = ca.fmin(ca.fmax(x_ct[4], -omega_max), omega_max)  # projection on the bound
     ll = ca.vertcat(l_cv, l_ct)
     post = c * ca.exp(ll - ca.mmax(ll))
@@ -112,15 +112,17 @@ def _step(measurement: str) -> ca.Function:
     mun = mun / ca.sum1(mun)
     out = ca.vertcat(x_cv, x_ct, _flat(P_cv), _flat(P_ct), mun)
     again = ca.vertcat(ca.fmax(a_cv, a_ct), a_cv, a_ct)
-    return compiled.function(f"imm_ct_{measurement}", [s, a], [out, again], ["s", "a"],
-                             ["s_next", "again"], derivatives=False)
+    nis = ca.vertcat(ca.fmin(n_cv, n_ct), n_cv, n_ct)
+    return compiled.function(f"imm_ct_{measurement}", [s, a], [out, again, nis], ["s", "a"],
+                             ["s_next", "again", "nis"], derivatives=False)
 
 
 @cache
 def step(measurement: str) -> ca.Function:
-    """One step: ``(s_{k-1}, inputs_k) -> (s_k, again_k)`` (layouts :data:`STATE`,
+    """One step: ``(s_{k-1}, inputs_k) -> (s_k, again_k, nis_k)`` (layouts :data:`STATE`,
     :data:`STEP`); ``again`` ``[any, per mode]`` asks for the step to be repeated
-    (:func:`.imm_step.relinearise`)."""
+    (:func:`.imm_step.relinearise`); ``nis`` ``[least, per mode]`` for the validation gate
+    (:func:`.imm_step.gated_steps`)."""
     return _step(measurement)
 
 

@@ -40,6 +40,7 @@ from ..results import FilterEstimate
 from . import imm_step
 from .common import SIGMA_V0, estimate
 from .discretize import van_loan
+from .gating import GATE_SIGMA
 from .measurements import MEASUREMENT_MODES, PolarPlots, SensorPlots
 
 N_MODES = imm_step.N_MODES
@@ -143,10 +144,13 @@ class ForwardPass(NamedTuple):
     """``(n - 1, 3, 4)`` mixed predictions ``E[x_{k+1} | m_{k+1} = j, Z^k]``."""
     Pp: FloatArray
     """``(n - 1, 3, 4, 4)`` their covariances."""
+    gated: np.ndarray
+    """``(n,)`` True where the validation gate left the plot out (:mod:`.gating`)."""
 
 
 def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, Pi: FloatArray,
-                mu0: FloatArray, measurement: str = "ekf") -> ForwardPass:
+                mu0: FloatArray, measurement: str = "ekf", gate: float | None = GATE_SIGMA
+                ) -> ForwardPass:
     """The forward IMM (Blom and Bar-Shalom 1988). Per step ``k`` (``T = t_k - t_{k-1}``):
 
     - predicted mode probabilities ``c_j = sum_i Pi_ij mu_i``, mixing weights
@@ -157,7 +161,9 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
       ``L_j = exp(-(nu^T S^-1 nu + log det S) / 2)``;
     - ``mu_j = c_j L_j / sum_l c_l L_l``.
 
-    A mode with ``c_j = 0`` (absorbing chain) is mixed with ``mu`` and keeps probability 0.
+    A mode with ``c_j = 0`` (absorbing chain) is mixed with ``mu`` and keeps probability 0. A
+    plot that no mode expects within ``gate`` sigmas is left out (:mod:`.gating`): the step is
+    the prediction, ``mu_j = c_j``.
 
     Each step is one call of a compiled function (:mod:`.imm_step`).
     """
@@ -172,30 +178,21 @@ def imm_forward(meas: PolarPlots | SensorPlots, Phi: FloatArray, Q: FloatArray, 
     xf[0], Pf[0], mu[0] = x0, P0, mu0
     if m == 0:
         return ForwardPass(xf, Pf, mu, np.empty((0, N_MODES, N_MODES)),
-                           np.empty((0, N_MODES, 4)), np.empty((0, N_MODES, 4, 4)))
+                           np.empty((0, N_MODES, 4)), np.empty((0, N_MODES, 4, 4)),
+                           np.zeros(n, dtype=bool))
     A = imm_step.pack(imm_step.STEP, m, Phi=Phi, Q=Q, Pi=Pi, plot=imm_step.plot_rows(meas)[1:],
-                      lin=0.0, relin=0.0)
+                      lin=0.0, relin=0.0, use=1.0)
     S = np.empty((n, imm_step.size(imm_step.STATE)))  # row k: the state after plot k
     S[:1] = imm_step.pack(imm_step.STATE, 1, x=np.repeat(x0[None], N_MODES, 0),
                           P=np.repeat(P0[None], N_MODES, 0), mu=mu0)
     E = np.empty((m, imm_step.size(imm_step.EXTRA)))
-    again = np.zeros(N_MODES + 1)
-    buf, evaluate = imm_step.forward_step(measurement).buffer()
-    buf.set_res(2, memoryview(again))
-    for k in range(1, n):  # each step reads and writes the arrays' rows in place
-        buf.set_arg(0, memoryview(S[k - 1]))
-        buf.set_arg(1, memoryview(A[k - 1]))
-        buf.set_res(0, memoryview(S[k]))
-        buf.set_res(1, memoryview(E[k - 1]))
-        evaluate()
-        if again[0]:  # the iterated EKF update (a plot far from the prediction)
-            imm_step.relinearise(evaluate, A[k - 1], S[k], again, imm_step.STEP,
-                                 imm_step.STATE, 4)
+    gated = imm_step.gated_steps(imm_step.forward_step(measurement), S, A, E, imm_step.STEP,
+                                 imm_step.STATE, 4, gate)
     xf[1:], Pf[1:], mu[1:] = _states(S[1:])
     ex = imm_step.EXTRA
     return ForwardPass(xf, Pf, mu, E[:, ex["W"]].reshape(m, N_MODES, N_MODES),
                        E[:, ex["xp"]].reshape(m, N_MODES, 4),
-                       E[:, ex["Pp"]].reshape(m, N_MODES, 4, 4))
+                       E[:, ex["Pp"]].reshape(m, N_MODES, 4, 4), gated)
 
 
 def _states(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -308,12 +305,14 @@ def combine(x: FloatArray, P: FloatArray, mu: FloatArray) -> tuple[FloatArray, F
 def run_imm_smoother(meas: PolarPlots | SensorPlots, q_cv: float = Q_CV, q_ct: float = Q_CT,
                      omega_deg: float = OMEGA_DEG, tau_cv: float = TAU_CV,
                      tau_ct: float = TAU_CT, measurement: str = "ekf",
-                     smooth: bool = True, future_modes: bool = True) -> FilterEstimate:
+                     smooth: bool = True, future_modes: bool = True,
+                     gate: float | None = GATE_SIGMA) -> FilterEstimate:
     """IMM (CV, right turn, left turn) filter and fixed-interval smoother on the plots;
     ``smooth=False`` returns the forward IMM; ``future_modes=False`` smooths the mode
     probabilities as Kim 1994 (see :func:`imm_backward`). The prior at the first plot is the plot
     point with its converted covariance, velocity 0 +- ``SIGMA_V0``, the chain's stationary
-    probabilities."""
+    probabilities. ``gate``: plots further than this many sigmas from every mode's prediction
+    are not used (:mod:`.gating`; the backward pass bridges them), None uses every plot."""
     for name, v in (("q_cv", q_cv), ("q_ct", q_ct), ("tau_cv", tau_cv), ("tau_ct", tau_ct)):
         if not v > 0:
             raise ValueError(f"{name} must be positive, got {v}")
@@ -325,13 +324,15 @@ def run_imm_smoother(meas: PolarPlots | SensorPlots, q_cv: float = Q_CV, q_ct: f
     dt = np.diff(t)
     Phi, Q = transitions(dt, q_cv, q_ct, np.deg2rad(omega_deg))
     Pi = switching_matrices(dt, tau_cv, tau_ct)
-    fw = imm_forward(meas, Phi, Q, Pi, stationary(tau_cv, tau_ct), measurement)
+    fw = imm_forward(meas, Phi, Q, Pi, stationary(tau_cv, tau_ct), measurement, gate)
     mu = fw.mu
     sf, Cf = combine(fw.x, fw.P, mu)
     omega = np.deg2rad(omega_deg) * np.array([0.0, 1.0, -1.0])
     if not smooth:
-        return estimate("imm_smoother", t, sf, Cf, model_probabilities=mu, turn_rate=mu @ omega)
+        return estimate("imm_smoother", t, sf, Cf, model_probabilities=mu, turn_rate=mu @ omega,
+                        gated=fw.gated)
     xs, Ps, mus = imm_backward(fw, Phi, Q, future_modes)
     s, C = combine(xs, Ps, mus)
     return estimate("imm_smoother", t, s, C, model_probabilities=mus,
-                    filtered_model_probabilities=mu, filtered=sf, turn_rate=mus @ omega)
+                    filtered_model_probabilities=mu, filtered=sf, turn_rate=mus @ omega,
+                    gated=fw.gated)

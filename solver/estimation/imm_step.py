@@ -32,6 +32,7 @@ import casadi as ca
 import numpy as np
 
 from .. import compiled
+from .gating import gated_pass
 from .measurements import (
     LINEARISATION_TOLERANCE,
     MAX_LINEARISATIONS,
@@ -55,9 +56,10 @@ def _blocks(**sizes: int) -> dict[str, slice]:
 _M, _PAIRS = N_MODES, N_MODES * N_MODES
 STATE = _blocks(x=_M * 4, P=_M * 16, mu=_M)
 """A pass's state at one plot (forward: filtered; backward: smoothed)."""
-STEP = _blocks(Phi=_M * 16, Q=_M * 16, Pi=_M * _M, plot=11, lin=_M * 2, relin=_M)
+STEP = _blocks(Phi=_M * 16, Q=_M * 16, Pi=_M * _M, plot=11, lin=_M * 2, relin=_M, use=1)
 """The forward step's inputs; ``plot`` as :func:`plot_rows`; ``lin``, ``relin`` where each mode's
-EKF update is linearised (:func:`update_terms`; 0: at the prediction)."""
+EKF update is linearised (:func:`update_terms`; 0: at the prediction); ``use`` 0: the plot is
+left out (the validation gate, :mod:`.gating`: the state is the prediction)."""
 EXTRA = _blocks(W=_M * _M, xp=_M * 4, Pp=_M * 16)
 """The forward step's outputs for the backward pass."""
 EIGEN = _blocks(s=_M * 4, V=_M * 16)
@@ -137,9 +139,12 @@ def _polar(at: ca.SX, d: ca.SX, psi: ca.SX) -> tuple[ca.SX, ca.SX]:
 
 
 def update_terms(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str, lin: ca.SX | None = None,
-                 relin: ca.SX | None = None) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
+                 relin: ca.SX | None = None, use: ca.SX | None = None
+                 ) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX, ca.SX]:
     """Position update of one mode's ``(m,)``, ``(m, m)`` prediction (the position first):
-    updated state, covariance, ``-(nu^T S^-1 nu + log det S) / 2`` and whether to update again.
+    updated state, covariance, ``-(nu^T S^-1 nu + log det S) / 2``, whether to update again and
+    ``nu^T S^-1 nu``; where ``use`` is 0 the prediction itself, log-likelihood 0, no update again
+    (a plot the validation gate left out).
 
     The EKF update of a polar plot is linearised at the position ``lin`` where ``relin`` is
     nonzero, else at the prediction's; it is :func:`.kalman.position_update`'s iterated update
@@ -185,7 +190,11 @@ def update_terms(xp: ca.SX, Pp: ca.SX, plot: ca.SX, measurement: str, lin: ca.SX
         tol = LINEARISATION_TOLERANCE
         again = ca.logic_and(polar, ca.logic_or(ca.fabs(error[0]) > tol * sigma_d,
                                                 ca.fabs(_wrap(error[1])) > tol * sigma_psi))
-    return x, P, -0.5 * (nis + ca.log(det)), again
+    loglik = -0.5 * (nis + ca.log(det))
+    if use is not None:
+        x, P = ca.if_else(use, x, xp), ca.if_else(use, P, Pp)
+        loglik, again = ca.if_else(use, loglik, 0.0), ca.logic_and(use, again)
+    return x, P, loglik, again, nis
 
 
 def relinearise(evaluate: Callable[[], None], a: np.ndarray, s_next: np.ndarray,
@@ -207,23 +216,62 @@ def relinearise(evaluate: Callable[[], None], a: np.ndarray, s_next: np.ndarray,
             return
 
 
+def gated_steps(fn: ca.Function, S: np.ndarray, A: np.ndarray, extra: np.ndarray | None,
+                step: dict[str, slice], state: dict[str, slice], n_x: int,
+                gate: float | None) -> np.ndarray:
+    """Run a compiled IMM's forward steps ``1 .. n-1`` (inputs row ``k - 1`` of ``A``, the state
+    after plot ``k - 1`` in row ``k - 1`` of ``S`` -> row ``k``; ``fn``'s ``extra`` output, if any,
+    to row ``k - 1`` of ``extra``), each repeated while it asks (:func:`relinearise`), with the
+    validation gate on the modes' least normalised innovation (:func:`.gating.gated_pass`: a
+    plot no mode expects is left out, ``use`` 0). Returns ``(n,)`` True where left out."""
+    n_modes = state["mu"].stop - state["mu"].start
+    again, nis = np.zeros(n_modes + 1), np.zeros(n_modes + 1)
+    buf, evaluate = fn.buffer()
+    buf.set_res(fn.index_out("again"), memoryview(again))
+    buf.set_res(fn.index_out("nis"), memoryview(nis))
+    i_extra = fn.index_out("extra") if extra is not None else -1
+    relin, use = step["relin"], step["use"]
+    least = nis[:1]
+
+    def one(k: int, lanes: np.ndarray, use_plot: bool) -> np.ndarray:
+        a = A[k - 1]  # a view; its relin and use are 0 and 1 between steps
+        if not use_plot:
+            a[use] = 0.0
+        buf.set_arg(0, memoryview(S[k - 1]))
+        buf.set_arg(1, memoryview(a))
+        buf.set_res(0, memoryview(S[k]))
+        if extra is not None:
+            buf.set_res(i_extra, memoryview(extra[k - 1]))
+        evaluate()
+        if again[0]:  # the iterated EKF update (a plot far from the prediction)
+            relinearise(evaluate, a, S[k], again, step, state, n_x)
+            a[relin] = 0.0
+        if not use_plot:
+            a[use] = 1.0
+        return least
+
+    return gated_pass(S.shape[0], 1, one, gate)[:, 0]
+
+
 def _step(measurement: str) -> ca.Function:
     s, a = ca.SX.sym("s", size(STATE)), ca.SX.sym("a", size(STEP))
     x, P, mu = _modes(s[STATE["x"]], 4), _modes(s[STATE["P"]], 16), s[STATE["mu"]]
     Phi, Q = _modes(a[STEP["Phi"]], 16), _modes(a[STEP["Q"]], 16)
     Pi = _mat(a[STEP["Pi"]], N_MODES, N_MODES)
     plot, lin, relin = a[STEP["plot"]], _modes(a[STEP["lin"]], 2), a[STEP["relin"]]
+    use = a[STEP["use"]]
     joint = Pi * ca.repmat(mu, 1, N_MODES)  # joint[i, j] = Pi_ij mu_i
     c = ca.sum1(joint).T
     W = ca.horzcat(*(ca.if_else(c[j] > 0, joint[:, j] / c[j], mu) for j in range(N_MODES)))
-    xn, Pn, XP, PP, loglik, again = [], [], [], [], [], []
+    xn, Pn, XP, PP, loglik, again, nis = [], [], [], [], [], [], []
     for j in range(N_MODES):
         xm = sum(W[i, j] * x[i] for i in range(N_MODES))
         Pm = sum(W[i, j] * (P[i] + ca.mtimes(x[i] - xm, (x[i] - xm).T)) for i in range(N_MODES))
         xp = ca.mtimes(Phi[j], xm)
         Pp = ca.mtimes([Phi[j], Pm, Phi[j].T]) + Q[j]
-        xj, Pj, lj, aj = update_terms(xp, Pp, plot, measurement, lin[j], relin[j])
+        xj, Pj, lj, aj, nj = update_terms(xp, Pp, plot, measurement, lin[j], relin[j], use)
         again.append(aj)
+        nis.append(nj)
         xn.append(xj)
         Pn.append(Pj)
         XP.append(xp)
@@ -237,14 +285,18 @@ def _step(measurement: str) -> ca.Function:
     out = ca.vertcat(*xn, *(_flat(p) for p in Pn), mun)
     extra = ca.vertcat(_flat(W), *XP, *PP)
     flags = ca.vertcat(ca.mmax(ca.vertcat(*again)), *again)
-    return compiled.function(f"imm_forward_{measurement}", [s, a], [out, extra, flags],
-                             ["s", "a"], ["s_next", "extra", "again"], derivatives=False)
+    nis_out = ca.vertcat(ca.mmin(ca.vertcat(*nis)), *nis)
+    return compiled.function(f"imm_forward_{measurement}", [s, a],
+                             [out, extra, flags, nis_out], ["s", "a"],
+                             ["s_next", "extra", "again", "nis"], derivatives=False)
 
 
 @cache
 def forward_step(measurement: str) -> ca.Function:
-    """One forward step: ``(s_{k-1}, inputs_k) -> (s_k, extras_k, again_k)``; ``again``
-    ``[any, per mode]`` asks for the step to be repeated (:func:`relinearise`)."""
+    """One forward step: ``(s_{k-1}, inputs_k) -> (s_k, extras_k, again_k, nis_k)``; ``again``
+    ``[any, per mode]`` asks for the step to be repeated (:func:`relinearise`); ``nis``
+    ``[least, per mode]`` the normalised innovations squared, for the validation gate
+    (:func:`gated_steps`)."""
     return _step(measurement)
 
 

@@ -8,6 +8,8 @@
 - :func:`filter_track` : a linear-model filter over a whole track (``Phi``, ``Q`` per step).
 - :func:`channel_filter` : many independent scalar-measurement filters at once (batch axis ``B``);
   used per radar coordinate; an optional gain rule replaces the Kalman gain.
+
+The filters leave out plots far from their predictions (the validation gate, :mod:`.gating`).
 - :func:`rts_smoother` : Rauch-Tung-Striebel fixed-interval smoother.
 """
 
@@ -19,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..inputs import FloatArray
+from .gating import GATE_SIGMA, gated_pass
 from .measurements import (
     LINEARISATION_TOLERANCE,
     MAX_LINEARISATIONS,
@@ -128,62 +131,90 @@ def _iterated_polar_update(x: FloatArray, P: FloatArray, H: FloatArray, p: Float
 
 
 def filter_track(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
-                 meas: PolarPlots | SensorPlots, pos: tuple[int, int], mode: str
-                 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+                 meas: PolarPlots | SensorPlots, pos: tuple[int, int], mode: str,
+                 gate: float | None = GATE_SIGMA
+                 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Filter plots ``1..n-1`` after the prior ``(x0, P0)`` at plot 0 (built from plot 0).
 
-    Returns filtered ``xf (n, m)``, ``Pf (n, m, m)``, predicted ``xp``, ``Pp`` (index 0 = prior)
-    and the normalised innovations squared ``(n,)`` (0 at plot 0). Plots of several sensors at
-    one instant are sequential updates after a zero-length step (``Phi = I``, ``Q = 0``).
+    Returns filtered ``xf (n, m)``, ``Pf (n, m, m)``, predicted ``xp``, ``Pp`` (index 0 = prior),
+    the normalised innovations squared ``(n,)`` (0 at plot 0) and ``(n,)`` True where the plot
+    was left out by the validation gate (:mod:`.gating`; ``gate=None``: none). Plots of several
+    sensors at one instant are sequential updates after a zero-length step (``Phi = I``,
+    ``Q = 0``).
     """
     n, m = len(meas), x0.shape[0]
     xf, Pf = np.empty((n, m)), np.empty((n, m, m))
     xp, Pp = np.empty((n, m)), np.empty((n, m, m))
     nis = np.zeros(n)
-    x, P = x0, P0
-    xf[0] = xp[0] = x
-    Pf[0] = Pp[0] = P
-    for k in range(1, n):
-        x, P = predict(x, P, Phi[k - 1], Q[k - 1])
-        xp[k], Pp[k] = x, P
-        x, P, nis[k], _ = position_update(x, P, meas, k, pos, mode)
-        xf[k], Pf[k] = x, P
-    return xf, Pf, xp, Pp, nis
+    xf[0] = xp[0] = x0
+    Pf[0] = Pp[0] = P0
+
+    def step(k: int, lanes: np.ndarray, use: bool) -> np.ndarray:
+        xp[k], Pp[k] = predict(xf[k - 1], Pf[k - 1], Phi[k - 1], Q[k - 1])
+        if use:
+            xf[k], Pf[k], nis[k], _ = position_update(xp[k], Pp[k], meas, k, pos, mode)
+        else:
+            xf[k], Pf[k] = xp[k], Pp[k]
+        return nis[k:k + 1]
+
+    gated = gated_pass(n, 1, step, gate)[:, 0]
+    return xf, Pf, xp, Pp, nis, gated
 
 
 def channel_filter(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
                    z: FloatArray, R: FloatArray,
-                   gain: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
-                   ) -> tuple[FloatArray, FloatArray, FloatArray]:
+                   gain: Callable[[int, np.ndarray, FloatArray, FloatArray], FloatArray] | None
+                   = None, gate: float | None = GATE_SIGMA
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """``B`` independent filters with scalar measurements ``z[k, b]`` of the first state component.
 
     ``x0 (B, m)``, ``P0 (B, m, m)``, ``Phi``/``Q`` ``(n-1, B, m, m)``, ``z (n, B)``,
-    ``R (n, B)``. ``gain(k, nu / sqrt(S), K_kalman) -> K`` may replace the Kalman gain ``(B, m)``;
-    the covariance is then propagated for the gain actually used (Joseph form). Returns filtered
-    ``xf (n, B, m)``, ``Pf (n, B, m, m)`` and the normalised innovations ``(n, B)``.
+    ``R (n, B)``. ``gain(k, lanes, nu / sqrt(S), K_kalman) -> K`` may replace the Kalman gain
+    ``(len(lanes), m)`` of the filters ``lanes``; the covariance is then propagated for the gain
+    actually used (Joseph form). The filters come in pairs ``(b, b + B/2)``, the two coordinates
+    of one plot (range and azimuth, or the plane axes): a pair leaves the plot out when the sum
+    of its two normalised innovations squared exceeds ``gate^2`` (:mod:`.gating`; None: never;
+    gating one coordinate alone let a plot wild in range pull the azimuth channel off).
+    Returns filtered ``xf (n, B, m)``, ``Pf (n, B, m, m)``, the normalised innovations ``(n, B)``
+    and ``(n, B)`` True where left out.
     """
     n, (B, m) = z.shape[0], x0.shape
     xf, Pf = np.empty((n, B, m)), np.empty((n, B, m, m))
     nus = np.zeros((n, B))
-    x, P = x0.copy(), P0.copy()
-    xf[0], Pf[0] = x, P
+    xf[0], Pf[0] = x0, P0
     eye = np.eye(m)
-    for k in range(1, n):
-        F = Phi[k - 1]
-        x = np.einsum("bij,bj->bi", F, x)
-        P = F @ P @ np.transpose(F, (0, 2, 1)) + Q[k - 1]
-        S = P[:, 0, 0] + R[k]
-        nu = z[k] - x[:, 0]
+
+    def step(k: int, lanes: np.ndarray, use: bool) -> np.ndarray:
+        sel = slice(None) if lanes.size == B else lanes  # all lanes: views, not copies
+        F = Phi[k - 1, sel]
+        x = np.einsum("bij,bj->bi", F, xf[k - 1, sel])
+        P = F @ Pf[k - 1, sel] @ np.transpose(F, (0, 2, 1)) + Q[k - 1, sel]
+        if not use:
+            xf[k, sel], Pf[k, sel] = x, P
+            return nus[k, sel] ** 2
+        r = R[k, sel]
+        S = P[:, 0, 0] + r
+        nu = z[k, sel] - x[:, 0]
         K = P[:, :, 0] / S[:, None]
-        nus[k] = nu / np.sqrt(S)
+        nus[k, sel] = nu / np.sqrt(S)
         if gain is not None:
-            K = gain(k, nus[k], K)
+            K = gain(k, lanes, nus[k, sel], K)
         IKH = eye - K[:, :, None] * eye[0][None, None, :]
-        P = IKH @ P @ np.transpose(IKH, (0, 2, 1)) + R[k][:, None, None] * (
+        xf[k, sel] = x + K * nu[:, None]
+        Pf[k, sel] = IKH @ P @ np.transpose(IKH, (0, 2, 1)) + r[:, None, None] * (
             K[:, :, None] * K[:, None, :])
-        x = x + K * nu[:, None]
-        xf[k], Pf[k] = x, P
-    return xf, Pf, nus
+        return nus[k, sel] ** 2
+
+    half = B // 2
+    every = np.arange(B)
+
+    def pair_step(k: int, pairs: np.ndarray, use: bool) -> np.ndarray:
+        both = every if pairs.size == half else np.concatenate([pairs, pairs + half])
+        nis = step(k, both, use)
+        return nis[:pairs.size] + nis[pairs.size:]
+
+    gated = gated_pass(n, half, pair_step, gate)
+    return xf, Pf, nus, np.concatenate([gated, gated], axis=1)
 
 
 def rts_smoother(xf: FloatArray, Pf: FloatArray, xp: FloatArray, Pp: FloatArray,

@@ -38,6 +38,7 @@ from .common import (
     estimate,
     polar_channels,
 )
+from .gating import GATE_SIGMA
 from .measurements import PolarPlots, SensorPlots
 from .models import quasi_optimal
 
@@ -56,10 +57,11 @@ LAMBDA_GRID = np.logspace(-4, 0, 17)
 
 
 def _channels(meas: PolarPlots | SensorPlots, lams: FloatArray, alpha: float, sigma_m: float,
-              method: str, criterion: str = "residual"
-              ) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+              method: str, criterion: str = "residual", gate: float | None = GATE_SIGMA
+              ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Run range and azimuth channels (plane axes x and z for :class:`SensorPlots`) for every
-    ``Lambda`` in ``lams`` (batch: ranges, azimuths)."""
+    ``Lambda`` in ``lams`` (batch: ranges, azimuths); returns also each channel's discrepancy
+    ``J`` over the measurements it used and ``(n, 2G)`` True where a channel left one out."""
     dt = np.diff(meas.t)
     axes = isinstance(meas, SensorPlots)
     d_ref = 1.0 if axes else float(np.median(meas.d))
@@ -74,20 +76,23 @@ def _channels(meas: PolarPlots | SensorPlots, lams: FloatArray, alpha: float, si
                      + [[0.0, (SIGMA_V0 / d_ref) ** 2, (sigma_m / d_ref) ** 2]] * G)
     if axes:
         assert isinstance(meas, SensorPlots)
-        xf, Pf, nus, R = axis_channels(meas, Phi, Q, prior)
+        xf, Pf, nus, R, gated = axis_channels(meas, Phi, Q, prior, gate=gate)
     else:
-        xf, Pf, nus, R = polar_channels(meas, Phi, Q, prior)
+        xf, Pf, nus, R, gated = polar_channels(meas, Phi, Q, prior, gate=gate)
+    used = ~gated
     if criterion == "innovation":
-        J = np.mean(nus[1:] ** 2, axis=0)
+        e2 = nus[1:] ** 2
+        used = used[1:]
     elif axes:
         pts = meas.points()
         z = np.concatenate([np.repeat(pts[:, :1], G, 1), np.repeat(pts[:, 1:], G, 1)], 1)
-        J = np.mean((z - xf[:, :, 0]) ** 2 / R, axis=0)
+        e2 = (z - xf[:, :, 0]) ** 2 / R
     else:
         z = np.concatenate([np.repeat(meas.d[:, None], G, 1),
                             np.repeat(meas.psi[:, None], G, 1)], 1)
-        J = np.mean((z - xf[:, :, 0]) ** 2 / R, axis=0)
-    return xf, Pf, J, d_ref
+        e2 = (z - xf[:, :, 0]) ** 2 / R
+    J = np.sum(np.where(used, e2, 0.0), axis=0) / np.maximum(np.sum(used, axis=0), 1)
+    return xf, Pf, J, gated
 
 
 def discrepancy_lambda(lams: FloatArray, J: FloatArray) -> float:
@@ -105,7 +110,11 @@ def discrepancy_lambda(lams: FloatArray, J: FloatArray) -> float:
 
 def run_quasi_optimal(meas: PolarPlots | SensorPlots, lam: float | str = LAMBDA,
                       alpha: float = ALPHA, sigma_m: float = SIGMA_M, discretisation: str = "exact",
-                      criterion: str = "innovation") -> FilterEstimate:
+                      criterion: str = "innovation", gate: float | None = GATE_SIGMA
+                      ) -> FilterEstimate:
+    """``gate``: a plot further than this many sigmas from the prediction (both coordinates'
+    normalised innovations together) is not used (:mod:`.gating`) nor counted in the
+    discrepancy; None: all."""
     info: dict[str, FloatArray | float | str] = {"discretisation": discretisation}
     if isinstance(lam, str):
         if lam != "auto":
@@ -115,7 +124,8 @@ def run_quasi_optimal(meas: PolarPlots | SensorPlots, lam: float | str = LAMBDA,
         else:
             if criterion not in ("residual", "innovation"):
                 raise ValueError(f"criterion must be 'residual' or 'innovation', not {criterion!r}")
-            _, _, J, _ = _channels(meas, LAMBDA_GRID, alpha, sigma_m, discretisation, criterion)
+            _, _, J, _ = _channels(meas, LAMBDA_GRID, alpha, sigma_m, discretisation, criterion,
+                                   gate)
             G = LAMBDA_GRID.size
             lams = np.array([discrepancy_lambda(LAMBDA_GRID, J[:G]),
                              discrepancy_lambda(LAMBDA_GRID, J[G:])])
@@ -123,7 +133,7 @@ def run_quasi_optimal(meas: PolarPlots | SensorPlots, lam: float | str = LAMBDA,
         if not lam > 0:
             raise ValueError(f"lam must be positive, not {lam!r}")
         lams = np.array([float(lam)])
-    xf, Pf, J, _ = _channels(meas, lams, alpha, sigma_m, discretisation)
+    xf, Pf, J, gated = _channels(meas, lams, alpha, sigma_m, discretisation, gate=gate)
     G = lams.size
     # range channel 0; azimuth channel: its own Lambda (index G + last) when chosen per channel
     if isinstance(meas, SensorPlots):  # channels: x and z axes
@@ -133,4 +143,5 @@ def run_quasi_optimal(meas: PolarPlots | SensorPlots, lam: float | str = LAMBDA,
     a, b = ("x", "z") if isinstance(meas, SensorPlots) else ("range", "azimuth")  # channels
     info.update({f"lambda_{a}": float(lams[0]), f"lambda_{b}": float(lams[-1]),
                  f"discrepancy_{a}": float(J[0]), f"discrepancy_{b}": float(J[-1])})
-    return estimate("quasi_optimal", meas.t, s, P, **info)
+    return estimate("quasi_optimal", meas.t, s, P, gated=gated[:, 0] | gated[:, 2 * G - 1],
+                    **info)

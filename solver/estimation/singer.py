@@ -26,6 +26,7 @@ from .common import (
     estimate,
     polar_channels,
 )
+from .gating import GATE_SIGMA
 from .kalman import filter_track
 from .measurements import PolarPlots, SensorPlots
 from .models import singer, two_axes
@@ -35,15 +36,18 @@ SIGMA_M = 1.0
 
 
 def run_singer(meas: PolarPlots | SensorPlots, alpha: float = ALPHA, sigma_m: float = SIGMA_M,
-               measurement: str = "ekf", frame: str = "cartesian") -> FilterEstimate:
+               measurement: str = "ekf", frame: str = "cartesian",
+               gate: float | None = GATE_SIGMA) -> FilterEstimate:
+    """``gate``: plots further than this many sigmas from the prediction are not used
+    (:mod:`.gating`); None uses every plot."""
     dt = np.diff(meas.t)
     if frame == "cartesian":
         Phi, Q = singer(dt, alpha, sigma_m)
         x0, P0 = cartesian_prior(meas, 3, (sigma_m**2,))
-        xf, Pf, _, _, nis = filter_track(x0, P0, two_axes(Phi), two_axes(Q), meas, (0, 3),
-                                         measurement)
+        xf, Pf, _, _, nis, gated = filter_track(x0, P0, two_axes(Phi), two_axes(Q), meas,
+                                                (0, 3), measurement, gate)
         s, P = cartesian_output(xf, Pf, 3)
-        return estimate("singer", meas.t, s, P, nis=nis)
+        return estimate("singer", meas.t, s, P, nis=nis, gated=gated)
     if frame == "polar":
         if isinstance(meas, SensorPlots):
             raise ValueError("frame='polar' filters range and azimuth of one radar at the "
@@ -55,7 +59,7 @@ def run_singer(meas: PolarPlots | SensorPlots, alpha: float = ALPHA, sigma_m: fl
         Q = np.stack([Q_r, Q_r / d_ref**2], 1)
         prior = np.array([[0.0, SIGMA_V0**2, sigma_m**2],
                           [0.0, (SIGMA_V0 / d_ref) ** 2, (sigma_m / d_ref) ** 2]])
-        xf, Pf, _, _ = polar_channels(meas, Phi, Q, prior)
+        xf, Pf, _, _, gated = polar_channels(meas, Phi, Q, prior, gate=gate)
         s, P = channels_to_cartesian(xf, Pf, 0, 1)
-        return estimate("singer", meas.t, s, P, frame="polar")
+        return estimate("singer", meas.t, s, P, frame="polar", gated=gated.any(axis=1))
     raise ValueError(f"unknown frame {frame!r} (use 'cartesian' or 'polar')")
