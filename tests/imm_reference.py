@@ -51,7 +51,7 @@ def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf",
         XP[k - 1], PP[k - 1] = xp, Pp
         if not use:
             xf[k], Pf[k], mu[k] = xp, Pp, c
-            return nis[:1]
+            return np.zeros((2, 1))
         x, P = xf[k], Pf[k]
         for j in range(N_MODES):
             x[j], P[j], nis[j], logdet = position_update(xp[j], Pp[j], meas, k, _POS, measurement)
@@ -59,7 +59,7 @@ def imm_forward(meas, Phi, Q, Pi, mu0, measurement: str = "ekf",
         post = c * np.exp(loglik - loglik.max())
         total = post.sum()
         mu[k] = post / total if total > 0 and np.isfinite(total) else c
-        return np.array([nis.min()])
+        return np.array([[nis.min()], [-2 * (loglik.max() + np.log(total))]])
 
     gated = gated_pass(n, 1, step, gate)[:, 0]
     return ForwardPass(xf, Pf, mu, W, XP, PP, gated)
@@ -194,9 +194,10 @@ def run_imm(meas, q_cv=Q_CV, q_ct=Q_CT, q_omega=Q_OMEGA, tau_cv=TAU_CV, tau_ct=T
         XS[k, 1, 4] = np.clip(XS[k, 1, 4], -omega_max, omega_max)  # projection on the bound
         lik = np.exp(loglik - loglik.max())
         m = c * lik
+        deviance = -2 * (loglik.max() + np.log(m.sum()))
         m = np.maximum(m / m.sum(), 1e-12)
         MU[k] = m / m.sum()
-        return np.array([nis.min()])
+        return np.array([[nis.min()], [deviance]])
 
     gated = gated_pass(n, 1, step, gate)[:, 0]
     x = np.einsum("ni,nij->nj", MU, XS)

@@ -30,24 +30,32 @@ class Follower:
     def step(self, k: int, lanes: np.ndarray, use: bool) -> np.ndarray:
         self.calls += 1
         self.state[k, lanes] = self.z[k, lanes] if use else self.state[k - 1, lanes]
-        return (self.z[k, lanes] - self.state[k - 1, lanes]) ** 2
+        nis = (self.z[k, lanes] - self.state[k - 1, lanes]) ** 2
+        return np.stack([nis, nis])  # S = 1: the deviance is the NIS
 
     def run(self, gate: float | None = 3.0) -> np.ndarray:
         return gated_pass(self.z.shape[0], self.z.shape[1], self.step, gate)
 
 
 @pytest.mark.parametrize(("z", "left_out", "state"), [
-    # one wild plot: left out, the state held over it
+    # one wild plot: the next agrees with the prediction without it: left out, the state held
     ([0, 0, 0, 9, 0, 0], [3], [0, 0, 0, 0, 0, 0]),
-    # two in a row (MAX_GATED_RUN): both left out
-    ([0, 0, 0, 9, 9, 0, 0], [3, 4], [0, 0, 0, 0, 0, 0, 0]),
-    # the aircraft is elsewhere: after MAX_GATED_RUN far plots the run's first is used
+    # two wild plots in a row that disagree: both left out
+    ([0, 0, 0, 9, -9, 0, 0], [3, 4], [0, 0, 0, 0, 0, 0, 0]),
+    # the aircraft is elsewhere (a hold, a turn followed late): the next plot agrees, used
     ([0, 0, 0, 9, 9, 9, 9], [], [0, 0, 0, 9, 9, 9, 9]),
-    # a wild plot within the gate (2.9 < 3) pulled the state off, so the next plots are far
-    # (3.4): it, not they, is left out
-    ([0, 0, 0, 2.9, -0.5, -0.5, -0.5], [3], [0, 0, 0, 0, -0.5, -0.5, -0.5]),
+    # two wild plots that agree look the same: used (the limit of looking one plot ahead)
+    ([0, 0, 0, 9, 9, 0, 0], [], [0, 0, 0, 9, 9, 0, 0]),
+    # a wild plot within the gate (2.9 < 3) is used; the genuine plots after it are far from
+    # the state it left (3.4) but agree with each other: used, the filter comes back at once
+    ([0, 0, 0, 2.9, -0.5, -0.5, -0.5], [], [0, 0, 0, 2.9, -0.5, -0.5, -0.5]),
+    # three far plots each left out by its next: one more than MAX_GATED_RUN, so the run's
+    # first is used and the lane decided again from there (4 left out, 5 agrees with 3)
+    ([0, 0, 0, 9, -9, 9, 0, 0], [4], [0, 0, 0, 9, 9, 9, 0, 0]),
     # a step within the gate is followed at once
     ([0, 0, 0, 2, 2, 2], [], [0, 0, 0, 2, 2, 2]),
+    # the last plot far: nothing to look ahead to, left out
+    ([0, 0, 0, 0, 9], [4], [0, 0, 0, 0, 0]),
 ])
 def test_the_rule_by_hand(z, left_out, state):
     assert MAX_GATED_RUN == 2  # the cases are worked out for it
@@ -65,7 +73,7 @@ def test_no_gate_uses_every_plot():
 
 def test_lanes_are_independent():
     """Lanes that leave out, wait, go back: each as if alone."""
-    cases = [[0, 0, 0, 9, 0, 0, 0, 0], [0, 0, 0, 9, 9, 9, 9, 9],
+    cases = [[0, 0, 0, 9, 0, 0, 0, 0], [0, 0, 0, 9, 9, 9, 9, 9], [0, 0, 0, 9, -9, 9, 0, 0],
              [0, 0, 0, 2.9, -0.5, -0.5, -0.5, 0], [0, 1, 2, 3, 4, 5, 6, 7]]
     together = Follower(np.array(cases).T)
     gated = together.run()

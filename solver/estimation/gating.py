@@ -8,14 +8,17 @@ reconstruction, which gates its own (:mod:`solver.refine.gate`), stayed at 52 m.
 
 The rule (:func:`gated_pass`): a plot whose normalised innovation squared exceeds ``gate^2``
 (``nu^T S^-1 nu`` of the update, the smallest over an IMM's modes; the sum over a plot's two
-coordinates in the per-coordinate filters) is not used: the state there is the prediction. When
-the next plot is far too, either the plot before them, which the filter used, was a wild one
-that passed the gate and pulled the filter off (then, with it left out, all the far plots are
-within the gate: it is left out instead), or they are left out too, up to :data:`MAX_GATED_RUN`
-in a row. One more is not a few wild plots but an aircraft that is not where the filter thinks
-(after a long gap, a manoeuvre the model cannot follow): the run's first plot is used. The filter
-then runs again from the plot decided. So a track is never lost, only its isolated far plots
-are left out. Every plot left out is reported (``info["gated"]``).
+coordinates in the per-coordinate filters) is far. The recording is there to look ahead: a far
+plot is left out (the state there is the prediction) when the next plot is likelier under the
+prediction made without it than under the one made with it (its predictive likelihood: the
+normalised innovation alone favours the longer prediction's wider spread); else the track is
+there (a turn the model follows late, a hold, genuine plots after a wild one that pulled the
+filter off) and it is used. Gating on the distance alone left out genuine plots of 19-s scans in
+turns, two at a time, and a Singer or fuzzy filter coasting through a 6 m/s^2 turn ended 12-24 %
+worse on the clean held-out plots of the seed000 profile. More than :data:`MAX_GATED_RUN` far
+plots left out in a row are not wild plots but an aircraft that is elsewhere: the run's first
+plot is used and the filter runs again from there, so a track is never lost. Every plot left out
+is reported (``info["gated"]``).
 """
 
 from __future__ import annotations
@@ -33,10 +36,11 @@ MAX_GATED_RUN = 2
 """At most this many plots in a row are left out (module docstring)."""
 
 Step = Callable[[int, np.ndarray, bool], np.ndarray]
-"""``step(k, lanes, use) -> nis``: filter step ``k`` (from the state after plot ``k - 1`` to the
-state after plot ``k``) of the given lanes (independent filters run side by side), with the
-plot's update (``use``) or without it (the prediction); returns the lanes' normalised innovations
-squared (only read after ``use=True``)."""
+"""``step(k, lanes, use) -> (2, len(lanes))``: filter step ``k`` (from the state after plot
+``k - 1`` to the state after plot ``k``) of the given lanes (independent filters run side by
+side), with the plot's update (``use``) or without it (the prediction); returns per lane the
+plot's normalised innovation squared and its deviance ``-2 log`` of the predictive likelihood
+(up to a constant; ``nis + log det S`` for one Gaussian); read only after ``use=True``."""
 
 
 def check_gate(gate: float | None) -> None:
@@ -59,85 +63,73 @@ def gated_pass(n: int, lanes: int, step: Step, gate: float | None) -> np.ndarray
         return gated
     limit = float(gate) ** 2
     run = np.zeros(lanes, dtype=int)
-    fixed = np.zeros((n, lanes), dtype=bool)  # decided for good: used, or left out if gated
+    used = np.zeros((n, lanes), dtype=bool)  # the first plot of a run too long: used for good
     running = False  # some lane's run is under way (run > 0)
     one = lanes == 1
     for k in range(1, n):
         nis = step(k, every, True)
         # most steps: nothing else to do (one lane: a float's test, no array)
-        if not (nis[0] > limit if one else (far := np.asarray(nis) > limit).any()):
+        if not (nis[0, 0] > limit if one else (far := np.asarray(nis)[0] > limit).any()):
             if running:
                 run[:] = 0
                 running = False
             continue
         if one:
             far = np.ones(1, dtype=bool)
-        running = True
         run[~far] = 0
-        first = far & (run == 0)  # a lane's first far plot: left out
-        if first.any():
-            step(k, every[first], False)
-            gated[k, first] = True
-            run[first] = 1
-        for b in np.flatnonzero(far & ~first):
-            _resolve(int(b), k, step, limit, run, gated, fixed)
+        for b in np.flatnonzero(far):
+            _decide(int(b), k, n, step, limit, run, gated, used)
+        running = bool(run.any())
     return gated
 
 
-def _resolve(b: int, k: int, step: Step, limit: float, run: np.ndarray, gated: np.ndarray,
-             fixed: np.ndarray) -> None:
-    """Lane ``b``'s plot ``k`` is far again after ``run[b]`` far plots left out (its state at
-    ``k`` has the update). Either the plot before that run, which the lane used, was a wild one
-    that passed the gate and pulled it off: then with that plot left out every plot of the run
-    and ``k`` is within the gate, and that plot is left out for good. Or ``k`` is left out too,
-    up to :data:`MAX_GATED_RUN` in a row; one more and the aircraft is elsewhere (after a gap, a
-    manoeuvre the model cannot follow): the run's first plot is used for good. Then the lane is
-    filtered again up to ``k``, each far plot decided the same way; every return fixes one more
-    decision, so this ends."""
+def _decide(b: int, k: int, n: int, step: Step, limit: float, run: np.ndarray,
+            gated: np.ndarray, used: np.ndarray) -> None:
+    """Lane ``b``'s plot ``k`` is far (its state at ``k`` has the update): used if the next
+    plot is likelier under the lane's prediction with it than without it (an aircraft that
+    turned, or that a wild plot before had pulled the filter from: the plots that follow agree),
+    else left out (a wild plot: the next agrees with the prediction without it). One far plot
+    more than :data:`MAX_GATED_RUN` left out in a row: the run's first plot is used for good and
+    the lane filtered again from there up to ``k``, each far plot decided the same way (each
+    return fixes one more plot, so this ends)."""
     lane = np.array([b])
 
-    def far(j: int) -> bool:  # the step with the plot's update; is the plot far?
-        return float(np.asarray(step(j, lane, True))[0]) > limit
+    def nis_at(j: int) -> float:
+        return float(np.asarray(step(j, lane, True))[0, 0])
+
+    def deviance_at(j: int) -> float:
+        return float(np.asarray(step(j, lane, True))[1, 0])
 
     j = k
-    while True:  # decide the far plot j (the states before j are final)
-        r = int(run[b])
-        j0 = j - r  # the run's first plot
-        before = j0 - 1
-        wild_before = False
-        if r and before >= 1 and not fixed[before, b]:
-            step(before, lane, False)
-            wild_before = not any(far(i) for i in range(j0, j + 1))  # stops at a far plot
-            if wild_before:
-                fixed[before, b] = gated[before, b] = True
-                gated[j0:j + 1, b] = False
-                run[b] = 0
-                j += 1
-            else:  # back as it was, j with its update
-                step(before, lane, True)
-                for i in range(j0, j):
-                    step(i, lane, False)
-                far(j)
-        if not wild_before:
-            if r < MAX_GATED_RUN:
-                step(j, lane, False)
-                gated[j, b] = True
-                run[b] += 1
-                j += 1
-            else:
-                fixed[j0, b] = True
-                gated[j0:j + 1, b] = False
-                run[b] = 0
-                step(j0, lane, True)
-                j = j0 + 1
-        while j <= k:
-            if fixed[j, b]:
-                step(j, lane, not gated[j, b])
-                run[b] = 0
-            elif far(j):
+    while True:  # decide the far plot j (its state has the update; those before are final)
+        if used[j, b]:
+            run[b] = 0
+        elif j + 1 < n and not deviance_at(j + 1) > _without(j, lane, step, deviance_at):
+            step(j, lane, True)  # the next plot is no likelier without it: used
+            run[b] = 0
+        elif run[b] < MAX_GATED_RUN:
+            step(j, lane, False)
+            gated[j, b] = True
+            run[b] += 1
+        else:  # the aircraft is elsewhere: the run's first plot is used, and on from there
+            j = j - int(run[b])
+            used[j, b] = True
+            gated[j:k + 1, b] = False
+            run[b] = 0
+            step(j, lane, True)
+        j += 1
+        while j <= k:  # on to the next far plot up to k
+            if not used[j, b] and nis_at(j) > limit:
                 break
-            else:
-                run[b] = 0
+            run[b] = 0
             j += 1
         else:
             return
+
+
+def _without(j: int, lane: np.ndarray, step: Step, deviance_at: Callable[[int], float]
+             ) -> float:
+    """The next plot's deviance with plot ``j`` left out (the state at ``j`` is then the
+    prediction)."""
+    step(j, lane, False)
+    return deviance_at(j + 1)

@@ -108,11 +108,12 @@ def _step(measurement: str) -> ca.Function:
     x_ct[4] = ca.fmin(ca.fmax(x_ct[4], -omega_max), omega_max)  # projection on the bound
     ll = ca.vertcat(l_cv, l_ct)
     post = c * ca.exp(ll - ca.mmax(ll))
+    deviance = -2 * (ca.mmax(ll) + ca.log(ca.sum1(post)))  # -2 log sum_j c_j L_j
     mun = ca.fmax(post / ca.sum1(post), MU_FLOOR)
     mun = mun / ca.sum1(mun)
     out = ca.vertcat(x_cv, x_ct, _flat(P_cv), _flat(P_ct), mun)
     again = ca.vertcat(ca.fmax(a_cv, a_ct), a_cv, a_ct)
-    nis = ca.vertcat(ca.fmin(n_cv, n_ct), n_cv, n_ct)
+    nis = ca.vertcat(ca.fmin(n_cv, n_ct), deviance, n_cv, n_ct)
     return compiled.function(f"imm_ct_{measurement}", [s, a], [out, again, nis], ["s", "a"],
                              ["s_next", "again", "nis"], derivatives=False)
 
@@ -121,7 +122,7 @@ def _step(measurement: str) -> ca.Function:
 def step(measurement: str) -> ca.Function:
     """One step: ``(s_{k-1}, inputs_k) -> (s_k, again_k, nis_k)`` (layouts :data:`STATE`,
     :data:`STEP`); ``again`` ``[any, per mode]`` asks for the step to be repeated
-    (:func:`.imm_step.relinearise`); ``nis`` ``[least, per mode]`` for the validation gate
+    (:func:`.imm_step.relinearise`); ``nis`` ``[least, deviance, per mode]`` for the validation gate
     (:func:`.imm_step.gated_steps`)."""
     return _step(measurement)
 

@@ -222,16 +222,17 @@ def gated_steps(fn: ca.Function, S: np.ndarray, A: np.ndarray, extra: np.ndarray
     """Run a compiled IMM's forward steps ``1 .. n-1`` (inputs row ``k - 1`` of ``A``, the state
     after plot ``k - 1`` in row ``k - 1`` of ``S`` -> row ``k``; ``fn``'s ``extra`` output, if any,
     to row ``k - 1`` of ``extra``), each repeated while it asks (:func:`relinearise`), with the
-    validation gate on the modes' least normalised innovation (:func:`.gating.gated_pass`: a
-    plot no mode expects is left out, ``use`` 0). Returns ``(n,)`` True where left out."""
+    validation gate on the modes' least normalised innovation and the plot's predictive
+    likelihood (:func:`.gating.gated_pass`: a plot no mode expects, ``use`` 0). Returns
+    ``(n,)`` True where left out."""
     n_modes = state["mu"].stop - state["mu"].start
-    again, nis = np.zeros(n_modes + 1), np.zeros(n_modes + 1)
+    again, nis = np.zeros(n_modes + 1), np.zeros(n_modes + 2)
     buf, evaluate = fn.buffer()
     buf.set_res(fn.index_out("again"), memoryview(again))
     buf.set_res(fn.index_out("nis"), memoryview(nis))
     i_extra = fn.index_out("extra") if extra is not None else -1
     relin, use = step["relin"], step["use"]
-    least = nis[:1]
+    head = nis[:2].reshape(2, 1)  # a view: [least NIS, deviance]
 
     def one(k: int, lanes: np.ndarray, use_plot: bool) -> np.ndarray:
         a = A[k - 1]  # a view; its relin and use are 0 and 1 between steps
@@ -248,7 +249,7 @@ def gated_steps(fn: ca.Function, S: np.ndarray, A: np.ndarray, extra: np.ndarray
             a[relin] = 0.0
         if not use_plot:
             a[use] = 1.0
-        return least
+        return head
 
     return gated_pass(S.shape[0], 1, one, gate)[:, 0]
 
@@ -285,7 +286,8 @@ def _step(measurement: str) -> ca.Function:
     out = ca.vertcat(*xn, *(_flat(p) for p in Pn), mun)
     extra = ca.vertcat(_flat(W), *XP, *PP)
     flags = ca.vertcat(ca.mmax(ca.vertcat(*again)), *again)
-    nis_out = ca.vertcat(ca.mmin(ca.vertcat(*nis)), *nis)
+    deviance = -2 * (ca.mmax(ll) + ca.log(total))  # -2 log sum_j c_j L_j
+    nis_out = ca.vertcat(ca.mmin(ca.vertcat(*nis)), deviance, *nis)
     return compiled.function(f"imm_forward_{measurement}", [s, a],
                              [out, extra, flags, nis_out], ["s", "a"],
                              ["s_next", "extra", "again", "nis"], derivatives=False)
@@ -295,7 +297,8 @@ def _step(measurement: str) -> ca.Function:
 def forward_step(measurement: str) -> ca.Function:
     """One forward step: ``(s_{k-1}, inputs_k) -> (s_k, extras_k, again_k, nis_k)``; ``again``
     ``[any, per mode]`` asks for the step to be repeated (:func:`relinearise`); ``nis``
-    ``[least, per mode]`` the normalised innovations squared, for the validation gate
+    ``[least, deviance, per mode]``: the modes' normalised innovations squared and the plot's
+    ``-2 log`` predictive likelihood ``-2 log sum_j c_j L_j``, for the validation gate
     (:func:`gated_steps`)."""
     return _step(measurement)
 

@@ -148,14 +148,16 @@ def filter_track(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
     nis = np.zeros(n)
     xf[0] = xp[0] = x0
     Pf[0] = Pp[0] = P0
+    out = np.zeros((2, 1))
 
     def step(k: int, lanes: np.ndarray, use: bool) -> np.ndarray:
         xp[k], Pp[k] = predict(xf[k - 1], Pf[k - 1], Phi[k - 1], Q[k - 1])
         if use:
-            xf[k], Pf[k], nis[k], _ = position_update(xp[k], Pp[k], meas, k, pos, mode)
+            xf[k], Pf[k], nis[k], logdet = position_update(xp[k], Pp[k], meas, k, pos, mode)
+            out[0, 0], out[1, 0] = nis[k], nis[k] + logdet
         else:
             xf[k], Pf[k] = xp[k], Pp[k]
-        return nis[k:k + 1]
+        return out
 
     gated = gated_pass(n, 1, step, gate)[:, 0]
     return xf, Pf, xp, Pp, nis, gated
@@ -191,7 +193,7 @@ def channel_filter(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArra
         P = F @ Pf[k - 1, sel] @ np.transpose(F, (0, 2, 1)) + Q[k - 1, sel]
         if not use:
             xf[k, sel], Pf[k, sel] = x, P
-            return nus[k, sel] ** 2
+            return np.zeros((2, x.shape[0]))  # not read
         r = R[k, sel]
         S = P[:, 0, 0] + r
         nu = z[k, sel] - x[:, 0]
@@ -203,15 +205,16 @@ def channel_filter(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArra
         xf[k, sel] = x + K * nu[:, None]
         Pf[k, sel] = IKH @ P @ np.transpose(IKH, (0, 2, 1)) + r[:, None, None] * (
             K[:, :, None] * K[:, None, :])
-        return nus[k, sel] ** 2
+        nis = nus[k, sel] ** 2
+        return np.stack([nis, nis + np.log(S)])
 
     half = B // 2
     every = np.arange(B)
 
     def pair_step(k: int, pairs: np.ndarray, use: bool) -> np.ndarray:
         both = every if pairs.size == half else np.concatenate([pairs, pairs + half])
-        nis = step(k, both, use)
-        return nis[:pairs.size] + nis[pairs.size:]
+        v = step(k, both, use)
+        return v[:, :pairs.size] + v[:, pairs.size:]
 
     gated = gated_pass(n, half, pair_step, gate)
     return xf, Pf, nus, np.concatenate([gated, gated], axis=1)
