@@ -13,8 +13,9 @@ from .gating import GATE_SIGMA
 from .kalman import channel_filter
 from .measurements import PolarPlots, SensorPlots, polar_state_to_cartesian
 
-Gain = Callable[[int, np.ndarray, FloatArray, FloatArray], FloatArray]
-"""A gain rule of :func:`.kalman.channel_filter`: ``(k, lanes, nu / sqrt(S), K_kalman) -> K``."""
+Gain = Callable[[int, "np.ndarray | slice", FloatArray, FloatArray], FloatArray]
+"""A gain rule of :func:`.kalman.channel_filter`: ``(k, lanes, nu / sqrt(S), K_kalman) -> K``
+(``lanes`` an index array or ``slice(None)``)."""
 
 SIGMA_V0 = 300.0
 """Prior speed sigma (m/s) at the first plot: the default upper speed bound of the

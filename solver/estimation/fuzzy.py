@@ -168,7 +168,8 @@ def _run_fuzzy_axes(meas: SensorPlots, kb: FuzzyGain, alpha: float, sigma_low: f
                                        np.concatenate([R, R], 1)), 2, axis=1)
     levels = np.zeros((n, 2))
 
-    def gain(k: int, lanes: np.ndarray, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
+    def gain(k: int, lanes: np.ndarray | slice, u: FloatArray, K_kalman: FloatArray
+             ) -> FloatArray:
         g = kb(u)
         levels[k, lanes] = g
         lo, hi = K_lo[k][lanes], K_hi[k][lanes]
@@ -206,7 +207,8 @@ def run_fuzzy(meas: PolarPlots | SensorPlots, n_terms: int = N_TERMS, shape: str
     K_hi = steady_gain(Phi_b, np.repeat(Q_hi[:, None], 2, 1), r_metric[None, :])
     levels = np.zeros((len(meas), 2))
 
-    def gain(k: int, lanes: np.ndarray, u: FloatArray, K_kalman: FloatArray) -> FloatArray:
+    def gain(k: int, lanes: np.ndarray | slice, u: FloatArray, K_kalman: FloatArray
+             ) -> FloatArray:
         g = kb(u)
         levels[k, lanes] = g
         j = inverse[k - 1]

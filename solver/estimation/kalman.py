@@ -172,13 +172,13 @@ def channel_filter(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArra
 
     ``x0 (B, m)``, ``P0 (B, m, m)``, ``Phi``/``Q`` ``(n-1, B, m, m)``, ``z (n, B)``,
     ``R (n, B)``. ``gain(k, lanes, nu / sqrt(S), K_kalman) -> K`` may replace the Kalman gain
-    ``(len(lanes), m)`` of the filters ``lanes``; the covariance is then propagated for the gain
-    actually used (Joseph form). The filters come in pairs ``(b, b + B/2)``, the two coordinates
-    of one plot (range and azimuth, or the plane axes): a pair leaves the plot out when the sum
-    of its two normalised innovations squared exceeds ``gate^2`` (:mod:`.gating`; None: never;
-    gating one coordinate alone let a plot wild in range pull the azimuth channel off).
-    Returns filtered ``xf (n, B, m)``, ``Pf (n, B, m, m)``, the normalised innovations ``(n, B)``
-    and ``(n, B)`` True where left out.
+    ``(len(lanes), m)`` of the filters ``lanes`` (an index array, or ``slice(None)``: all); the
+    covariance is then propagated for the gain actually used (Joseph form). The filters come in
+    pairs ``(b, b + B/2)``, the two coordinates of one plot (range and azimuth, or the plane
+    axes): a pair leaves the plot out when the sum of its two normalised innovations squared
+    exceeds ``gate^2`` (:mod:`.gating`; None: never; gating one coordinate alone let a plot
+    wild in range pull the azimuth channel off). Returns filtered ``xf (n, B, m)``,
+    ``Pf (n, B, m, m)``, the normalised innovations ``(n, B)`` and ``(n, B)`` True where left out.
     """
     n, (B, m) = z.shape[0], x0.shape
     xf, Pf = np.empty((n, B, m)), np.empty((n, B, m, m))
@@ -200,20 +200,26 @@ def channel_filter(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArra
         K = P[:, :, 0] / S[:, None]
         nus[k, sel] = nu / np.sqrt(S)
         if gain is not None:
-            K = gain(k, lanes, nus[k, sel], K)
+            K = gain(k, sel, nus[k, sel], K)
         IKH = eye - K[:, :, None] * eye[0][None, None, :]
         xf[k, sel] = x + K * nu[:, None]
         Pf[k, sel] = IKH @ P @ np.transpose(IKH, (0, 2, 1)) + r[:, None, None] * (
             K[:, :, None] * K[:, None, :])
-        nis = nus[k, sel] ** 2
-        return np.stack([nis, nis + np.log(S)])
+        out = full if isinstance(sel, slice) else np.empty((2, S.size))
+        np.square(nus[k, sel], out=out[0])
+        np.log(S, out=out[1])
+        out[1] += out[0]
+        return out
 
     half = B // 2
     every = np.arange(B)
+    full, pair_full = np.empty((2, B)), np.empty((2, half))  # the all-lanes step's outputs
 
     def pair_step(k: int, pairs: np.ndarray, use: bool) -> np.ndarray:
-        both = every if pairs.size == half else np.concatenate([pairs, pairs + half])
-        v = step(k, both, use)
+        if pairs.size == half:
+            v = step(k, every, use)
+            return np.add(v[:, :half], v[:, half:], out=pair_full)
+        v = step(k, np.concatenate([pairs, pairs + half]), use)
         return v[:, :pairs.size] + v[:, pairs.size:]
 
     gated = gated_pass(n, half, pair_step, gate)
