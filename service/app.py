@@ -14,6 +14,7 @@ from typing import Any
 
 import swagger_ui_bundle
 from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
@@ -29,6 +30,7 @@ from solver.inputs import InputError, format_loc
 
 from . import __version__
 from .convert import client_loc, to_job
+from .json_keys import TWICE, duplicate_key
 from .logs import LOGGER, setup_logging
 from .metrics import Metrics
 from .models import ErrorResponse, Health, ReconstructionRequest, ReconstructionResponse
@@ -437,6 +439,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         bounded queue (503 with `Retry-After` when that is full too). A request whose client
         has gone leaves the queue.
         """
+        twice = await run_in_threadpool(duplicate_key, await request.body())
+        if twice is not None:
+            raise InputError(twice, TWICE)
         job = to_job(body, settings.nlp_solver, settings.max_plots, settings.max_samples,
                      settings.max_nodes)
         try:

@@ -39,6 +39,7 @@ from .job_models import (
     SensorSummaryOut,
 )
 from .jobs import FINISHED, RESULT_FILES, Full, JobRecord, JobRunner
+from .json_keys import TWICE, duplicate_key
 from .models import ErrorResponse
 from .settings import Settings
 
@@ -261,6 +262,9 @@ def _options(text: str | None) -> JobOptions:
     """The upload's ``options`` part (none: the defaults); 422 located under ``options``."""
     if text is None:
         return JobOptions()
+    twice = duplicate_key(text)
+    if twice is not None:
+        raise InputError(("options", *twice), TWICE)
     try:
         return JobOptions.model_validate_json(text)
     except ValidationError as e:
@@ -294,6 +298,9 @@ def _params(options: JobOptions | JobTracksRequest, aircraft: list[str] | None =
 
 def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
                   inputs: Path) -> None:
+    twice = duplicate_key(sensors_text)
+    if twice is not None:
+        raise InputError(("sensors", *twice), TWICE)
     parse_sensors(sensors_text)  # 422 at sensors[j].field for a bad sensor file
     try:
         params = _params(options, options.aircraft)
@@ -326,6 +333,9 @@ def _looks_like_csv(head: bytes) -> bool:
 
 def _save_tracks(body: bytes, inputs: Path) -> None:
     """Validate a JSON body of tracks and store it as a plot table with its sensor file."""
+    twice = duplicate_key(body)  # a track name twice: one track would be silently lost
+    if twice is not None:
+        raise InputError(twice, TWICE)
     try:
         req = JobTracksRequest.model_validate_json(body)
     except ValidationError as e:

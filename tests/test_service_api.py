@@ -309,6 +309,32 @@ def test_omitted_samples_are_neither_limited_nor_computed(client):
     assert r.json()["trajectory"]["samples"] == []
 
 
+def test_a_key_given_twice_is_422_naming_it(client):
+    """JSON parsers keep the last of two equal keys: the earlier value would be silently
+    ignored. A plot's "t" twice, a top-level field twice: 422 naming it."""
+    text = json.dumps(batch(300.0))
+    plot3 = json.dumps(batch(300.0)["plots"][3])
+    twice = text.replace(plot3, plot3[:-1] + ', "t": 1.0}', 1)
+    assert twice != text
+    r = post(client, twice.encode())
+    assert r.status_code == 422, r.text
+    assert r.json()["message"].startswith("plots[3].t is given twice"), r.json()
+    radar = json.dumps(batch(300.0)["radar"])
+    r = post(client, (text[:-1] + f', "radar": {radar}}}').encode())
+    assert r.status_code == 422 and r.json()["message"].startswith("radar is given twice")
+    assert post(client, text.encode()).status_code == 200
+
+
+def test_duplicate_key_locates_the_key_at_any_depth():
+    from service.json_keys import duplicate_key
+
+    assert duplicate_key(b'{"a": [{"b": 1}, {"c": {"d": 1, "d": 2}}]}') == ("a", 1, "c", "d")
+    assert duplicate_key(b'{"a": 1, "b": 2}') is None
+    assert duplicate_key(b"{not json") is None  # the parser's own 422 says why
+    deep = b'{"x": ' * 900 + b'{"k": 1, "k": 2}' + b"}" * 900  # no recursion in the search
+    assert duplicate_key(deep) == (*["x"] * 900, "k")
+
+
 @pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity", "1e999"])
 def test_non_finite_numbers_are_422(client, token):
     text = json.dumps(BAD).replace('"range_m": ' + json.dumps(BAD["plots"][6]["range_m"]),

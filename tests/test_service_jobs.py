@@ -521,6 +521,11 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
         r = client.post("/v1/jobs", json=body)
         assert r.status_code == 422, (body, r.text)
         assert r.json()["message"].startswith(field), (field, r.json()["message"])
+    # a track name twice: the earlier track would have been silently lost
+    text = json.dumps({"sensors": sensors, "tracks": {"A": [plot], "B": [plot]}})
+    r = client.post("/v1/jobs", content=text.replace('"B"', '"A"').encode(),
+                    headers={"content-type": "application/json"})
+    assert r.status_code == 422 and r.json()["message"].startswith("tracks.A is given twice")
     r = client.post("/v1/jobs", content=b"{not json", headers={"content-type":
                                                                 "application/json"})
     assert r.status_code == 422 and "not valid JSON" in r.json()["message"]
