@@ -32,9 +32,9 @@ GATE_SIGMA = 6.0
 benchmark tracks, three profiles; ``python -m benchmarks.gating``) 4 sigma catches a few more
 false plots (1-11 % lower RMS error with 1 % false plots in seed000, the same elsewhere) and
 leaves no genuine plot out where the radar's sigmas are right; but declared sigmas half the true
-ones (an operator's sigmas are seldom exact) made it leave out 5-33 genuine plots per 1,000 and
-cost up to 9 % RMS on clean plots, where 6 sigma left out at most 1.6 per 1,000 and cost at most
-1 %. Looking ahead keeps far genuine plots (turns) either way."""
+ones (an operator's sigmas are seldom exact) made it leave out up to 33 genuine plots per 1,000
+and cost up to 9.4 % RMS on clean plots, where 6 sigma left out at most 1.6 per 1,000 and cost
+at most 1 %. Looking ahead keeps far genuine plots (turns) either way."""
 MAX_GATED_RUN = 2
 """At most this many plots in a row are left out (module docstring)."""
 
