@@ -37,7 +37,8 @@ Defined behaviours:
 - Wild plots: the seed's windows have no defence, and one false plot spoils its windows'
   fits (1 % false plots within +-20 km and +-5 deg: 552 -> 1,034 m and 628 -> 1,687 m RMS on
   two seed001 dev tracks). The plots a gated constant-velocity Kalman filter and smoother leaves
-  out (:mod:`solver.estimation.gating`) get no weight (warned, and flagged in the residuals);
+  out (:mod:`solver.estimation.gating`) get no weight (warned; flagged in the residuals of
+  a plot table's reconstruction);
   the states at them come from the track. ``refine.outlier_gate = None`` turns this off with
   the refinement's gate.
 - Fewer than ``m + 1`` plots: one window with all plots after the first (warning).
@@ -49,6 +50,7 @@ Defined behaviours:
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -59,7 +61,7 @@ from .inputs import FloatArray, InputError, Plots, Radar
 from .motion import propagate
 from .plots import PlotTable
 from .refine import DeadlineExceeded
-from .results import Diagnostics, Reconstruction, Segment, StateSeries
+from .results import Diagnostics, FilterEstimate, Reconstruction, Segment, StateSeries
 from .trajectory import evaluate, sample_times
 from .window import SwitchFits, criterion, solve_free_start, solve_switches, solve_windows, w_box
 
@@ -280,10 +282,11 @@ def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig
     return rec
 
 
-def _not_wild(smoother, n: int, config: ReconstructionConfig, diag: Diagnostics) -> np.ndarray:
+def _not_wild(smoother: Callable[[], FilterEstimate], n: int, config: ReconstructionConfig,
+              diag: Diagnostics) -> np.ndarray:
     """``(n,)`` True for the plots the windows use: all but those the gated constant-velocity
-    smoother ``smoother()`` leaves out (module docstring), named in a warning; all when the
-    refinement's gate is off, or when fewer than 3 plots would be left."""
+    smoother ``smoother()`` (run only when needed) leaves out (module docstring), named in a
+    warning; all when the refinement's gate is off, or when fewer than 3 plots would be left."""
     keep = np.ones(n, dtype=bool)
     if config.refine.outlier_gate is None or n < 4:
         return keep

@@ -3,19 +3,13 @@ packing the result as a :class:`~solver.results.FilterEstimate`."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from ..inputs import FloatArray
 from ..results import FilterEstimate, StateSeries
 from .gating import GATE_SIGMA
-from .kalman import channel_filter
+from .kalman import Gain, channel_filter
 from .measurements import PolarPlots, SensorPlots, polar_state_to_cartesian
-
-Gain = Callable[[int, "np.ndarray | slice", FloatArray, FloatArray], FloatArray]
-"""A gain rule of :func:`.kalman.channel_filter`: ``(k, lanes, nu / sqrt(S), K_kalman) -> K``
-(``lanes`` an index array or ``slice(None)``)."""
 
 SIGMA_V0 = 300.0
 """Prior speed sigma (m/s) at the first plot: the default upper speed bound of the

@@ -8,9 +8,9 @@
 - :func:`filter_track` : a linear-model filter over a whole track (``Phi``, ``Q`` per step).
 - :func:`channel_filter` : many independent scalar-measurement filters at once (batch axis ``B``);
   used per radar coordinate; an optional gain rule replaces the Kalman gain.
+- :func:`rts_smoother` : Rauch-Tung-Striebel fixed-interval smoother.
 
 The filters leave out plots far from their predictions (the validation gate, :mod:`.gating`).
-- :func:`rts_smoother` : Rauch-Tung-Striebel fixed-interval smoother.
 """
 
 from __future__ import annotations
@@ -163,10 +163,14 @@ def filter_track(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
     return xf, Pf, xp, Pp, nis, gated
 
 
+Gain = Callable[[int, "np.ndarray | slice", FloatArray, FloatArray], FloatArray]
+"""A gain rule of :func:`channel_filter`: ``(k, lanes, nu / sqrt(S), K_kalman) -> K``
+(``lanes`` an index array or ``slice(None)``)."""
+
+
 def channel_filter(x0: FloatArray, P0: FloatArray, Phi: FloatArray, Q: FloatArray,
-                   z: FloatArray, R: FloatArray,
-                   gain: Callable[[int, np.ndarray, FloatArray, FloatArray], FloatArray] | None
-                   = None, gate: float | None = GATE_SIGMA
+                   z: FloatArray, R: FloatArray, gain: Gain | None = None,
+                   gate: float | None = GATE_SIGMA
                    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """``B`` independent filters with scalar measurements ``z[k, b]`` of the first state component.
 
