@@ -12,8 +12,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from solver.config import ReconstructionConfig
+from solver.config import FILTER_GATE_SIGMA, ReconstructionConfig
 from solver.estimation import FUSION_NAMES
+from solver.estimation.gating import gate_warnings
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar, format_loc
 from solver.manoeuvres import from_segments
@@ -58,6 +59,7 @@ class Job:
     omit: frozenset[str] = frozenset()
     notes: tuple[str, ...] = ()  # the request's own warnings (the answer's diagnostics)
     sensors: tuple[tuple[str, str], ...] = ()  # the request's (id, kind), in its order
+    filter_gate: float | None = FILTER_GATE_SIGMA  # the filters' validation gate (None: none)
 
     @property
     def plots(self) -> Plots | PlotTable:
@@ -142,7 +144,8 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
                              f"{config.refine.max_node_step_s:g} s); this service's limit is "
                              f"max_nodes = {max_nodes}: split the track at its long gaps")
     return Job(table, config, tuple(dict.fromkeys(req.filters)), frozenset(req.omit),
-               tuple(notes), tuple((s.id, s.kind) for s in req.sensors or ()))
+               tuple(notes), tuple((s.id, s.kind) for s in req.sensors or ()),
+               req.filter_gate_sigma)
 
 
 def _radar(r: RadarIn) -> dict:
@@ -307,13 +310,6 @@ def _states(s: StateSeries, with_heading: bool, frame: LocalFrame | None = None)
     return rows
 
 
-def gated_warning(name: str, gated: list[int]) -> str:
-    """The operator's line for a filter that left plots out (the indexes are in the answer)."""
-    shown = ", ".join(map(str, gated[:10])) + (", ..." if len(gated) > 10 else "")
-    return (f"filters.{name}: {len(gated)} plot(s) left out, far from the filter's prediction "
-            f"(wild plots?): {shown}")
-
-
 def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
                   omit: frozenset[str] = frozenset(), notes: tuple[str, ...] = (),
                   sensors: Sequence[tuple[str, str]] = ()) -> dict:
@@ -344,7 +340,7 @@ def response_dict(rec: Reconstruction, estimates: dict[str, FilterEstimate],
                                 for name, e in estimates.items() if e.info.get("warning")]
     gated = {name: np.flatnonzero(e.info.get("gated", ())).tolist()
              for name, e in estimates.items()}
-    diagnostics["warnings"] += [gated_warning(name, g) for name, g in gated.items() if g]
+    diagnostics["warnings"] += gate_warnings(gated, rec.no_weight)
     return {
         "trajectory": trajectory,
         "filters": {name: {"states": _states(e.states, False, rec.frame), "gated": gated[name]}

@@ -25,6 +25,7 @@ from .models import (
     _In,
     _optional,
     _Out,
+    filter_gate_field,
 )
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
@@ -69,6 +70,7 @@ class JobOptions(_In):
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
+    filter_gate_sigma: float | None = filter_gate_field()
     sample_step_s: float | None = Field(None, gt=0, description=_SAMPLES_DOC)
     aircraft: list[Annotated[str, StringConstraints(min_length=1, max_length=200)]] | None = \
         Field(None, min_length=1, max_length=10_000, description="Reconstruct only these "
@@ -101,6 +103,7 @@ class JobTracksRequest(_In):
     bounds: BoundsIn = Field(default_factory=BoundsIn, description=_BOUNDS_DOC)
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description=_FILTERS_DOC)
+    filter_gate_sigma: float | None = filter_gate_field()
     sample_step_s: float | None = Field(None, gt=0, description=_SAMPLES_DOC)
 
 
@@ -126,6 +129,8 @@ class JobOptionsOut(_Out):
     bounds: dict[str, list[float]] = Field(description="The bounds `u`, `w` (m/s^2) and `v` "
                                            "(m/s), each [min, max].")
     filters: list[str] = Field(description="The recursive filters run beside.")
+    filter_gate_sigma: float | None = Field(
+        None, description="Their validation gate (sigmas; null: every plot used).")
     sample_step_s: float | None = Field(None, description="The step of the regular samples "
                                         "kept (null: none).")
     aircraft: list[str] | None = Field(None, description="The aircraft asked for (null: "

@@ -58,7 +58,7 @@ from solver.cli import (
     write_manoeuvres,
     write_map,
 )
-from solver.config import ReconstructionConfig
+from solver.config import FILTER_GATE_SIGMA, ReconstructionConfig
 from solver.inputs import InputError, format_loc
 from solver.io.problems import Problems
 from solver.io.split import recording_frame
@@ -353,13 +353,15 @@ def _set(f: cf.Future[Any], result: Any = None, exc: BaseException | None = None
 def job_track(key: str, table: Any, config: ReconstructionConfig | None,
               time_limit_s: float | None, figures_root: str | None = None,
               times_of_day: bool = False, filters: tuple[str, ...] = (),
-              samples: bool = False, max_samples: int | None = None) -> AssessedTrack:
+              filter_gate: float | None = FILTER_GATE_SIGMA, samples: bool = False,
+              max_samples: int | None = None) -> AssessedTrack:
     """The per-track task of a job (on a worker): :func:`solver.cli.assess_track` (with the
     job's ``filters`` and samples), the figure in a directory of its own per key
     (:func:`figure_dir`)."""
     figures = None if figures_root is None else str(figure_dir(Path(figures_root), key))
     return assess_track(key, table, config, time_limit_s, figures_dir=figures,
-                        filters=filters, times_of_day=times_of_day, samples=samples,
+                        filters=filters, filter_gate=filter_gate,
+                        times_of_day=times_of_day, samples=samples,
                         max_samples=max_samples)
 
 
@@ -657,6 +659,7 @@ class JobRunner:
                              task=partial(job_track, figures_root=figures,
                                           times_of_day=loaded.times_of_day,
                                           filters=settings.filters,
+                                          filter_gate=settings.filter_gate_sigma,
                                           samples=settings.sample_step_s is not None,
                                           max_samples=s.max_samples),
                              sources=json_sources(loaded.rows) if job.kind == "tracks" else None)

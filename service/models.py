@@ -13,7 +13,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from solver.estimation import FILTER_NAMES
+from solver.config import FILTER_GATE_SIGMA
+from solver.estimation import FILTER_NAMES, GATING_NAMES
 from solver.manoeuvres import (
     ACCELERATION,
     MIN_HEADING_CHANGE_DEG,
@@ -22,6 +23,20 @@ from solver.manoeuvres import (
 )
 
 FilterName = Literal[FILTER_NAMES]  # type: ignore[valid-type]
+
+
+def filter_gate_field() -> Any:
+    """The filters' validation gate, one field for the request and a job's options."""
+    return Field(
+        FILTER_GATE_SIGMA, gt=0, description="The filters' validation gate, in sigmas of the "
+        "normalised innovation (> 0): a plot farther than this from a filter's prediction is "
+        "left out when the next plot is likelier without it (a wild plot; named in "
+        "`filters.<name>.gated` and the warnings); more than two in a row are used (the "
+        "aircraft is elsewhere). null: every plot used. Applies to "
+        f"{', '.join(GATING_NAMES)}; the others use every plot. Default "
+        f"{FILTER_GATE_SIGMA:g} (4 caught a few more false plots in the benchmark, but left out "
+        "genuine ones where the declared sigmas were too small).",
+        examples=[FILTER_GATE_SIGMA])
 Method = Literal["refined", "sliding"]
 
 
@@ -251,6 +266,7 @@ class ReconstructionRequest(_In):
         "reconstruction, each answered under `filters.<name>`. Default: none (the "
         f"reconstruction alone). Known: {', '.join(FILTER_NAMES)}.",
         examples=[["singer", "quasi_optimal"]])
+    filter_gate_sigma: float | None = filter_gate_field()
     sample_step_s: float = Field(
         1.0, description="Spacing (s, > 0) of the regular samples `trajectory.samples`.",
         examples=[1.0])

@@ -286,6 +286,7 @@ def _params(options: JobOptions | JobTracksRequest, aircraft: list[str] | None =
     b, w = options.bounds, options.window
     box = Bounds(u=tuple(b.u), w=tuple(b.w), v=tuple(b.v))  # type: ignore[arg-type]
     settings = RunSettings(method=options.method, bounds=box, filters=tuple(options.filters),
+                           filter_gate_sigma=options.filter_gate_sigma,
                            sample_step_s=options.sample_step_s,
                            window_plots=RunSettings.window_plots if w.plots is None else w.plots,
                            trial_step_s=w.trial_step_s, criterion=options.criterion)

@@ -215,11 +215,8 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
         t0 = time.perf_counter()
         estimates = run_filters(list(job.filters), at_estimated_heights(
             job.plots, rec.at_plots.h) if job.radar is None else job.plots,
-            job.radar) if job.filters else {}
+            job.radar, gate=job.filter_gate) if job.filters else {}
         filters_ms = (time.perf_counter() - t0) * 1e3
-        if estimates and rec.diagnostics.extra.get("rejected_plots", 0):  # no gate of theirs
-            rec.diagnostics.warnings.append(
-                "the filters weigh every plot, also those the reconstruction gave no weight")
         _armed = False
         if _expired:  # the limit fired inside a solve, where CasADi swallowed the exception
             raise _TimeLimit

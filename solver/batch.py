@@ -48,7 +48,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from .config import ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .inputs import FloatArray
 from .plots import PlotTable
 from .results import PlotResiduals, StateSeries, full_turn
@@ -177,14 +177,16 @@ class BatchSummary:
 def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None = None,
                 time_limit_s: float | None = None,
                 extras: Callable[[Any], dict[str, Any]] | None = None, *,
-                filters: Sequence[str] = (), times_of_day: bool = False,
-                samples: bool = False, max_samples: int | None = None) -> TrackOutcome:
+                filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
+                times_of_day: bool = False, samples: bool = False,
+                max_samples: int | None = None) -> TrackOutcome:
     """Reconstruct one track (runs on a worker). Any ``Exception`` of the track (bad input,
     solver failure, the deadline ``time_limit_s`` after the start) is returned as a failed
     outcome naming it; the result's rows come back as Arrow tables. ``extras(reconstruction)``
     (e.g. per-sensor statistics, a figure) fills ``TrackOutcome.extras``, on the worker.
     ``filters``: recursive filters run beside (:data:`FILTER_COLUMNS`); one that cannot run on
-    this track (e.g. a two-sensor fusion on one sensor) is a warning, not a failure.
+    this track (e.g. a two-sensor fusion on one sensor) is a warning, not a failure;
+    ``filter_gate``: their validation gate (sigmas; None: none, :mod:`solver.estimation.gating`).
     ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled).
     ``samples``: keep the states every ``config.sample_step_s`` (:data:`SAMPLE_COLUMNS`);
     a track that would have ``max_samples`` or more keeps none, with a warning."""
@@ -210,7 +212,7 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
         warnings += rec.diagnostics.warnings
         t_filters = time.perf_counter()
         filtered = _filters_table(key, table, filters, times_of_day, warnings,
-                                  rec.at_plots.h)
+                                  rec.at_plots.h, filter_gate, rec.no_weight)
         filters_ms = 1e3 * (time.perf_counter() - t_filters) if filters else 0.0
         diagnostics = rec.diagnostics.as_dict()
         del diagnostics["warnings"]
@@ -304,22 +306,29 @@ def with_sources(states: pa.Table, names: pa.Array) -> pa.Table:
 
 
 def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_day: bool,
-                   warnings: list[str], heights: FloatArray | None = None) -> pa.Table | None:
+                   warnings: list[str], heights: FloatArray | None = None,
+                   gate: float | None = FILTER_GATE_SIGMA,
+                   no_weight: np.ndarray | None = None) -> pa.Table | None:
     """Every named filter's states (:data:`FILTER_COLUMNS`); a filter that raises (its rows
     left out, the track kept) or falls back adds its reason to ``warnings``. ``heights``: the
     reconstruction's estimated heights, for radar plots without altitude
-    (:func:`solver.estimation.measurements.at_estimated_heights`)."""
+    (:func:`solver.estimation.measurements.at_estimated_heights`); ``gate``: the validation
+    gate of the filters that have one; the gates' warnings
+    (:func:`solver.estimation.gating.gate_warnings`; ``no_weight``: the reconstruction's wild
+    plots)."""
     if not names:
         return None
-    from .estimation import run_filter
+    from .estimation import gate_param, run_filter
+    from .estimation.gating import gate_warnings
     from .estimation.measurements import at_estimated_heights
 
     table = at_estimated_heights(table, heights)
 
     parts = []
+    gated: dict[str, list[int]] = {}
     for name in names:
         try:
-            est = run_filter(name, table)
+            est = run_filter(name, table, **gate_param(name, gate))
         except Exception as e:  # the reconstruction stands without this filter's rows
             warnings.append(f"filters.{name}: {e}" if isinstance(e, ValueError)
                             else f"filters.{name}: {type(e).__name__}: {e}")
@@ -328,8 +337,11 @@ def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_da
             warnings.append(f"filters.{name}: {est.info['warning']}")
         cols = _state_columns(key, table, est.states, times_of_day)
         cols["filter"] = pa.array([name] * len(table), pa.string())
-        cols["gated"] = pa.array(est.info.get("gated", np.zeros(len(table), bool)), pa.bool_())
+        left_out = np.asarray(est.info.get("gated", np.zeros(len(table), bool)), bool)
+        gated[name] = np.flatnonzero(left_out).tolist()
+        cols["gated"] = pa.array(left_out, pa.bool_())
         parts.append(_arrow(cols, FILTER_COLUMNS, len(table)))
+    warnings.extend(gate_warnings(gated, np.zeros(0, int) if no_weight is None else no_weight))
     return pa.concat_tables(parts) if parts else None
 
 

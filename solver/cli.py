@@ -71,7 +71,7 @@ from .batch import (
     reconstruct_many,
     solve_track,
 )
-from .config import ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .frames import LocalFrame
 from .inputs import Bounds, FloatArray, InputError
 from .io.asterix import iter_recording, looks_like_recording, read_recording
@@ -130,8 +130,9 @@ class AssessedTrack(TrackOutcome):
 
 def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None,
                  time_limit_s: float | None, figures_dir: str | None = None,
-                 filters: Sequence[str] = (), times_of_day: bool = False,
-                 samples: bool = False, max_samples: int | None = None) -> AssessedTrack:
+                 filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
+                 times_of_day: bool = False, samples: bool = False,
+                 max_samples: int | None = None) -> AssessedTrack:
     """:func:`solver.batch.solve_track` (with its keyword arguments) plus the
     per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the
     worker)."""
@@ -145,7 +146,8 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
         return {"sensors": [{**asdict(r), **spans.get(r.id, {})} for r in rec.sensors]}
 
     out = solve_track(key, table, config, time_limit_s, extras=extras, filters=filters,
-                      times_of_day=times_of_day, samples=samples, max_samples=max_samples)
+                      filter_gate=filter_gate, times_of_day=times_of_day, samples=samples,
+                      max_samples=max_samples)
     return AssessedTrack(**{k: v for k, v in vars(out).items() if k != "extras"},
                          sensors=out.extras.get("sensors", []))
 
@@ -678,7 +680,8 @@ def _settings(args: argparse.Namespace) -> RunSettings:
                          f"{args.method} method does not use: add --method sliding, or leave "
                          "them out")
     return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters),
-                       args.samples, **_windows(args, RunSettings()))
+                       args.samples, **_windows(args, RunSettings()),
+                       filter_gate_sigma=args.filter_gate)
 
 
 def _check_out(out: Path, sensors: Path) -> None:
@@ -741,6 +744,7 @@ def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loa
     figures = str(out / "figures") if args.figures else None
 
     task = partial(assess_track, figures_dir=figures, filters=settings.filters,
+                   filter_gate=settings.filter_gate_sigma,
                    times_of_day=bool(loaded.times_of_day),
                    samples=settings.sample_step_s is not None)
     summary: BatchSummary = reconstruct_many(
@@ -936,6 +940,11 @@ def parser() -> argparse.ArgumentParser:
     rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
                      metavar="FILTER", help="recursive filters run beside the reconstruction "
                      f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")
+    rec.add_argument("--filter-gate", type=_gate, default=FILTER_GATE_SIGMA, metavar="SIGMA",
+                     help="the filters' validation gate: a plot farther than SIGMA sigmas from "
+                     "a filter's prediction, and not borne out by the next plot, is left out "
+                     f"(filters.parquet's gated column); 'off': every plot used (default "
+                     f"{FILTER_GATE_SIGMA:g}; alpha_beta and fusion_* use every plot)")
     rec.add_argument("--aircraft", nargs="+", default=None, metavar="KEY",
                      help="reconstruct only these aircraft (keys as in tracks.parquet, e.g. a "
                      "Mode S address 3C6DD4, in either case; a key takes its later pieces "
@@ -975,6 +984,19 @@ def _seconds(text: str, *, zero: bool = False) -> float:
     if not ((0 <= value) if zero else (0 < value)) or value == math.inf:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds >= 0" if zero
                                          else f"{text!r} is not a positive number of seconds")
+    return value
+
+
+def _gate(text: str) -> float | None:
+    """``--filter-gate``: a positive number of sigmas, or ``off``."""
+    if text.strip().lower() == "off":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of sigmas or off")
     return value
 
 

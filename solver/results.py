@@ -182,7 +182,8 @@ class Reconstruction:
     """Piecewise-constant-control trajectory: its segments, the state at every plot time (input
     order), samples on a regular time step, and diagnostics; with several sensors or a frame on
     the earth, one report per sensor, the frame, and the estimated altitude (time-weighted mean
-    height and its standard deviation) where it was estimated."""
+    height and its standard deviation) where it was estimated; ``no_weight``: the plots (input
+    indexes) given no weight as wild, on every path (``residuals.gated`` on the table path)."""
 
     segments: list[Segment]
     at_plots: StateSeries
@@ -193,6 +194,7 @@ class Reconstruction:
     frame: LocalFrame | None = None
     altitude_m: float | None = None
     altitude_sigma_m: float | None = None
+    no_weight: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
 @dataclass

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .config import ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, ReconstructionConfig, check_filter_gate
 from .inputs import Bounds, InputError
 
 RUN_FILE = "run.json"
@@ -27,7 +27,8 @@ class RunSettings:
     no output); ``sample_step_s``: the regular samples kept (``samples.parquet``), none when
     None; the sliding windows' ``window_plots``, ``trial_step_s`` and ``criterion`` (the
     defaults of :class:`solver.config.ReconstructionConfig`; the refined method does not use
-    them)."""
+    them); ``filter_gate_sigma``: the filters' validation gate (sigmas; None: no gate,
+    :mod:`solver.estimation.gating`)."""
 
     method: str = "refined"
     bounds: Bounds = field(default_factory=Bounds)
@@ -36,6 +37,13 @@ class RunSettings:
     window_plots: int = ReconstructionConfig.window_plots
     trial_step_s: float = ReconstructionConfig.trial_step_s
     criterion: str = ReconstructionConfig.criterion
+    filter_gate_sigma: float | None = FILTER_GATE_SIGMA
+
+    def __post_init__(self) -> None:
+        try:
+            check_filter_gate(self.filter_gate_sigma)
+        except ValueError as e:
+            raise InputError(("filter_gate_sigma",), str(e)) from None
 
     def config(self) -> ReconstructionConfig:
         more = {} if self.sample_step_s is None else {"sample_step_s": self.sample_step_s}
@@ -49,7 +57,7 @@ class RunSettings:
                 "bounds": {k: list(getattr(self.bounds, k)) for k in ("u", "w", "v")},
                 "sample_step_s": self.sample_step_s,
                 "window": {"plots": self.window_plots, "trial_step_s": self.trial_step_s},
-                "criterion": self.criterion}
+                "criterion": self.criterion, "filter_gate_sigma": self.filter_gate_sigma}
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> RunSettings:
@@ -58,6 +66,7 @@ class RunSettings:
         b = doc.get("bounds") or {}
         w = doc.get("window") or {}
         defaults = Bounds()
+        gate = doc.get("filter_gate_sigma", FILTER_GATE_SIGMA)
         return cls(str(doc.get("method", "refined")),
                    Bounds(**{k: tuple(float(x) for x in b.get(k, getattr(defaults, k)))
                              for k in ("u", "w", "v")}),
@@ -65,7 +74,8 @@ class RunSettings:
                    None if doc.get("sample_step_s") is None else float(doc["sample_step_s"]),
                    int(w.get("plots", cls.window_plots)),
                    float(w.get("trial_step_s", cls.trial_step_s)),
-                   str(doc.get("criterion", cls.criterion)))
+                   str(doc.get("criterion", cls.criterion)),
+                   None if gate is None else float(gate))
 
 
 def parse_bounds(items: Sequence[str]) -> Bounds:

@@ -278,6 +278,7 @@ def reconstruct_sliding(plots: Plots, radar: Radar, config: ReconstructionConfig
     keep = _not_wild(lambda: run_filter("cv_rts", plots, radar), len(plots.t), config, diag)
     rec = _slide_track(plots.t[keep], cx[keep], cz[keep], abc[keep], scale, config, diag,
                        deadline, at=plots.t)
+    rec.no_weight = np.flatnonzero(~keep)
     diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
     return rec
 
@@ -373,7 +374,8 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
     if heights is not None:
         rec.at_plots.h = heights
     none = np.zeros((0, BIAS_TERMS))  # no offsets estimated
-    rec.residuals = plot_residuals(table, rec.at_plots, np.flatnonzero(~keep), none, [])
+    rec.no_weight = np.flatnonzero(~keep)
+    rec.residuals = plot_residuals(table, rec.at_plots, rec.no_weight, none, [])
     rec.sensors = sensor_reports(table, rec.residuals, none, np.zeros((0, 0)), [])
     diag.elapsed_ms = (time.perf_counter() - clock) * 1e3
     return rec

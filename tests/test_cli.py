@@ -4,6 +4,7 @@ Dask LocalCluster; a rerun resumes."""
 
 from __future__ import annotations
 
+import csv
 import gc
 import json
 import os
@@ -385,9 +386,11 @@ def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkey
 @pytest.mark.parametrize("detected", [0.95, 0.7, 0.5, 0.35, 0.2])
 def test_scan_period_from_a_track_that_misses_scans(detected):
     """A 4-s radar detecting a share of its scans (times jittered by 50 ms, a few split
-    plots): the period is 4 s within 1 %, so the detection rate is the share (the median
-    interval gave 5 s at half the scans missed, 8 s at 60 %)."""
-    from solver.cli import scan_step
+    plots): the period is 4 s within 1 %, and the sensor statistics' detection rate is the
+    share (its split plots counted: 1/40 more; the median interval gave 5 s at half the scans
+    missed, 8 s at 60 %)."""
+    from solver.cli import SensorStats, _sensor_spans, scan_step
+    from solver.plots import PlotTable
 
     rng = np.random.default_rng(int(detected * 100))
     t = np.arange(0.0, 3000.0, 4.0) + rng.normal(0, 0.05, 750)
@@ -395,8 +398,20 @@ def test_scan_period_from_a_track_that_misses_scans(detected):
     t = np.sort(np.concatenate([t, t[::40] + 0.3]))  # split plots
     period = scan_step(np.diff(t))
     assert period == pytest.approx(4.0, rel=0.01)
-    assert (t.size - t[::40].size) / ((t[-1] - t[0]) / period + 1) == pytest.approx(
-        detected, abs=0.05)
+    sensors = parse_sensors(SENSOR_FILE)
+    radar = sensors.sensors[0]
+    table = PlotTable.build([radar], t, np.zeros(t.size, int), range_m=np.full(t.size, 5e4),
+                            azimuth_rad=np.zeros(t.size))
+    spans = _sensor_spans(table)[radar.id]
+    assert spans["median_step_s"] == period
+    stats = SensorStats(sensors, {})
+    stats.add([{"id": radar.id, "kind": "radar", "plots": t.size, "plots_gated": 0, **spans,
+                "range_residual_mean_m": 0.0, "range_residual_rms_m": 50.0,
+                "azimuth_residual_mean_rad": 0.0, "azimuth_residual_rms_rad": 1e-3,
+                "position_residual_rms_m": None, "range_bias_m": None,
+                "azimuth_bias_rad": None, "time_bias_s": None}])
+    row = {r["sensor"]: r for r in stats.rows()}[radar.id]
+    assert row["detection_rate"] == pytest.approx(detected * (1 + 1 / 40), abs=0.03)
 
 
 def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
@@ -599,3 +614,55 @@ def test_a_rerun_reports_the_tracks_earlier_runs_failed(recording, tmp_path, cap
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert (summary["output"]["tracks_done"], summary["output"]["tracks_failed"]) == (1, 0)
     assert summary["output"]["plots_done"] == summary["plots"] > 0
+
+
+def test_the_filters_gate_is_set_and_kept_with_the_run(recording, tmp_path, capsys, scheduler):
+    """`--filter-gate`: a radar plot 15 km off is left out by the gated `cv_rts` (named in
+    filters.parquet's `gated` and the track's warnings) and used by `alpha_beta`, which has no
+    gate; `off` makes `cv_rts` use it too, and the warnings name every filter that used a plot
+    the reconstruction gave no weight. The gate is kept in run.json: a rerun with another is
+    refused; a bad value is a usage error."""
+    d, _ = recording
+    rows = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE)).rows
+    key = f"{FLIGHTS[1].address:06X}"
+    mine = np.flatnonzero((rows.mode_s == FLIGHTS[1].address) & (rows.sensor == "R1"))
+    wild = mine[len(mine) // 2]
+    rows.range_m[wild] += 15_000.0
+    write_table(rows, tmp_path / "plots.csv")
+    args = [str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--scheduler",
+            scheduler, "--no-progress", "--aircraft", key, "--filters", "cv_rts", "alpha_beta"]
+
+    def run(out: str, *more: str) -> tuple[dict[str, list[int]], list[str], dict]:
+        assert main([*args, "--out", str(tmp_path / out), *more]) == 0
+        states = pq.read_table(tmp_path / out / "tracks.parquet")
+        at = int(np.flatnonzero(np.asarray(states.column("source").to_pylist())
+                                == f"row {wild + 1}")[0])
+        assert states.column("gated")[at].as_py() is True  # the reconstruction: no weight
+        filters = pq.read_table(tmp_path / out / "filters.parquet").to_pydict()
+        gated = {name: [p for f, p, g in zip(filters["filter"], filters["plot"],
+                                              filters["gated"], strict=True) if f == name and g]
+                 for name in ("cv_rts", "alpha_beta")}
+        with open(tmp_path / out / "warnings.csv", newline="") as f:
+            warned = [w for _, w in csv.reader(f) if w.startswith("filters.")]
+        return gated, warned, {
+            "at": at, "run": json.loads((tmp_path / out / "run.json").read_text())}
+
+    gated, warned, got = run("default")
+    assert gated == {"cv_rts": [got["at"]], "alpha_beta": []}
+    assert got["run"]["filter_gate_sigma"] == 6.0
+    assert [w.split(":")[0] for w in warned] == ["filters.cv_rts", "filters.alpha_beta"]
+    assert "1 plot(s) left out" in warned[0] and "used 1 plot(s)" in warned[1]
+    gated, warned, got = run("off", "--filter-gate", "off")
+    assert gated == {"cv_rts": [], "alpha_beta": []}
+    assert got["run"]["filter_gate_sigma"] is None
+    assert sorted(w.split(":")[0] for w in warned) == ["filters.alpha_beta", "filters.cv_rts"]
+    assert all(f"used 1 plot(s) the reconstruction gave no weight as wild: {got['at']}" in w
+               for w in warned)
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "off"), "--filter-gate", "4"]) == 2
+    assert "filter_gate_sigma None (asked: 4.0)" in capsys.readouterr().err
+    for bad in ("0", "-1", "nan", "inf", "x"):  # argparse's usage error: exit 2
+        with pytest.raises(SystemExit) as stop:
+            main([*args, "--out", str(tmp_path / "bad"), "--filter-gate", bad])
+        assert stop.value.code == 2
+        assert f"{bad!r} is not a positive number of sigmas or off" in capsys.readouterr().err

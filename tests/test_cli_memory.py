@@ -101,7 +101,7 @@ def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monke
 
 
 def _stub_task(key, table, config, time_limit_s, figures_dir=None, filters=(),
-               times_of_day=False, samples=False):
+               filter_gate=None, times_of_day=False, samples=False):
     """What :func:`solver.cli.assess_track` returns, without the reconstruction: the
     track's rows and its sensor's statistics."""
     import pyarrow as pa
@@ -204,6 +204,8 @@ def test_sensor_statistics_are_exact_below_their_sample_and_bounded_above(monkey
     biases = np.median([[r["range_bias_m"], r["azimuth_bias_rad"], r["time_bias_s"]]
                         for r in reports], axis=0)
     assert row["range_bias_m"] == biases[0] and row["time_bias_s"] == biases[2]
+    assert row["azimuth_bias_deg"] == pytest.approx(np.rad2deg(biases[1]), rel=1e-12)
+    assert row["azimuth_bias_deg"] > 0.005  # degrees (the median report's 1.5e-4 rad)
     n = sum(r["plots"] - r["plots_gated"] for r in reports)
     mean = sum((r["plots"] - r["plots_gated"]) * r["range_residual_mean_m"]
                for r in reports) / n

@@ -10,7 +10,7 @@ from test_estimation_multisensor import simulate as simulate_sensors
 from test_estimation_multisensor import truth as sensors_truth
 
 from solver import Plots
-from solver.estimation import run_filter
+from solver.estimation import FILTER_NAMES, GATING_NAMES, run_filter, run_filters
 from solver.estimation.gating import MAX_GATED_RUN, gated_pass
 from solver.plots import PlotTable
 
@@ -138,6 +138,27 @@ def test_wild_plots_are_left_out_and_reported(name):
     e_absent = rms_at(absent.states.x, absent.states.z)
     assert e_gated < 1.02 * e_absent, (e_gated, e_absent)
     assert e_bare > 1.3 * e_gated, (e_gated, e_bare)
+
+
+def test_run_filters_passes_the_gate_to_the_filters_that_have_one():
+    """`run_filters(gate=...)`: the gating filters (derived from the runners' signatures: the
+    six of the rule) get it; alpha_beta and the fusions, which have none, run as ever;
+    `gate=None` and `gate=3` give each gating filter the same as `run_filter` with it."""
+    assert set(GATING_NAMES) == set(GATING)
+    assert set(FILTER_NAMES) - set(GATING_NAMES) == {"alpha_beta", "fusion_a", "fusion_b",
+                                                     "fusion_c"}
+    wild = with_wild(noisy_track(1).plots, WILD)
+    for gate in (None, 3.0):
+        got = run_filters(["cv_rts", "imm", "alpha_beta"], wild, RADAR, gate=gate)
+        for name in ("cv_rts", "imm"):
+            want = run_filter(name, wild, RADAR, gate=gate)
+            np.testing.assert_array_equal(got[name].states.states, want.states.states)
+            np.testing.assert_array_equal(got[name].info["gated"], want.info["gated"])
+        assert not got["alpha_beta"].info.get("gated", np.zeros(1, bool)).any()
+    assert set(WILD) <= set(np.flatnonzero(run_filters(["cv_rts"], wild, RADAR)["cv_rts"]
+                                           .info["gated"]))
+    with pytest.raises(ValueError, match="gate"):
+        run_filters(["alpha_beta"], wild, RADAR, gate=0.0)
 
 
 def test_a_gated_plot_in_the_cv_smoother_is_as_if_absent():

@@ -39,7 +39,9 @@ def test_a_run_keeps_its_settings_and_resumes_only_the_same(tmp_path):
                          (RunSettings("refined", first.bounds, first.filters, window_plots=4),
                           "window"),
                          (RunSettings("refined", first.bounds, first.filters, criterion="R1"),
-                          "criterion")):
+                          "criterion"),
+                         (RunSettings("refined", first.bounds, first.filters,
+                                      filter_gate_sigma=None), "filter_gate_sigma")):
         with pytest.raises(InputError) as e:
             keep(tmp_path, other)
         assert f"holds a run made with {named} " in str(e.value)
@@ -60,6 +62,18 @@ def test_a_run_keeps_its_settings_and_resumes_only_the_same(tmp_path):
         {"method": "refined", "filters": [], "bounds": {"v": [30.0, 330.0]}}))
     assert stored(tmp_path / "old") == RunSettings()
     keep(tmp_path / "old", RunSettings())
+    ungated = RunSettings(filter_gate_sigma=None)
+    keep(tmp_path / "ungated", ungated)
+    assert stored(tmp_path / "ungated") == ungated
+    assert json.loads((tmp_path / "ungated" / RUN_FILE).read_text())["filter_gate_sigma"] is None
+    for bad in (0.0, -1.0, float("inf"), float("nan"), True, "6"):
+        with pytest.raises(InputError) as e:
+            RunSettings(filter_gate_sigma=bad)  # type: ignore[arg-type]
+        assert e.value.loc == ("filter_gate_sigma",)
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / RUN_FILE).write_text(json.dumps({"filter_gate_sigma": -1}))
+    with pytest.raises(InputError, match="is not a run's settings"):
+        stored(tmp_path / "bad")
     (tmp_path / RUN_FILE).write_text("[1, 2]")
     with pytest.raises(InputError, match="is not a run's settings"):
         stored(tmp_path)

@@ -211,21 +211,30 @@ def test_filters_run_beside_the_reconstruction(client):
     assert post(client, batch(300.0)).json()["filters"] == {}
 
 
-def test_filters_report_the_plots_they_left_out(client):
+@pytest.mark.parametrize("gate", ["default", 4.0, None])
+def test_filters_report_the_plots_they_left_out(client, gate):
     """A wild plot (15 km off in range): every gating filter names it in `gated` (input
-    order), the warnings say so, the states stay near the track; alpha_beta uses every plot."""
+    order), the warnings say so, the states stay near the track; alpha_beta uses every plot.
+    `filter_gate_sigma` null: every filter uses it, and the warnings say that (the
+    reconstruction gave it no weight)."""
     body = batch(600.0)
     wild = 12
     body["plots"][wild]["range_m"] += 15_000.0
     body["filters"] = ["imm_smoother", "cv_rts", "imm", "singer", "quasi_optimal", "fuzzy",
                        "alpha_beta"]
+    if gate != "default":
+        body["filter_gate_sigma"] = gate
     r = post(client, body)
     assert r.status_code == 200, r.text
     out = r.json()
+    assert f"given no weight: plots [{wild}]" in " ".join(out["diagnostics"]["warnings"])
+    used = [w for w in out["diagnostics"]["warnings"] if "the reconstruction gave no weight" in w]
     for name, est in out["filters"].items():
-        if name == "alpha_beta":
-            assert est["gated"] == []
+        said = f"filters.{name}: used 1 plot(s) the reconstruction gave no weight as wild: {wild}"
+        if name == "alpha_beta" or gate is None:
+            assert est["gated"] == [] and said in used, (name, used)
             continue
+        assert said not in used
         assert est["gated"] == [wild], name
         assert any(w.startswith(f"filters.{name}: 1 plot(s) left out") and w.endswith(f": {wild}")
                    for w in out["diagnostics"]["warnings"]), name
@@ -263,6 +272,12 @@ INVALID = [
     ("window of one plot", _with("window.plots", 1), "window.plots must be at least 2"),
     ("zero trial step", _with("window.trial_step_s", 0.0), "window.trial_step_s must be positive"),
     ("unknown filter", _with("filters", ["cv_rts", "kalmann"]), "filters[1]: Input should be"),
+    ("zero filter gate", _with("filter_gate_sigma", 0.0),
+     "filter_gate_sigma: Input should be greater than 0"),
+    ("negative filter gate", _with("filter_gate_sigma", -6.0),
+     "filter_gate_sigma: Input should be greater than 0"),
+    ("string filter gate", _with("filter_gate_sigma", "off"),
+     "filter_gate_sigma: Input should be a valid number"),
     ("unknown criterion", _with("criterion", "R3"), "criterion: Input should be 'R1' or 'R2'"),
     ("unknown method", _with("method", "magic"), "method: Input should be"),
     ("negative radar error", _with("radar.range_error_m", -1.0),

@@ -240,7 +240,7 @@ def test_job_options_run_the_filters_on_every_track(client):
     bounds = {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 150.0]}  # the flights fly 206 and 234
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks, "bounds": bounds,
                                       "filters": [*names, "cv_rts"],  # asked twice: run once
-                                      "sample_step_s": 5.0})
+                                      "sample_step_s": 5.0, "filter_gate_sigma": 4.0})
     assert r.status_code == 202, r.text
     loc = r.headers["location"]
     status = wait(client, loc)
@@ -248,14 +248,15 @@ def test_job_options_run_the_filters_on_every_track(client):
     assert status["options"] == {"bounds": bounds, "filters": names,  # what it runs with
                                  "sample_step_s": 5.0, "aircraft": None,
                                  "method": "refined", "criterion": "R2",
-                                 "window": {"plots": 3, "trial_step_s": 5.0}}
+                                 "window": {"plots": 3, "trial_step_s": 5.0},
+                                 "filter_gate_sigma": 4.0}
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
         assert max(s["speed"] for s in body["trajectory"]["at_plots"]) <= 150.0 + 1e-3
         single = client.post("/v1/reconstructions", json={
             "sensors": sensors, "plots": plots, "filters": names, "sample_step_s": 5.0,
-            "bounds": bounds})
+            "bounds": bounds, "filter_gate_sigma": 4.0})
         assert single.status_code == 200, single.text
         # the single-track answer's diagnostics and estimated altitude
         got, want = body["diagnostics"], single.json()["diagnostics"]
@@ -325,7 +326,8 @@ def test_job_options_run_the_filters_on_every_track(client):
     assert done["state"] == "done" and done["options"] == {
         "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
         "filters": ["imm_smoother"], "sample_step_s": 1e-4, "aircraft": None,
-        "method": "refined", "criterion": "R2", "window": {"plots": 3, "trial_step_s": 5.0}}
+        "method": "refined", "criterion": "R2", "window": {"plots": 3, "trial_step_s": 5.0},
+        "filter_gate_sigma": 6.0}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
@@ -352,6 +354,37 @@ def test_job_options_run_the_filters_on_every_track(client):
     assert [t["aircraft"] for t in client.get(one + "/tracks").json()] == [key]
     for job in (loc, up, one):
         assert client.delete(job).status_code == 204
+
+
+def test_a_jobs_filter_gate_reaches_every_track(client):
+    """`filter_gate_sigma` null in a job's options: the filters use a radar plot 15 km off,
+    which the reconstruction gave no weight, and the track's warnings say so; with the default
+    gate `cv_rts` leaves it out. The options echo the gate."""
+    enc = encode_recording(duration=40.0)
+    sensors, tracks = json_tracks(enc)
+    radar = [i for i, p in enumerate(tracks["A"]) if "range_m" in p]
+    wild = radar[len(radar) // 2]
+    tracks["A"][wild]["range_m"] += 15_000.0
+    for gate in (None, "default"):
+        body = {"sensors": sensors, "tracks": {"A": tracks["A"]}, "filters": ["cv_rts"]}
+        if gate is None:
+            body["filter_gate_sigma"] = None
+        r = client.post("/v1/jobs", json=body)
+        assert r.status_code == 202, r.text
+        status = wait(client, r.headers["location"])
+        assert status["state"] == "done", status
+        assert status["options"]["filter_gate_sigma"] == (None if gate is None else 6.0)
+        track = client.get(r.headers["location"] + "/tracks/A").json()
+        plot = next(i for i, s in enumerate(track["trajectory"]["at_plots"])
+                    if s["source"] == f"tracks.A[{wild}]")
+        assert track["trajectory"]["at_plots"][plot]["gated"] is True
+        assert track["filters"]["cv_rts"]["gated"] == ([] if gate is None else [plot])
+        used = [w for w in track["diagnostics"]["warnings"]
+                if w.startswith("filters.cv_rts: used 1 plot(s) the reconstruction gave no")]
+        assert len(used) == (gate is None), track["diagnostics"]["warnings"]
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks,
+                                      "filter_gate_sigma": 0})
+    assert r.status_code == 422 and r.json()["message"].startswith("filter_gate_sigma: "), r.text
 
 
 def test_a_jobs_method_is_the_single_track_method(client):
@@ -651,6 +684,8 @@ def test_a_named_dask_scheduler_runs_the_jobs(client, tmp_path):
         assert r.status_code == 202
         status = wait(other, r.headers["location"])
         assert status["state"] == "done" and status["tracks_done"] == len(FLIGHTS), status
+        jobs = other.app.state.jobs
+        assert jobs.dask_address == address and jobs._cluster is None  # no cluster of its own
     assert client.get("/healthz").status_code == 200
     r = upload(client, enc.data)  # the first app's cluster still serves
     assert wait(client, r.headers["location"])["state"] == "done"

@@ -171,6 +171,16 @@ def test_bias_estimates_are_reported_in_degrees(client):
     s = res.json()["sensors"][0]
     assert s["range_bias_sigma_m"] > 0 and s["azimuth_bias_sigma_deg"] > 0
     assert abs(s["azimuth_bias_deg"]) < 3 * s["azimuth_bias_sigma_deg"] + 1e-3
+    # a radar 0.2 deg off in azimuth: the offset found, in degrees (0.0035 in radians)
+    body = _body(mode_c=True, estimate_bias=True)
+    for p in body["plots"]:
+        if p["sensor"] == "LJLJ":
+            p["azimuth_deg"] += 0.2
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 200, res.text
+    s = res.json()["sensors"][0]
+    assert 0 < s["azimuth_bias_sigma_deg"] < 0.05, s
+    assert abs(s["azimuth_bias_deg"] - 0.2) < 3 * s["azimuth_bias_sigma_deg"] + 0.01, s
     # a position sensor's estimate_bias: its time offset alone (the plots are on time here)
     body = _body(mode_c=True)
     body["sensors"][2]["estimate_bias"] = True
@@ -380,18 +390,31 @@ def test_a_reference_near_the_datas_antipode_is_refused(client, reference, statu
 
 
 @pytest.mark.parametrize("wild", [False, True])
-def test_filters_beside_gated_plots_say_they_weigh_them(client, wild):
-    """A plot at 1 m range (left out of the reconstruction, said) is still weighed by the
-    filters, which have no gate: the answer says that too (a tester read 'given no weight' as
-    true of the filters, whose states were 55-248 km off there)."""
+@pytest.mark.parametrize("gate", [6.0, None])
+def test_filters_beside_gated_plots_say_which_they_used(client, wild, gate):
+    """A plot at 1 m range (given no weight by the reconstruction, said) is left out by a gated
+    filter (named) and used by an ungated one (`filter_gate_sigma` null; `alpha_beta`, which
+    has no gate): the answer says which filter used it (a tester read 'given no weight' as true
+    of the filters, whose states were 55-248 km off there)."""
     body = _body()
-    body["filters"] = ["cv_rts"]
+    body["filters"] = ["cv_rts", "alpha_beta"]
+    body["filter_gate_sigma"] = gate
     body["omit"] = ["samples"]
+    first = next(i for i, p in enumerate(body["plots"]) if p["sensor"] == "LJLJ")
     if wild:
-        first = next(i for i, p in enumerate(body["plots"]) if p["sensor"] == "LJLJ")
         body["plots"][first + 5]["range_m"] = 1.0
     r = client.post("/v1/reconstructions", json=body)
     assert r.status_code == 200, r.text[:300]
-    warnings = r.json()["diagnostics"]["warnings"]
-    said = [w for w in warnings if w.startswith("the filters weigh every plot")]
-    assert len(said) == int(wild), warnings
+    out = r.json()
+    assert out["trajectory"]["at_plots"][first + 5]["gated"] is wild
+    warnings = out["diagnostics"]["warnings"]
+    used = sorted(w.split(":")[0] for w in warnings if "the reconstruction gave no weight" in w)
+    left_out = [w for w in warnings if "left out, far from the filter's prediction" in w]
+    if not wild:
+        assert not used and not left_out, warnings
+        return
+    assert used == (["filters.alpha_beta"] if gate else ["filters.alpha_beta", "filters.cv_rts"])
+    assert all(w.endswith(f"as wild: {first + 5}") for w in warnings if "as wild:" in w)
+    assert out["filters"]["cv_rts"]["gated"] == ([first + 5] if gate else [])
+    assert left_out == ([f"filters.cv_rts: 1 plot(s) left out, far from the filter's "
+                         f"prediction (wild plots?): {first + 5}"] if gate else [])

@@ -12,6 +12,7 @@ one or two plots give a defined (broad) estimate.
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -25,6 +26,7 @@ from .common import SIGMA_V0, estimate
 from .cv_rts import run_cv_rts
 from .fusion import run_fusion_a, run_fusion_b, run_fusion_c
 from .fuzzy import run_fuzzy
+from .gating import GATE_SIGMA, check_gate
 from .imm import run_imm
 from .imm_smoother import run_imm_smoother
 from .measurements import PolarPlots, SensorPlots
@@ -50,6 +52,10 @@ FUSION_NAMES: tuple[str, ...] = ("fusion_a", "fusion_b", "fusion_c")
 """Seed 004's fusion variants: defined for exactly two sensors (``ValueError`` otherwise)."""
 SINGLE_SENSOR_NAMES: tuple[str, ...] = tuple(n for n in FILTER_NAMES if n not in FUSION_NAMES)
 """The filters that run on any number of sensors, one included."""
+GATING_NAMES: tuple[str, ...] = tuple(n for n in FILTER_NAMES
+                                     if "gate" in inspect.signature(_RUNNERS[n]).parameters)
+"""The filters with the validation gate (:mod:`.gating`); ``alpha_beta`` and the fusion
+variants (seed 004's fits) use every plot."""
 _PER_MEASUREMENT = frozenset({"nis", "gains", "gain_level", "gated"})
 """``info`` arrays that describe each measurement (not the state after it)."""
 
@@ -124,11 +130,18 @@ def run_filter(name: str, data: PlotTable | Plots, radar: Radar | None = None,
     return _in_table_order(est, meas) if isinstance(meas, SensorPlots) else est
 
 
-def run_filters(names: Iterable[str], data: PlotTable | Plots, radar: Radar | None = None
-                ) -> dict[str, FilterEstimate]:
-    """Run each named estimator with its defaults."""
-    return {name: run_filter(name, data, radar) for name in names}
+def run_filters(names: Iterable[str], data: PlotTable | Plots, radar: Radar | None = None, *,
+                gate: float | None = GATE_SIGMA) -> dict[str, FilterEstimate]:
+    """Run each named estimator with its defaults, those of :data:`GATING_NAMES` with the
+    validation gate ``gate`` (sigmas; None: every plot used)."""
+    check_gate(gate)
+    return {name: run_filter(name, data, radar, **gate_param(name, gate)) for name in names}
 
 
-__all__ = ["FILTER_NAMES", "FUSION_NAMES", "SINGLE_SENSOR_NAMES", "measurement_set", "run_filter",
-           "run_filters"]
+def gate_param(name: str, gate: float | None) -> dict[str, float | None]:
+    """``{"gate": gate}`` for a filter of :data:`GATING_NAMES`, else nothing."""
+    return {"gate": gate} if name in GATING_NAMES else {}
+
+
+__all__ = ["FILTER_NAMES", "FUSION_NAMES", "GATE_SIGMA", "GATING_NAMES", "SINGLE_SENSOR_NAMES",
+           "gate_param", "measurement_set", "run_filter", "run_filters"]

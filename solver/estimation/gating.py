@@ -27,14 +27,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-GATE_SIGMA = 6.0
-"""Default gate (sigmas of the normalised innovation). On the dev plots (seeds 100-101, the seven
-benchmark tracks, three profiles; ``python -m benchmarks.gating``) 4 sigma catches a few more
-false plots (1-11 % lower RMS error with 1 % false plots in seed000, the same elsewhere) and
-leaves no genuine plot out where the radar's sigmas are right; but declared sigmas half the true
-ones (an operator's sigmas are seldom exact) made it leave out up to 33 genuine plots per 1,000
-and cost up to 9.4 % RMS on clean plots, where 6 sigma left out at most 1.6 per 1,000 and cost
-at most 1 %. Looking ahead keeps far genuine plots (turns) either way."""
+from ..config import FILTER_GATE_SIGMA
+from ..config import check_filter_gate as check_gate
+
+GATE_SIGMA = FILTER_GATE_SIGMA
+"""Default gate (sigmas): :data:`solver.config.FILTER_GATE_SIGMA`, where its measured reason is."""
 MAX_GATED_RUN = 2
 """At most this many plots in a row are left out (module docstring)."""
 
@@ -44,13 +41,6 @@ Step = Callable[[int, np.ndarray, bool], np.ndarray]
 side), with the plot's update (``use``) or without it (the prediction); returns per lane the
 plot's normalised innovation squared and its deviance ``-2 log`` of the predictive likelihood
 (up to a constant; ``nis + log det S`` for one Gaussian); read only after ``use=True``."""
-
-
-def check_gate(gate: float | None) -> None:
-    """``ValueError`` unless ``gate`` is None (no gate) or a positive finite number."""
-    if gate is not None and (isinstance(gate, bool) or not isinstance(gate, int | float)
-                             or not 0 < gate < np.inf):
-        raise ValueError(f"gate must be a positive number of sigmas or None, not {gate!r}")
 
 
 def gated_pass(n: int, lanes: int, step: Step, gate: float | None) -> np.ndarray:
@@ -136,3 +126,27 @@ def _without(j: int, lane: np.ndarray, step: Step, deviance_at: Callable[[int], 
     prediction)."""
     step(j, lane, False)
     return deviance_at(j + 1)
+
+
+def gate_warnings(gated: dict[str, list[int]], no_weight: np.ndarray) -> list[str]:
+    """The operator's lines about the filters' gates: per filter the plots it left out
+    (``gated``: plot indexes by filter name), and those the reconstruction gave no weight as
+    wild (``no_weight``, :attr:`solver.results.Reconstruction.no_weight`) that it used; each
+    filter gates by its own rule, some by none (a tester read the reconstruction's 'given no
+    weight' as true of the filters, whose states were 55-248 km off there)."""
+    wild = np.asarray(no_weight, dtype=int)
+    out = []
+    for name, left_out in gated.items():
+        if left_out:
+            out.append(f"filters.{name}: {len(left_out)} plot(s) left out, far from the "
+                       f"filter's prediction (wild plots?): {_listed(left_out)}")
+        used = np.setdiff1d(wild, left_out).tolist()
+        if used:
+            out.append(f"filters.{name}: used {len(used)} plot(s) the reconstruction gave no "
+                       f"weight as wild: {_listed(used)}")
+    return out
+
+
+def _listed(indexes: list[int]) -> str:
+    """The first ten plot indexes."""
+    return ", ".join(map(str, indexes[:10])) + (", ..." if len(indexes) > 10 else "")

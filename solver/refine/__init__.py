@@ -303,7 +303,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     diag.criterion_values = [float(crit.sum())]
     nb = state_size(variant) - BIAS_TERMS * variant.biases
     bias_cov = cov_nodes[-1][nb:, nb:]
-    rec = Reconstruction(segs, at_plots_own, samples, diag)
+    rec = Reconstruction(segs, at_plots_own, samples, diag, no_weight=rejected)
     if table.frame is not None or len(table.sensors) > 1:
         rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors)
         rec.sensors = sensor_reports(table, rec.residuals, biases, bias_cov, bias_sensors)
