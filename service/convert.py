@@ -122,7 +122,11 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
         nlp_solver=nlp_solver,  # type: ignore[arg-type]
     )
     config.validate()  # a window longer than the track is one window over it, warned
-    span = float(table.t.max() - table.t.min())
+    with np.errstate(over="ignore"):
+        span = float(table.t.max() - table.t.min())
+    if not np.isfinite(span):  # each t finite, their difference not (-1e308 .. 1e308)
+        raise InputError(("plots",), f"span from t = {table.t.min():g} to {table.t.max():g} s, "
+                         "more than a float holds: give times from a nearer origin")
     if "samples" in req.omit:  # none answered: no limit, and a few computed (as solver.batch)
         config = replace(config, sample_step_s=span / 2 or 1.0)
     elif span / config.sample_step_s >= max_samples:
@@ -140,7 +144,8 @@ def _to_job(req: ReconstructionRequest, nlp_solver: str, max_plots: int,
         nodes = refinement_nodes(table.t, config.refine.max_node_step_s)
         if nodes > max_nodes:
             raise InputError(("plots",), f"span {span:g} s with their gaps: the refinement would "
-                             f"solve {nodes} node intervals (gaps cut to "
+                             f"solve {nodes if nodes < 10**12 else f'{float(nodes):.3g}'} node "
+                             "intervals (gaps cut to "
                              f"{config.refine.max_node_step_s:g} s); this service's limit is "
                              f"max_nodes = {max_nodes}: split the track at its long gaps")
     return Job(table, config, tuple(dict.fromkeys(req.filters)), frozenset(req.omit),
@@ -194,6 +199,9 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
             sensors.append(PositionSensor(s.id, s.position_sigma_m, s.altitude_sigma_m,
                                           estimate_bias=s.estimate_bias))
             continue
+        if s.lat_deg is None and s.lon_deg is None and "height_m" in s.model_fields_set:
+            raise InputError(("sensors", j, "height_m"), "needs lat_deg and lon_deg (a radar "
+                             "without a site is at `reference`, at height 0)")
         if (s.lat_deg is None) != (s.lon_deg is None):
             missing = "lat_deg" if s.lat_deg is None else "lon_deg"
             raise InputError(("sensors", j, missing), "is required with the other site "
@@ -201,6 +209,7 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
         site = None if s.lat_deg is None else Site(s.lat_deg, s.lon_deg, s.height_m)  # type: ignore[arg-type]
         sensors.append(RadarSensor(**_radar(s), id=s.id, site=site,
                                    estimate_bias=s.estimate_bias))
+    validate_sensors(tuple(sensors))  # every one, at its own index (an id given twice first)
     for i, p in enumerate(req.plots):
         if p.sensor is None:
             raise InputError(("plots", i, "sensor"), "is required with `sensors`")
@@ -208,10 +217,10 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
     if req.reference is not None:
         reference = LocalFrame(req.reference.lat_deg, req.reference.lon_deg)
         reference.validate()
+    sent = reference is not None
     listed = list(sensors)  # the request's indexes, for the messages
     used = {p.sensor for p in req.plots}
     if used <= {s.id for s in sensors} and len(used) < len(sensors):
-        validate_sensors(tuple(sensors))  # every one, at its own index
         idle = [s.id for s in sensors if s.id not in used]
         notes.append(f"sensor{'s' * (len(idle) > 1)} {', '.join(map(repr, idle))} "
                      f"ha{'ve' if len(idle) > 1 else 's'} no plots: left out")
@@ -228,7 +237,7 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
     try:
         return plot_table(sensors, req.plots, reference)
     except InputError as e:
-        if reference is not None or e.loc[:1] != ("reference",):
+        if sent or e.loc[:1] != ("reference",):
             raise
         position = {s.id for s in sensors if isinstance(s, PositionSensor)}
         first = next((("plots", i) for i, p in enumerate(req.plots) if p.sensor in position),
@@ -282,8 +291,9 @@ def unsent_reference(e: InputError, sensors: Sequence[Sensor],
               if isinstance(s, RadarSensor) and s.site is not None), None)
     loc, what = ((first_position, "the first position plot") if j is None
                  else (("sensors", j), "the first radar's site"))
+    way_out = "; pass a `reference` away from the pole" if e.loc[1:] == ("lat_deg",) else ""
     return InputError((*loc, *e.loc[1:]), f"{e.message}: the plane's `reference` defaults to "
-                      f"{what}; pass a `reference` away from the pole")
+                      f"{what}{way_out}")
 
 
 # ----------------------------------------------------------------------------------- results

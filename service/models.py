@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from solver.config import FILTER_GATE_SIGMA
+from solver.config import FILTER_GATE_SIGMA, MAX_FILTER_GATE_SIGMA
 from solver.estimation import FILTER_NAMES, GATING_NAMES
 from solver.manoeuvres import (
     ACCELERATION,
@@ -28,8 +28,9 @@ FilterName = Literal[FILTER_NAMES]  # type: ignore[valid-type]
 def filter_gate_field() -> Any:
     """The filters' validation gate, one field for the request and a job's options."""
     return Field(
-        FILTER_GATE_SIGMA, gt=0, description="The filters' validation gate, in sigmas of the "
-        "normalised innovation (> 0): a plot farther than this from a filter's prediction is "
+        FILTER_GATE_SIGMA, gt=0, le=MAX_FILTER_GATE_SIGMA, description="The filters' "
+        f"validation gate, in sigmas of the normalised innovation (> 0, <= "
+        f"{MAX_FILTER_GATE_SIGMA:g}): a plot farther than this from a filter's prediction is "
         "left out when the next plot is likelier without it (a wild plot; named in "
         "`filters.<name>.gated` and the warnings); more than two in a row are used (the "
         "aircraft is elsewhere). null: every plot used. Applies to "
@@ -78,9 +79,9 @@ class RadarIn(_In):
         0.0, description="Highest elevation angle `alpha_max` (degrees, 0 <= value < 90) for "
         "the unknown-altitude correction. 0 = no correction.", examples=[60.0])
     altitude_sigma_m: float = Field(
-        0.0, description="Standard deviation (m, >= 0) of the plots' `altitude_m` as a height "
-        "above the radar (flat plane) or the ellipsoid (`sensors`). 0 = exact (the default). "
-        "A Mode C flight level is a pressure altitude, some 100-300 m from the geometric "
+        0.0, description="Standard deviation (m, 0 or >= 0.001) of the plots' `altitude_m` as "
+        "a height above the radar (flat plane) or the ellipsoid (`sensors`). 0 = exact (the "
+        "default). A Mode C flight level is a pressure altitude, some 100-300 m from the geometric "
         "height: a plot's ground range moves by that times `h / d` (elevation), so near the "
         "radar the plot's along-ray sigma grows accordingly. With another sensor (`sensors`) "
         "the height is then estimated, this radar's altitudes a measurement of it with this "

@@ -341,7 +341,7 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
         req = JobTracksRequest.model_validate_json(body)
     except ValidationError as e:
         raise RequestValidationError(e.errors(include_url=False), body=body) from None
-    doc: dict[str, Any] = {"sensors": [s.model_dump(exclude_none=True) for s in req.sensors]}
+    doc: dict[str, Any] = {"sensors": [_sensor_doc(s) for s in req.sensors]}
     if req.reference is not None:
         doc["reference"] = req.reference.model_dump()
     sensors = parse_sensors(doc)
@@ -377,6 +377,16 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
     write_table(rows, inputs / "recording.parquet")
     (inputs / "sensors.json").write_text(json.dumps(doc), encoding="utf-8")
     (inputs / "params.json").write_text(params + "\n", encoding="utf-8")
+
+
+def _sensor_doc(s: BaseModel) -> dict[str, Any]:
+    """A request sensor as the sensor file's object: the site's default `height_m` left out
+    of a radar without a site (the file refuses a height without a site; a client that gave
+    one gets that 422)."""
+    doc = s.model_dump(exclude_none=True)
+    if "lat_deg" not in doc and "height_m" not in s.model_fields_set:
+        doc.pop("height_m", None)
+    return doc
 
 
 def _check_tracks(req: JobTracksRequest, sensors: SensorSet, rows: PlotRows) -> None:

@@ -18,12 +18,10 @@ import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 
-import numpy as np
-
 from solver.config import ReconstructionConfig
 from solver.estimation.measurements import at_estimated_heights
 from solver.inputs import InputError
-from solver.results import FilterEstimate, Reconstruction
+from solver.results import non_finite_part
 from solver.warmup import synthetic_track
 
 from .convert import Job, response_dict
@@ -157,20 +155,6 @@ def _time_limit(signum: int, frame: object) -> None:
         raise _TimeLimit
 
 
-def _finite(rec: Reconstruction, estimates: dict[str, FilterEstimate]) -> str | None:
-    """The first part of the answer holding a NaN or infinity, or None: checked on the arrays,
-    so a non-finite result is a 422 here and not a failed response validation (a 500)."""
-    series = {"trajectory.at_plots": rec.at_plots, "trajectory.samples": rec.samples,
-              **{f"filters.{k}": e.states for k, e in estimates.items()}}
-    for name, s in series.items():
-        for a in (s.t, s.x, s.z, s.vx, s.vz, s.cov):
-            if a is not None and not np.isfinite(a).all():
-                return name
-    seg = np.array([[g.t_start, g.t_end, g.x, g.z, g.heading, g.speed, g.u, g.w]
-                    for g in rec.segments], dtype=float)
-    return None if np.isfinite(seg).all() else "trajectory.segments"
-
-
 def remedy(job: Job) -> str:
     """What the client can change to make a too costly solve cheaper."""
     if job.config.method == "sliding":
@@ -243,7 +227,7 @@ def solve(job: Job, enqueued_at: float, time_limit_s: float = 0.0) -> Outcome:
         _armed = False
         if timed:
             signal.setitimer(signal.ITIMER_REAL, 0)
-    bad = _finite(rec, estimates)
+    bad = non_finite_part(rec, estimates)
     if bad is not None:
         return Outcome(None, error_loc=("bounds",), error_message=(
             f"give a result that is not finite ({bad} holds NaN or infinity): the "

@@ -51,7 +51,7 @@ import pyarrow.parquet as pq
 from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .inputs import FloatArray
 from .plots import PlotTable
-from .results import PlotResiduals, StateSeries, full_turn
+from .results import PlotResiduals, StateSeries, full_turn, non_finite_part
 from .stopping import STOP_SIGNALS
 
 COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
@@ -205,6 +205,11 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
                                 "limit max_samples); ask a larger step")
                 samples, config = False, replace(config, sample_step_s=span / 2 or 1.0)
         rec = reconstruct(table, config=config, deadline=deadline)
+        bad = non_finite_part(rec)
+        if bad is not None:  # failed here, not stored (its every later read would fail)
+            raise ArithmeticError(f"the result is not finite ({bad} holds NaN or infinity): "
+                                  "the bounds, sensor errors or plots are too extreme for a "
+                                  "numerical solution")
         states = _states_table(key, table, rec.at_plots, times_of_day, rec.residuals)
         segments = _segments_table(key, rec)
         sampled = _samples_table(key, table, rec.samples, times_of_day) if samples else None

@@ -22,11 +22,17 @@ and cost up to 9.4 % RMS on clean plots, where 6 sigma left out at most 1.6 per 
 at most 1 %. Looking ahead keeps far genuine plots (turns) either way."""
 
 
+MAX_FILTER_GATE_SIGMA = 1e6
+"""The widest gate accepted (sigmas): wider is no gate (None); 1.4e154 overflowed its square."""
+
+
 def check_filter_gate(gate: float | None) -> None:
-    """``ValueError`` unless ``gate`` is None (no gate) or a positive finite number."""
+    """``ValueError`` unless ``gate`` is None (no gate) or a positive number of at most
+    :data:`MAX_FILTER_GATE_SIGMA`."""
     if gate is not None and (isinstance(gate, bool) or not isinstance(gate, int | float)
-                             or not 0 < gate < float("inf")):
-        raise ValueError(f"gate must be a positive number of sigmas or None, not {gate!r}")
+                             or not 0 < gate <= MAX_FILTER_GATE_SIGMA):
+        raise ValueError(f"gate must be a positive number of sigmas up to "
+                         f"{MAX_FILTER_GATE_SIGMA:g}, or None (no gate), not {gate!r}")
 
 
 @dataclass(frozen=True)

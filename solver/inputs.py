@@ -20,6 +20,7 @@ MAX_RANGE_ERROR_M = 1e5  # a radar's range error or sigma, and a position sensor
 MAX_AZIMUTH_ERROR_RAD = float(np.deg2rad(30.0))
 MAX_ALTITUDE_M = 1e5  # a radar's max_altitude_m
 MAX_ALTITUDE_SIGMA_M = 1e4  # a radar's altitude_sigma_m
+MIN_ALTITUDE_SIGMA_M = 1e-3  # a radar's altitude_sigma_m when not 0 (as a position sensor's)
 MAX_ACCELERATION = 100.0  # m/s^2 (10 g): the bounds on u and w
 MAX_SPEED = 2000.0  # m/s: the bound on v
 MAX_AZIMUTH_DEG = 1e6  # a plot's azimuth: normalised to [0, 360) to 1e-10 degrees
@@ -117,6 +118,9 @@ class Radar:
                 raise InputError(("radar", name), f"must be at most {limit}")
         if self.max_elevation_rad >= np.pi / 2:
             raise InputError(("radar", "max_elevation_rad"), "must be below 90 degrees")
+        if 0 < self.altitude_sigma_m < MIN_ALTITUDE_SIGMA_M:  # 1e-155 m made a singular smoother
+            raise InputError(("radar", "altitude_sigma_m"), "must be 0 (the altitudes exact) or "
+                             f"at least {MIN_ALTITUDE_SIGMA_M:g} m")
 
 
 def wrap_azimuth(azimuth_rad: ArrayLike, loc: tuple[str | int, ...] = ("plots",)

@@ -97,10 +97,9 @@ class PlotTable:
         scale there exceeds :data:`MAX_PLANE_SCALE` is refused (``reference``): near its
         antipode the plane blows up (a tester's reference 19,981 km away: 59 km RMS)."""
         assert self.frame is not None
-        lat = [s.site.lat_deg for s in self.sensors
-               if isinstance(s, RadarSensor) and s.site is not None]
-        lon = [s.site.lon_deg for s in self.sensors
-               if isinstance(s, RadarSensor) and s.site is not None]
+        sited = [s for s in self.sensors if isinstance(s, RadarSensor) and s.site is not None]
+        lat = [s.site.lat_deg for s in sited]  # type: ignore[union-attr]
+        lon = [s.site.lon_deg for s in sited]  # type: ignore[union-attr]
         pos = ~self.radar_rows()
         lat_all = np.concatenate([lat, self.lat_deg[pos]])
         lon_all = np.concatenate([lon, self.lon_deg[pos]])
@@ -111,8 +110,10 @@ class PlotTable:
         worst = int(np.argmax(np.where(np.isfinite(scale), scale, np.inf)))
         if not scale[worst] <= MAX_PLANE_SCALE:
             km = float(self.frame.ground_distance(lat_all[worst], lon_all[worst])) / 1e3
-            raise InputError(("reference",), f"lies {km:.0f} km from the data (a sensor's site "
-                             f"or a position plot), where the plane's scale would be "
+            what = (f"the site of sensor {sited[worst].id!r}" if worst < len(sited)
+                    else f"plots[{int(np.flatnonzero(pos)[worst - len(sited)])}]")
+            raise InputError(("reference",), f"lies {km:.0f} km from the data ({what}), where "
+                             f"the plane's scale would be "
                              f"{scale[worst]:.2f} (at most {MAX_PLANE_SCALE:g}: within about "
                              "7800 km): give a reference near the track")
 

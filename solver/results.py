@@ -205,3 +205,24 @@ class FilterEstimate:
     name: str
     states: StateSeries
     info: dict[str, FloatArray | float | str] = field(default_factory=dict)
+
+
+def non_finite_part(rec: Reconstruction, estimates: dict[str, FilterEstimate] | None = None
+                    ) -> str | None:
+    """The first part of a result holding a NaN or infinity (its name in the answer), or None:
+    the states at the plots and the samples, the segments, the criterion, the filters'
+    states. Checked before anything is answered or stored (a stored NaN made every later
+    read of a job's track fail its response validation)."""
+    series = {"trajectory.at_plots": rec.at_plots, "trajectory.samples": rec.samples,
+              **{f"filters.{k}": e.states for k, e in (estimates or {}).items()}}
+    for name, s in series.items():
+        for a in (s.t, s.x, s.z, s.vx, s.vz, s.cov):
+            if a is not None and not np.isfinite(a).all():
+                return name
+    seg = np.array([[g.t_start, g.t_end, g.x, g.z, g.heading, g.speed, g.u, g.w]
+                    for g in rec.segments], dtype=float)
+    if not np.isfinite(seg).all():
+        return "trajectory.segments"
+    if not np.isfinite(np.asarray(rec.diagnostics.criterion_values, dtype=float)).all():
+        return "diagnostics.criterion_values"
+    return None

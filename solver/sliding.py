@@ -291,7 +291,7 @@ def _not_wild(smoother: Callable[[], FilterEstimate], n: int, config: Reconstruc
     keep = np.ones(n, dtype=bool)
     if config.refine.outlier_gate is None or n < 4:
         return keep
-    wild = np.flatnonzero(smoother().info["gated"])
+    wild = np.flatnonzero(smoother().info.get("gated", ()))  # none from a numerical fallback
     if wild.size and n - wild.size >= 3:
         keep[wild] = False
         shown = ", ".join(map(str, wild[:20])) + (", ..." if wild.size > 20 else "")

@@ -285,9 +285,9 @@ def test_a_non_finite_result_is_a_422_not_a_failed_response_validation():
     a 422 naming the part (the response validation found it late, as a 500)."""
     import numpy as np
 
-    from service.workers import _finite
     from solver.estimation import run_filters
     from solver.reconstruct import reconstruct
+    from solver.results import non_finite_part as _finite
 
     body = copy.deepcopy(SEED_BATCH)
     body["plots"] = body["plots"][:12]
@@ -300,6 +300,9 @@ def test_a_non_finite_result_is_a_422_not_a_failed_response_validation():
     rec.samples.vz[3] = 0.0
     est["cv_rts"].states.cov[2, 1, 1] = np.nan
     assert _finite(rec, est) == "filters.cv_rts"
+    assert _finite(rec) is None
+    rec.diagnostics.criterion_values = [np.nan]  # a stored job track failed every read
+    assert _finite(rec) == "diagnostics.criterion_values"
 
 
 def test_a_worker_that_overruns_its_limit_is_killed():

@@ -84,6 +84,9 @@ def parse_sensors(text: str | object) -> SensorSet:
                              f"column {e.colno}") from None
         except ValueError as e:
             raise InputError(("sensors",), f"is not valid JSON: {e}") from None
+        except RecursionError:  # json's C scanner recurses per nesting level
+            raise InputError(("sensors",), "is nested too deeply (a sensor file is a list of "
+                             "sensor objects)") from None
     else:
         value = text
     reference = None
@@ -120,6 +123,16 @@ def parse_sensors(text: str | object) -> SensorSet:
         if isinstance(last, str) and last.endswith("_rad"):
             raise InputError((*e.loc[:-1], last[:-4] + "_deg"), e.message) from None
         raise
+    if reference is None:  # the plane's default tangent point: the first radar's site
+        j, first = next(((j, s) for j, s in enumerate(sensors)
+                         if isinstance(s, RadarSensor) and s.site is not None), (None, None))
+        if first is not None and first.site is not None:
+            try:
+                LocalFrame(first.site.lat_deg, first.site.lon_deg).validate(("sensors", j))
+            except InputError as e:  # refused here, not when a job or run starts with it
+                raise InputError(e.loc, f"{e.message}: the plane's reference defaults to the "
+                                 "first radar's site; give the file a `reference` away from "
+                                 "the pole") from None
     return SensorSet(tuple(sensors), codes, reference)
 
 

@@ -299,7 +299,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
                      sample_times(float(table.t.min()), float(table.t.max()),
                                   config.sample_step_s), variant)
     check_deadline(deadline)
-    crit = data.weight * data.quad(sol, biases, variant.altitude)
+    # a plot given no weight adds nothing, also where its residual is infinite (0 * inf)
+    crit = np.where(data.weight > 0, data.weight * data.quad(sol, biases, variant.altitude), 0.0)
     diag.criterion_values = [float(crit.sum())]
     nb = state_size(variant) - BIAS_TERMS * variant.biases
     bias_cov = cov_nodes[-1][nb:, nb:]
