@@ -357,6 +357,9 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
             raise InputError(("tracks", key[:40]), f"is not a track name: at most "
                              f"{MAX_TRACK_KEY_CHARS} printable characters (as the aircraft "
                              "option's)")
+        if key.endswith("/figure.png"):  # its URL would be another track's figure
+            raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
+                             "/figure.png (the track figure's path)")
         if not plots:
             raise InputError(("tracks", key), "has no plots (a track needs at least 3)")
         for i, p in enumerate(plots):

@@ -860,3 +860,14 @@ def test_a_json_track_key_is_a_printable_name_of_at_most_200_characters(client, 
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {key: [plot] * 3}})
     assert r.status_code == 422, r.text
     assert "at most 200 printable characters" in r.json()["message"]
+
+
+def test_a_json_track_key_may_not_end_like_the_figures_path(client):
+    """`t/figure.png` was accepted, but its URL is the figure of a track `t` (404): no answer
+    could ever be read. Refused at submission."""
+    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
+    plot = {"t": 0.0, "sensor": sensors[0]["id"], "range_m": 5e4, "azimuth_deg": 10.0}
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"t/figure.png": [plot] * 3}})
+    assert r.status_code == 422, r.text
+    assert r.json()["message"] == ("tracks.t/figure.png is not a track name: it may not end in "
+                                   "/figure.png (the track figure's path)"), r.json()
