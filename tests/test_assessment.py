@@ -61,11 +61,16 @@ def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path,
     assert pos.plots == sel.sum() and pos.gated == (sel & gated).sum()
     np.testing.assert_allclose(pos.bias_sigma(), (along[ok].mean(), along[ok].std(),
                                                   cross[ok].mean(), cross[ok].std()), rtol=1e-9)
-    mean, _ = pos.first.mean_sigma()
+    (mean, _), (mean2, sigma2) = pos.first.mean_sigma(), pos.second.mean_sigma()
     b = (speed[ok] // assessment.SPEED_BIN_MS).astype(int)
+    checked = 0
     for k in np.unique(b):
         if (b == k).sum() >= assessment.MIN_BIN_PLOTS:
             assert mean[k] == pytest.approx(along[ok][b == k].mean(), rel=1e-9)
+            assert mean2[k] == pytest.approx(cross[ok][b == k].mean(), rel=1e-9)
+            assert sigma2[k] == pytest.approx(cross[ok][b == k].std(), rel=1e-7)
+            checked += 1
+    assert checked >= 10
     got = {x.sensor: x for x in found if x.kind == "radar"}
     assert set(got) == {"R1", "R2"}
     for sid, res in got.items():
@@ -80,6 +85,17 @@ def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path,
             if (b == k).sum() >= assessment.MIN_BIN_PLOTS:
                 assert mean[k] == pytest.approx(dr[ok][b == k].mean(), rel=1e-9)
                 assert sigma[k] == pytest.approx(dr[ok][b == k].std(), rel=1e-7)
+        # the second panel: the azimuth residuals in azimuth bins (the eccentricity's sine)
+        mean, sigma = res.second.mean_sigma()
+        b = (az[ok] // assessment.AZIMUTH_BIN_DEG).astype(int)
+        assert np.unique(b).size == 36
+        checked = 0
+        for k in np.unique(b):
+            if (b == k).sum() >= assessment.MIN_BIN_PLOTS:
+                assert mean[k] == pytest.approx(da[ok][b == k].mean(), rel=1e-9)
+                assert sigma[k] == pytest.approx(da[ok][b == k].std(), rel=1e-7)
+                checked += 1
+        assert checked >= 30
         assert res.sample.shape == (500, 5)  # bounded, drawn from every part
         assert set(np.round(res.sample[:, 0], 6)) <= set(np.round(r[sel], 6))
     assert write_sensors_figure(tmp_path).read_bytes()[:4] == b"\x89PNG"

@@ -233,18 +233,22 @@ def test_wild_plot_moves_track_less_than_200_m():
 
 
 def test_covariance_calibrated_on_the_models_own_noise():
-    """Share of truth positions inside the 95 % ellipse between 90 % and 98 % (8 noise seeds)."""
-    inside, total = 0, 0
+    """Share of truth positions inside the 95 % ellipse between 93 % and 98 % and their mean
+    squared Mahalanobis distance between 0.9 and 1.8 (8 noise seeds; measured 97.9 % and 1.27:
+    the covariance scale is set a little wide on purpose, `RefineSettings.covariance_scale`).
+    An audit's mutations: the plots' information x2 (overconfident) gave 92.1 %, which the
+    former lower bound of 90 % let through; x0.6 was caught."""
+    m2 = []
     for seed in range(8):
         plots, radar, (x, z, _, _) = _noisy(seed=10 + seed)
         rec = reconstruct(plots, radar)
         d = np.stack([rec.at_plots.x - x, rec.at_plots.z - z], axis=1)
         cov = rec.at_plots.cov[:, :2, :2]
-        m2 = np.einsum("ni,nij,nj->n", d, np.linalg.inv(cov), d)
-        inside += int(np.sum(m2 <= 5.991))  # chi-square 2 dof, 95 %
-        total += d.shape[0]
-    share = inside / total
-    assert 0.90 <= share <= 0.98, share
+        m2.append(np.einsum("ni,nij,nj->n", d, np.linalg.inv(cov), d))
+    all_m2 = np.concatenate(m2)
+    share = float(np.mean(all_m2 <= 5.991))  # chi-square 2 dof, 95 %
+    assert 0.93 <= share <= 0.98, share
+    assert 0.9 <= all_m2.mean() <= 1.8, all_m2.mean()
 
 
 def test_refined_beats_raw_plots_and_sliding():
@@ -253,7 +257,12 @@ def test_refined_beats_raw_plots_and_sliding():
     raw = np.sqrt(np.mean((px - x) ** 2 + (pz - z) ** 2))
     refined = reconstruct(plots, radar)
     rms = np.sqrt(np.mean((refined.at_plots.x - x) ** 2 + (refined.at_plots.z - z) ** 2))
-    assert rms < 0.6 * raw
+    sliding = reconstruct(plots, radar, ReconstructionConfig(method="sliding")).at_plots
+    rms_sliding = np.sqrt(np.mean((sliding.x - x) ** 2 + (sliding.z - z) ** 2))
+    # measured 213 m against 917 m raw (0.23) and 635 m sliding (0.34); with circles for the
+    # plots' ellipses (an audit's mutation) 245 m, 0.27 of raw, which the former 0.6 let through
+    assert rms < 0.26 * raw, (rms, raw)
+    assert rms < 0.4 * rms_sliding, (rms, rms_sliding)
     assert refined.diagnostics.method == "refined"
     assert refined.at_plots.cov is not None and refined.samples.cov is not None
     assert np.all(np.linalg.eigvalsh(refined.samples.cov) > 0)
@@ -362,6 +371,19 @@ def test_a_minority_of_wild_plots_is_rejected_and_listed():
     assert diag.extra["rejected_plots"] == 3
     assert any("plots [10, 30, 50]" in w for w in diag.warnings), diag.warnings
     assert diag.extra["v_at_bound_share"] == 0.0
+
+
+@pytest.mark.parametrize(("offset_m", "rejected"), [(200.0, 0), (350.0, 1)])
+def test_the_wild_plot_gate_sits_at_five_sigma(offset_m, rejected):
+    """One plot 4 or 7 range sigmas (50 m) off a straight pass: the 5-sigma gate keeps the one
+    and gives the other no weight (measured: 250 m kept, 300 m not). The other tests' wild plots
+    are kilometres off: a gate at 10 sigma (an audit's mutation) passed them all."""
+    plots, radar = _straight(200.0)
+    r = plots.range_m.copy()
+    r[20] += offset_m
+    diag = reconstruct(Plots.from_arrays(plots.t, r, plots.azimuth_rad), radar).diagnostics
+    assert diag.extra["rejected_plots"] == rejected
+    assert any("plots [20]" in w for w in diag.warnings) == bool(rejected), diag.warnings
 
 
 @pytest.mark.parametrize(("speed", "side"), [(700.0, "upper bound (330 m/s)"),

@@ -70,14 +70,17 @@ def test_noise_free_recovery(clean_track):
     assert max(s.u for s in rec.segments) > 5.5 and min(s.u for s in rec.segments) < -4.5
 
 
-@pytest.mark.parametrize("m", [3, 4, 5])
-def test_noisy_track_beats_raw_plots(noisy_track, m):
+@pytest.mark.parametrize(("m", "share"), [(3, 0.67), (4, 0.65), (5, 0.61)])
+def test_noisy_track_beats_raw_plots(noisy_track, m, share):
+    """RMS error at most ``share`` of the raw plots' (measured 0.648 / 0.623 / 0.574 for
+    m = 3 / 4 / 5; with circles instead of the plots' ellipses, an audit's mutation, 0.68 /
+    0.64 / 0.68, which the former bound, the raw plots' error itself, let through)."""
     tr = noisy_track
     rec = reconstruct_sliding(tr.plots, SEED_RADAR, _config(window_plots=m))
     px, pz = plot_points(tr.plots)
     raw = np.sqrt(np.mean((px - tr.x) ** 2 + (pz - tr.z) ** 2))
     ours = np.sqrt(np.mean((rec.at_plots.x - tr.x) ** 2 + (rec.at_plots.z - tr.z) ** 2))
-    assert ours < raw
+    assert ours < share * raw, ours / raw
     _check_bounds_and_continuity(rec, Bounds())
 
 
@@ -141,12 +144,16 @@ def test_outputs_and_diagnostics(noisy_track):
 
 
 def test_r1_criterion(noisy_track):
+    """R1 (plain least squares) beats the raw plots, and R2's ellipse weights beat it with
+    3-plot windows (measured 690 m against 649 m; 0.69 and 0.65 of the raw plots' error)."""
     tr = noisy_track
     rec = reconstruct_sliding(tr.plots, SEED_RADAR, _config(criterion="R1"))
     px, pz = plot_points(tr.plots)
     raw = np.sqrt(np.mean((px - tr.x) ** 2 + (pz - tr.z) ** 2))
     ours = np.sqrt(np.mean((rec.at_plots.x - tr.x) ** 2 + (rec.at_plots.z - tr.z) ** 2))
-    assert ours < raw
+    assert ours < 0.72 * raw, ours / raw
+    r2 = reconstruct_sliding(tr.plots, SEED_RADAR, _config(criterion="R2")).at_plots
+    assert np.sqrt(np.mean((r2.x - tr.x) ** 2 + (r2.z - tr.z) ** 2)) < ours / 1.04
     # R1 values are reported in m^2: a good 3-plot fit leaves residuals of order sigma
     assert 1e2 < np.median(rec.diagnostics.criterion_values) < 3 * (3 * 500.0**2)
 

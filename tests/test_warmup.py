@@ -15,7 +15,7 @@ def test_synthetic_track_is_reconstructed_within_metres():
     true_x = plots.range_m * np.cos(plots.azimuth_rad)
     true_z = plots.range_m * np.sin(plots.azimuth_rad)
     # noiseless plots of a steady turn: the refinement lies on them (measured 1.3 mm)
-    assert np.max(np.hypot(rec.at_plots.x - true_x, rec.at_plots.z - true_z)) < 1.0
+    assert np.max(np.hypot(rec.at_plots.x - true_x, rec.at_plots.z - true_z)) < 0.02
 
 
 def test_warm_up_runs_once_per_method_and_process(monkeypatch):
