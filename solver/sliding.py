@@ -381,6 +381,25 @@ def reconstruct_sliding_table(table: PlotTable, config: ReconstructionConfig,
     return rec
 
 
+def _straight_beyond(segments: list[Segment], t_lo: float, t_hi: float) -> list[Segment]:
+    """``segments`` with a straight constant-speed segment (``u = w = 0``) before the first
+    and after the last where the times asked for reach beyond them: a first or last plot left
+    out as wild. The last segment's controls carried on past its end broke the bounds (a
+    decelerating track's speed went below ``bounds.v``, found by the property test)."""
+    first, last = segments[0], segments[-1]
+    before, after = [], []
+    if t_lo < first.t_start:
+        x, z, phi, v = propagate(first.x, first.z, first.heading, first.speed, 0.0, 0.0,
+                                 t_lo - first.t_start)
+        before = [Segment(t_lo, first.t_start, float(x), float(z), float(phi), float(v),
+                          0.0, 0.0)]
+    if t_hi > last.t_end:
+        x, z, phi, v = propagate(last.x, last.z, last.heading, last.speed, last.u, last.w,
+                                 last.t_end - last.t_start)
+        after = [Segment(last.t_end, t_hi, float(x), float(z), float(phi), float(v), 0.0, 0.0)]
+    return [*before, *segments, *after]
+
+
 def _slide_track(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray, scale: float,
                  config: ReconstructionConfig, diag: Diagnostics, deadline: float | None,
                  at: FloatArray | None = None) -> Reconstruction:
@@ -413,7 +432,9 @@ def _slide_track(t: FloatArray, cx: FloatArray, cz: FloatArray, abc: FloatArray,
             diag.warnings.append("initial speed from the first plots was outside the speed "
                                  "bounds and was clipped")
         segments = slide(t, cx, cz, abc, start, m, config, diag, scale, deadline=deadline)
+    segments = _straight_beyond(segments, float(np.min(at)), float(np.max(at)))
     at_plots = evaluate(segments, at)
-    samples = evaluate(segments, sample_times(t[0], t[-1], config.sample_step_s))
+    samples = evaluate(segments, sample_times(segments[0].t_start, segments[-1].t_end,
+                                              config.sample_step_s))
     diag.extra["accepted_windows"] = len(diag.criterion_values)
     return Reconstruction(segments, at_plots, samples, diag)

@@ -290,6 +290,49 @@ def test_bounds_hold_for_random_noisy_inputs(scenario):
     assert np.all(rec.at_plots.speed <= bounds.v[1] + 1e-6)
 
 
+def test_a_wild_last_plot_is_covered_within_the_bounds():
+    """The first or last plot left out as wild (20 km off): the windows end before it, and the
+    state there came from carrying the nearest segment's controls on: a track decelerating to
+    34 m/s at its last plot was put at 24.1 m/s, under bounds.v's 30 (found by the property
+    test). Now a straight constant-speed segment covers it, and the samples span every plot."""
+    tr = make_track(legs=[(150.0, 0.0, 0.0), (130.0, 0.0, -0.35)],
+                    start=(2e4, 6e4, 0.3, 75.0), scan_s=19.0, sigma_r=50.0,
+                    sigma_psi=np.deg2rad(0.08), drop_in_turns=False, seed=4)
+    p = tr.plots
+    r = p.range_m.copy()
+    r[-1] += 20_000.0
+    bounds = Bounds(v=(30.0, 250.0))
+    rec = reconstruct_sliding(Plots.from_arrays(p.t, r, p.azimuth_rad),
+                              Radar(range_error_m=150.0, azimuth_error_rad=np.deg2rad(0.24)),
+                              _config(bounds=bounds))
+    assert rec.no_weight.tolist() == [len(p.t) - 1]
+    _check_bounds_and_continuity(rec, bounds)
+    assert np.all(rec.at_plots.speed >= 30.0 - 1e-6), rec.at_plots.speed
+    edge = rec.segments[-1]
+    assert (edge.u, edge.w, edge.t_start, edge.t_end) == (0.0, 0.0, p.t[-2], p.t[-1])
+    assert rec.samples.t[0] == p.t[0] and rec.samples.t[-1] == p.t[-1]
+    assert abs(rec.at_plots.speed[-1] - tr.v[-1]) < 5.0
+
+
+def test_straight_segments_cover_times_before_and_after():
+    """The cover at both ends (the gate never leaves a first plot out: its filter starts
+    there; the code does not rely on that): straight, constant speed, continuous."""
+    from solver.results import Segment
+    from solver.sliding import _straight_beyond
+
+    seg = Segment(10.0, 20.0, 1000.0, 2000.0, 0.4, 100.0, 2.0, -1.0)
+    out = _straight_beyond([seg], 0.0, 30.0)
+    assert [(s.t_start, s.t_end, s.u, s.w) for s in out] == [
+        (0.0, 10.0, 0.0, 0.0), (10.0, 20.0, 2.0, -1.0), (20.0, 30.0, 0.0, 0.0)]
+    assert out[0].speed == 100.0 and out[0].heading == 0.4
+    x, z, _, _ = propagate(out[0].x, out[0].z, 0.4, 100.0, 0.0, 0.0, 10.0)
+    assert (float(x), float(z)) == pytest.approx((1000.0, 2000.0), abs=1e-9)
+    end = propagate(1000.0, 2000.0, 0.4, 100.0, 2.0, -1.0, 10.0)
+    assert (out[2].x, out[2].z, out[2].heading, out[2].speed) == pytest.approx(
+        tuple(map(float, end)), abs=1e-9)
+    assert _straight_beyond([seg], 10.0, 20.0) == [seg]
+
+
 def test_sample_times():
     assert np.allclose(sample_times(0.0, 10.0, 3.0), [0, 3, 6, 9, 10])
     assert np.allclose(sample_times(0.0, 9.0, 3.0), [0, 3, 6, 9])
