@@ -1,7 +1,7 @@
 """Are the manoeuvres read off the segments the ones the aircraft flew? (``solver.manoeuvres``)
 
     python -m benchmarks.manoeuvres                  # dev seeds 100 and 101 (~2 min)
-    python -m benchmarks.manoeuvres --seeds 0 1 2 3  # held-out seeds
+    python -m benchmarks.manoeuvres --seeds 0 1 2 3 --out manoeuvres_heldout.md  # held out
 
 For every track (the six ADS-B flights and the synthetic seed-like one) and radar profile, the
 truth's manoeuvres are found by the same rule (:func:`solver.manoeuvres.find_manoeuvres`) on
@@ -113,7 +113,8 @@ def main() -> None:
                 pools.setdefault((profile, est, kind), []).append(compare(
                     [f for f in found if f.kind == kind], [m for m in true if m.kind == kind]))
     md = ["# Manoeuvres read off the reconstruction against the truth's", "",
-          f"`python -m benchmarks.manoeuvres --seeds {' '.join(map(str, args.seeds))}` "
+          f"`python -m benchmarks.manoeuvres --seeds {' '.join(map(str, args.seeds))}"
+          + (f" --out {args.out}" if args.out != "manoeuvres.md" else "") + "` "
           f"({time.perf_counter() - started:.0f} s): {len(truth_names())} tracks, seeds "
           f"{args.seeds}, the default thresholds of `solver/manoeuvres.py`; see the module "
           "docstring of `benchmarks/manoeuvres.py` for the rule and the matching.", "",

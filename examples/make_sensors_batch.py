@@ -66,12 +66,17 @@ def sensors_batch(t_max: float = 1200.0) -> dict:
             "plots": plots}
 
 
-def main() -> None:
-    body = sensors_batch()
+def text(body: dict) -> str:
+    """The file's text: one sensor, one plot per line."""
     plots = ",\n  ".join(json.dumps(p) for p in body["plots"])
     sensors = ",\n  ".join(json.dumps(s) for s in body["sensors"])
-    OUT.write_text(f'{{\n "sensors": [\n  {sensors}\n ],\n "reference": '
-                   f'{json.dumps(body["reference"])},\n "plots": [\n  {plots}\n ]\n}}\n')
+    return (f'{{\n "sensors": [\n  {sensors}\n ],\n "reference": '
+            f'{json.dumps(body["reference"])},\n "plots": [\n  {plots}\n ]\n}}\n')
+
+
+def main() -> None:
+    body = sensors_batch()
+    OUT.write_text(text(body))
     print(f"wrote {OUT} ({len(body['plots'])} plots over {body['plots'][-1]['t']:.0f} s)")
 
 
