@@ -104,6 +104,11 @@ class Recording:
     packets: int = 0
 
 
+RESYNC_CHECK_BYTES = 1
+"""Resynchronising after damage, a candidate block's records must parse up to this many bytes
+(1: its first record; with a plausible header and successor)."""
+MAX_CHECKED_RECORD_BYTES = 1024
+"""Bytes given to that check beyond its budget (a record longer than this fails it)."""
 CHUNK_BYTES = 1 << 20
 """Size of the units a recording is decoded in (in parallel with ``executor=``)."""
 
@@ -324,6 +329,7 @@ class _Decoder:
         self.problems = Problems()
         self.rows: list[tuple] = []  # one tuple per row, in the order of _COLUMNS
         self._memo: dict[tuple, Any] = {}
+        self._resync_memo: tuple[Any, int, int | None] | None = None
         self._lsbs: dict[type, float | None] = {}
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
@@ -331,13 +337,15 @@ class _Decoder:
 
     # ------------------------------------------------------------------ block walking
 
-    def _parse(self, cat: int, data: bytes, start: int, stop: int
+    def _parse(self, cat: int, data: bytes, start: int, stop: int, budget: int | None = None
                ) -> tuple[list[tuple[Any, int]], tuple[int, str] | None]:
         """Records of ``data[start:stop]`` with their byte offsets, and where and why parsing
-        stopped early (None: every byte was read)."""
+        stopped early (None: every byte was read, or ``budget`` bytes of records were)."""
         spec = self.editions.get(cat)
         if spec is None:
             return [], None
+        if budget is not None:  # Bits.from_bytes works through every byte it is given
+            stop = min(stop, start + budget + MAX_CHECKED_RECORD_BYTES)
         # The records' bits over a copy of this block's bytes only: libasterix's Bits copies
         # its buffer from the read position to the buffer's end for every integer it reads,
         # so over the whole unit (1 MiB) the cost per record grew with the unit's size.
@@ -345,6 +353,8 @@ class _Decoder:
         out: list[tuple[Any, int]] = []
         while len(bits):
             at = start + bits.bit_offset1 // 8
+            if budget is not None and at - start >= budget:
+                break
             r = spec.cv_uap.cv_record.parse(ParsingMode.StrictParsing, bits)
             if isinstance(r, ValueError):
                 return out, (at, str(r))
@@ -364,13 +374,22 @@ class _Decoder:
             return False
         if nxt != len(data) and not _plausible(data, nxt):
             return False
-        return self._parse(data[q], data, q + 3, nxt)[1] is None
+        # the first records only: checking every candidate's whole block made the search
+        # quadratic (20 KB of 0x30 bytes, each offset a 12 KB CAT048 block whose records
+        # parse: minutes); the block found is then read whole, its damage reported
+        return self._parse(data[q], data, q + 3, nxt, RESYNC_CHECK_BYTES)[1] is None
 
     def _resync(self, data: bytes, start: int) -> int | None:
-        for q in range(start, len(data)):
-            if self._valid_start(data, q):
-                return q
-        return None
+        """The first valid block start at or after ``start``. The last search is remembered:
+        every offset it passed was no start, so a search from within it has the same answer
+        (without this, each byte of a damaged tail searched to the end again: quadratic)."""
+        memo = self._resync_memo
+        if memo is not None and memo[0] is data and memo[1] <= start and (
+                memo[2] is None or start <= memo[2]):
+            return memo[2]
+        found = next((q for q in range(start, len(data)) if self._valid_start(data, q)), None)
+        self._resync_memo = (data, start, found)
+        return found
 
     def feed(self, data: bytes, base: int) -> None:
         """Decode the data blocks of ``data``, whose first byte is at file offset ``base``."""
@@ -394,8 +413,11 @@ class _Decoder:
                 continue
             nxt = pos + length
             stop = min(nxt, end)
-            records, err = self._parse(cat, data, pos + 3, stop)
-            if nxt <= end and err is None and (nxt == end or _fits(data, nxt)):
+            # parsed whole only once its header and successor check out: parsing every
+            # candidate's declared block first made damaged stretches quadratic
+            fits = nxt <= end and (nxt == end or _fits(data, nxt))
+            records, err = self._parse(cat, data, pos + 3, stop) if fits else ([], None)
+            if fits and err is None:
                 self._handle(cat, records, pos, base)  # the usual case
                 pos = nxt
                 continue
@@ -410,6 +432,8 @@ class _Decoder:
                              "record(s) read from it")
                 pos = q
                 continue
+            if not fits:
+                records, err = self._parse(cat, data, pos + 3, stop)
             self._handle(cat, records, pos, base)
             if nxt > end:
                 problems.add("truncated_block", f"byte {base + pos}", f"CAT{cat:03d} block "
