@@ -723,3 +723,15 @@ def test_a_damaged_stretch_is_read_in_time_linear_in_its_length():
     rec = read_recording(b"\x30" * 20_000, parse_sensors(SENSOR_FILE))
     assert time.perf_counter() - start < 10.0
     assert len(rec.rows) == 0 and rec.problems.counts.get("truncated_block", 0) > 0
+
+
+def test_a_time_of_day_beyond_a_day_is_left_out_and_counted():
+    """I140 holds up to 131,072 s: a record at 120,000 s placed first shifted the whole
+    recording by a day (a fuzz helper); it is left out and counted, the others' times are as
+    without it."""
+    enc = encode_recording(duration=40.0)
+    bad = C048.create([cat048("R1", 120_000.0, 25.0, 45.0, 350.0, 0xABCDEF, 7, "1234")])
+    rec = read_recording(bad.unparse().to_bytes() + enc.data, SENSORS)
+    assert not (rec.rows.mode_s == 0xABCDEF).any()
+    assert rec.problems.counts["bad_value"] == 1 and rec.problems.dropped["bad_value"] == 1
+    np.testing.assert_array_equal(rec.rows.t, read_recording(enc.data, SENSORS).rows.t)

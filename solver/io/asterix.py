@@ -70,7 +70,7 @@ from ..sensors import PositionSensor, RadarSensor
 from .pcap import is_capture, iter_udp_payloads
 from .problems import Problems
 from .sensors_file import SensorSet
-from .tables import FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
+from .tables import DAY_S, FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
 
 NM_M = 1852.0
 DEFAULT_EDITIONS: dict[int, Any] = {48: ast.Cat_048_1_32, 21: ast.Cat_021_2_7,
@@ -617,6 +617,9 @@ class _Decoder:
             return self._missing(48, "140", sensor, at)
         if i040 is None:
             return self._missing(48, "040", sensor, at)
+        tod = self._time_of_day(i140, 48, sensor, at)
+        if tod is None:
+            return None
         g040 = i040.variation
         rho = self._unsigned(g040.get_item("RHO"), "NM")
         theta = self._unsigned(g040.get_item("THETA"), "°")
@@ -637,7 +640,7 @@ class _Decoder:
                 fl = np.nan
         i220 = get("220")
         trn = self._track_number(get("161"), "161/48", "TRN")
-        return (self._unsigned(i140, "s"), sensor, rho * NM_M, theta, np.nan, np.nan,
+        return (tod, sensor, rho * NM_M, theta, np.nan, np.nan,
                 fl * FL_M, fl, NO_INT if i220 is None else int(i220.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 48), trn, at)
 
@@ -651,6 +654,9 @@ class _Decoder:
         time = get("071") or get("073")
         if time is None:
             return self._missing(21, "071", sensor, at)
+        tod = self._time_of_day(time, 21, sensor, at)
+        if tod is None:
+            return None
         pos = get("131") or get("130")
         if pos is None:
             return self._missing(21, "130", sensor, at)
@@ -665,9 +671,21 @@ class _Decoder:
             alt = self._memo_quantity("140/21", i140, "ft") * FT_M
         i080 = get("080")
         trn = self._track_number(get("161"), "161/21", "TRNUM")
-        return (self._unsigned(time, "s"), sensor, np.nan, np.nan, lat, lon, alt, fl,
+        return (tod, sensor, np.nan, np.nan, lat, lon, alt, fl,
                 NO_INT if i080 is None else int(i080.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 21), trn, at)
+
+    def _time_of_day(self, item: Any, cat: int, sensor: str, at: int) -> float | None:
+        """The record's time of day (s), or None with a problem when it is not within a day
+        (the item holds up to 131,072 s: one such record first shifted a whole recording by a
+        day, and in the middle put its plot a day off; found by a fuzz helper)."""
+        tod = self._unsigned(item, "s")
+        if 0 <= tod < DAY_S:
+            return tod
+        self.problems.add("bad_value", f"byte {at}", f"CAT{cat:03d} report of {sensor!r}: "
+                          f"time of day {tod:g} s is not within a day: left out",
+                          key=f"{sensor}/tod", dropped=1)
+        return None
 
     def _cat034(self, rec: Any, at: int) -> None:
         sensor = self._sensor(rec, 34, at, None)
