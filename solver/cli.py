@@ -87,7 +87,7 @@ from .io.split import (
 from .io.tables import PlotRows, counts_from_midnight, iter_table, read_table, time_disorder_s
 from .plots import PlotTable
 from .results import Reconstruction
-from .run_settings import RunSettings, parse_bounds
+from .run_settings import RunSettings, keep_inputs, parse_bounds
 from .run_settings import keep as keep_settings
 from .run_settings import stored as stored_settings
 from .sensors import RadarSensor
@@ -631,6 +631,7 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
     load_sensors(Path(args.sensors))  # a bad sensor file is refused before a cluster starts
     settings = _settings(args)
     keep_settings(out, settings)  # a rerun resumes only the same run
+    keep_inputs(out, Path(args.recording), Path(args.sensors))  # ... of the same files
     with _cluster(args.scheduler, args.workers) as client:
         workers = max(len(client.scheduler_info()["workers"]), 1)
         on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)

@@ -8,6 +8,7 @@ draw with the settings the stored tracks were made with.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections.abc import Sequence
@@ -130,3 +131,49 @@ def keep(out: Path, settings: RunSettings) -> None:
     tmp = out / f".{RUN_FILE}.tmp"
     tmp.write_text(json.dumps(settings.as_json(), indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, out / RUN_FILE)
+
+
+INPUTS_FILE = "inputs.json"
+FINGERPRINT_BYTES = 1 << 20
+
+
+def fingerprint(path: Path) -> dict[str, Any]:
+    """A file's name, size and SHA-256 of its first and last MiB (a whole recording of GBs is
+    not read twice for this)."""
+    size = path.stat().st_size
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        digest.update(f.read(FINGERPRINT_BYTES))
+        if size > FINGERPRINT_BYTES:
+            f.seek(max(size - FINGERPRINT_BYTES, FINGERPRINT_BYTES))
+            digest.update(f.read())
+    return {"name": path.name, "bytes": size, "sha256_ends": digest.hexdigest()}
+
+
+def keep_inputs(out: Path, recording: Path, sensors: Path) -> None:
+    """Record which recording and sensor file ``out``'s run reads (``DIR/inputs.json``);
+    :class:`InputError` when ``out`` holds a run of other inputs: its finished tracks would be
+    kept as the new recording's (they were, silently, when only the settings were compared;
+    found by a fuzz helper)."""
+    if not (recording.is_file() and sensors.is_file()):
+        return  # the readers say what is wrong with them
+    now = {"recording": fingerprint(recording), "sensors": fingerprint(sensors)}
+    path = out / INPUTS_FILE
+    if path.is_file():
+        try:
+            before = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError:
+            before = None
+        differ = [k for k in now if not isinstance(before, dict) or before.get(k) != now[k]]
+        if differ:
+            what = " and ".join("the recording" if k == "recording" else "the sensor file"
+                                for k in differ)
+            verb = "differ" if len(differ) > 1 else "differs"
+            raise InputError(("out",), f"{out} holds a run made from other inputs ({what} "
+                             f"{verb} from {path.name}'s): a rerun resumes that run, so it "
+                             "takes the same files; choose another --out")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f".{INPUTS_FILE}.tmp"
+    tmp.write_text(json.dumps(now, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, path)

@@ -666,3 +666,24 @@ def test_the_filters_gate_is_set_and_kept_with_the_run(recording, tmp_path, caps
             main([*args, "--out", str(tmp_path / "bad"), "--filter-gate", bad])
         assert stop.value.code == 2
         assert f"{bad!r} is not a positive number of sigmas or off" in capsys.readouterr().err
+
+
+def test_a_rerun_on_another_recording_is_refused(recording, tmp_path, capsys, scheduler):
+    """A rerun resumes by aircraft key: into an --out made from another recording (the same
+    Mode S addresses, other flights) it kept the old tracks as the new recording's, exit 0
+    (a fuzz helper). The inputs are kept in inputs.json; other files are refused, naming them;
+    the same files resume."""
+    d, _ = recording
+    other = tmp_path / "other.ast"
+    other.write_bytes(encode_recording(tod0=50_000.0, duration=60.0).data)
+    out = tmp_path / "out"
+    args = ["--sensors", str(d / "sensors.json"), "--out", str(out), "--scheduler", scheduler,
+            "--no-progress"]
+    assert main([str(d / "day.ast"), *args]) == 0
+    kept = json.loads((out / "inputs.json").read_text())
+    assert kept["recording"]["name"] == "day.ast" and kept["recording"]["bytes"] > 0
+    capsys.readouterr()
+    assert main([str(other), *args]) == 2
+    assert "holds a run made from other inputs (the recording differs" in capsys.readouterr().err
+    assert main([str(d / "day.ast"), *args]) == 0  # the same files: resumed
+    assert "finished before" in capsys.readouterr().out
