@@ -687,3 +687,45 @@ def test_a_rerun_on_another_recording_is_refused(recording, tmp_path, capsys, sc
     assert "holds a run made from other inputs (the recording differs" in capsys.readouterr().err
     assert main([str(d / "day.ast"), *args]) == 0  # the same files: resumed
     assert "finished before" in capsys.readouterr().out
+
+
+def test_odd_tables_and_sensor_files_get_a_line_not_a_traceback(recording, tmp_path, capsys,
+                                                                 scheduler):
+    """Files a fuzz helper found ending in a traceback (exit 1): CR-only line ends and two
+    unknown columns of one name are read; a non-Parquet `.parquet`, two `t` columns, a binary
+    `sensor` column that is no UTF-8, a Latin-1 sensor file are one line naming the problem,
+    exit 2."""
+    d, _ = recording
+    rows = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE)).rows
+    write_table(rows, tmp_path / "good.csv")
+    lines = (tmp_path / "good.csv").read_text().splitlines()
+    (tmp_path / "cr.csv").write_text("\r".join(lines) + "\r")
+    (tmp_path / "dup.csv").write_text("\n".join(
+        [lines[0] + ",callsign,callsign"] + [ln + ",X,Y" for ln in lines[1:]]) + "\n")
+    (tmp_path / "not.parquet").write_bytes(b"hello")
+    good = rows.to_arrow()
+    pq.write_table(pa.Table.from_arrays([*good.columns, good.column("t")],
+                                        names=[*good.column_names, "t"]),
+                   tmp_path / "twice.parquet")
+    i = good.column_names.index("sensor")
+    pq.write_table(good.set_column(i, "sensor", pa.array([b"\xff\xfe"] * good.num_rows,
+                                                         pa.binary())),
+                   tmp_path / "binary.parquet")
+    latin1 = tmp_path / "latin1.json"
+    latin1.write_bytes(json.dumps(SENSOR_FILE).replace('"R1"', '"R\\u00e91"')
+                       .encode().replace(b"\\u00e9", "\u00e9".encode("latin-1")))
+    sensors = str(d / "sensors.json")
+    cases = [("cr.csv", sensors, 0, None), ("dup.csv", sensors, 0, None),
+             ("not.parquet", sensors, 2, "is not a readable Parquet file"),
+             ("twice.parquet", sensors, 2, "t appears twice in the header"),
+             ("binary.parquet", sensors, 2, "sensor has type binary, expected text"),
+             ("good.csv", str(latin1), 2, "is not UTF-8 text")]
+    for name, sensor_file, code, said in cases:
+        capsys.readouterr()
+        got = main([str(tmp_path / name), "--sensors", sensor_file, "--out",
+                    str(tmp_path / f"out-{name}"), "--scheduler", scheduler, "--no-progress"])
+        err = capsys.readouterr().err
+        assert got == code, (name, err)
+        assert said is None or said in err, (name, err)
+    done = json.loads((tmp_path / "out-cr.csv" / "summary.json").read_text())
+    assert done["plots"] == rows.t.size

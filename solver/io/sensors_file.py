@@ -65,7 +65,10 @@ class SensorSet:
 
 def load_sensors(path: str | Path) -> SensorSet:
     """Read and validate a sensor file (see the module docstring)."""
-    text = Path(path).read_text(encoding="utf-8")
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:  # Latin-1, UTF-16 (a fuzz helper: a traceback)
+        raise InputError(("sensors",), f"{path} is not UTF-8 text (byte {e.start})") from None
     try:
         return parse_sensors(text)
     except InputError as e:  # named by the file, as the command line knows it

@@ -245,7 +245,16 @@ def time_disorder_s(path: str | Path) -> float:
     """How far (s) a row of a plot table comes after a later-timed one, at most (0: in time
     order), from its time column alone (``t``, else ``time_of_day_s`` unwrapped in row order;
     unreadable times skipped): whether it can be split as it is read in batches
-    (:func:`solver.io.split.split_stream`) or must be read whole and sorted first."""
+    (:func:`solver.io.split.split_stream`) or must be read whole and sorted first. A file this
+    cannot read gives 0: the reader then says what is wrong with it (a non-Parquet file, two
+    `t` columns, CR line ends made tracebacks here; a fuzz helper)."""
+    try:
+        return _time_disorder_s(Path(path))
+    except (csv.Error, pa.ArrowException, OSError, UnicodeDecodeError, ValueError):
+        return 0.0
+
+
+def _time_disorder_s(path: Path) -> float:
     path = Path(path)
     if path.suffix.lower() in (".parquet", ".pq"):
         raw_names = pq.read_schema(path).names
@@ -257,7 +266,7 @@ def time_disorder_s(path: str | Path) -> float:
     else:
         with open(path, "rb") as f:
             first = f.readline().decode("utf-8-sig", errors="replace")
-        header = next(csv.reader(io.StringIO(first)), [])
+        header = next(csv.reader(first.splitlines()[:1]), [])
         names = [h.strip() for h in header]
         name = "t" if "t" in names else "time_of_day_s" if "time_of_day_s" in names else None
         if name is None:
@@ -304,7 +313,7 @@ def read_csv(data: bytes, *, strict: bool = False, problems: Problems | None = N
     """Read a CSV plot table from bytes (every column read as text, then converted here so a
     bad value is named by its row)."""
     first = data.split(b"\n", 1)[0].decode("utf-8-sig", errors="replace")
-    header = next(csv.reader(io.StringIO(first)), [])
+    header = next(csv.reader(first.splitlines()[:1]), [])
     if not header or not any(h.strip() for h in header):
         raise InputError(("file",), "has no header line")
     try:
@@ -336,7 +345,7 @@ def iter_table(path: str | Path, *, batch_rows: int = 1 << 17, strict: bool = Fa
     else:
         with open(path, "rb") as f:
             first = f.readline().decode("utf-8-sig", errors="replace")
-        header = next(csv.reader(io.StringIO(first)), [])
+        header = next(csv.reader(first.splitlines()[:1]), [])
         if not header or not any(h.strip() for h in header):
             raise InputError(("file",), "has no header line")
         try:
@@ -383,10 +392,10 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
                          f"{', '.join(sorted(known))})")
     if unknown:  # a user's own columns (a callsign, a comment): read past, said once
         if first_row == 1:
-            for name in unknown:
+            for name in dict.fromkeys(unknown):
                 problems.add("unknown_column", "header", f"`{name}` is not a column of the "
                              f"plot table: ignored (columns: {', '.join(sorted(known))})")
-        table = table.drop_columns(unknown)
+        table = table.select([i for i, name in enumerate(names) if name in known])
     header = ", ".join(names)  # as the file has it, for the messages below
     names = [n for n in names if n in known]
     if len(set(names)) != len(names):
@@ -460,7 +469,10 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
             return [None] * n
         col = table.column(name)
         if not (pa.types.is_string(col.type) or pa.types.is_large_string(col.type)):
-            col = pc.cast(col, pa.string())
+            try:  # a list or binary column that is no text: the file's error, not a traceback
+                col = pc.cast(col, pa.string())
+            except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as e:
+                raise InputError((name,), f"has type {col.type}, expected text: {e}") from None
         return [None if v is None else str(v).strip() or None for v in col.to_pylist()]
 
     time_name = "t" if "t" in names else "time_of_day_s"
