@@ -24,7 +24,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from solver.inputs import Bounds, InputError
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
-from solver.io.tables import PlotRows, write_table
+from solver.io.tables import PIECE_NAME, PlotRows, write_table
 from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
@@ -360,6 +360,9 @@ def _save_tracks(body: bytes, inputs: Path) -> None:
         if key.endswith("/figure.png"):  # its URL would be another track's figure
             raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
                              "/figure.png (the track figure's path)")
+        if PIECE_NAME.search(key):  # it would merge with another key's piece after a gap
+            raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
+                             "#<number> (the name of a track's piece after a time gap)")
         if not plots:
             raise InputError(("tracks", key), "has no plots (a track needs at least 3)")
         for i, p in enumerate(plots):

@@ -222,3 +222,15 @@ def test_unwrap_time_of_day_vectorised_equals_value_by_value():
         with np.errstate(invalid="ignore"):
             np.testing.assert_array_equal(unwrap_time_of_day(tod, previous),
                                           _unwrap_loop(tod, previous))
+
+
+def test_a_users_key_that_looks_like_a_piece_is_a_counted_bad_value():
+    """`A#2` names key `A`'s piece after a 300-s gap (solver.io.split): a user's key of that
+    form was merged with another aircraft's piece, or made a traceback when it came in a later
+    batch (a fuzz helper). Its rows are bad values, named and counted; `B#x` is a key."""
+    text = (b"t,sensor,range_m,azimuth_deg,aircraft\n"
+            b"0,R1,5000,6,A\n1,R1,5000,6,A#2\n2,R1,5000,6,B#x\n")
+    rows, problems = read_csv(text)
+    assert rows.aircraft.tolist() == ["A", "B#x"]
+    assert problems.counts == {"bad_value": 1} and problems.dropped == {"bad_value": 1}
+    assert "aircraft: ends in #<number>" in problems.summary()

@@ -871,3 +871,13 @@ def test_a_json_track_key_may_not_end_like_the_figures_path(client):
     assert r.status_code == 422, r.text
     assert r.json()["message"] == ("tracks.t/figure.png is not a track name: it may not end in "
                                    "/figure.png (the track figure's path)"), r.json()
+
+
+def test_a_json_track_key_may_not_look_like_a_piece(client):
+    """`A#2` names key `A`'s piece after a time gap: a track so named merged with it (a fuzz
+    helper, through a table). Refused at submission."""
+    sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
+    plot = {"t": 0.0, "sensor": sensors[0]["id"], "range_m": 5e4, "azimuth_deg": 10.0}
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"A#2": [plot] * 3}})
+    assert r.status_code == 422, r.text
+    assert "may not end in #<number>" in r.json()["message"], r.json()

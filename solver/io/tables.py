@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -60,6 +61,8 @@ DAY_S = 86_400.0
 FT_M = 0.3048
 FL_M = 30.48  # one flight level (100 ft) in metres
 NO_INT = -1  # missing mode_s / mode_3a / track_number
+PIECE_NAME = re.compile(r"#\d+$")
+"""How an aircraft key's later pieces are named (``KEY#2``; :mod:`solver.io.split`)."""
 
 FLOAT_COLUMNS = ("range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m", "flight_level")
 INT_COLUMNS = ("mode_s", "mode_3a", "track_number")
@@ -550,6 +553,12 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
                     report(np.array([i]), name, f"{s!r} is not {what}")
         ints[name] = values
     aircraft = np.array(["" if a is None else a for a in strings("aircraft")], dtype=object)
+    # `KEY#2` names a key's piece after a gap (solver.io.split): a user's key of that form was
+    # merged with another aircraft's piece, or made a traceback (a fuzz helper)
+    piece_like = np.flatnonzero([bool(PIECE_NAME.search(a)) for a in aircraft])
+    if piece_like.size:
+        report(piece_like, "aircraft", "ends in #<number>, the name of a key's piece after a "
+               "time gap: rename the key")
 
     altitude = cols["altitude_m"]
     fl = cols["flight_level"]
