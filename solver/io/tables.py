@@ -27,7 +27,8 @@ column              meaning
 ``mode_s``          optional: 24-bit ICAO aircraft address, hex (``4CA2D1``)
 ``mode_3a``         optional: Mode 3/A code, 4 octal digits (``7000``)
 ``track_number``    optional: the sensor's track number (integer >= 0)
-``aircraft``        optional: an aircraft key the user already has (overrides the others)
+``aircraft``        optional: an aircraft key the user already has (overrides the others; not
+                    ending in ``#<number>``, the name of a key's piece after a time gap)
 ==================  =======================================================================
 
 Empty cells (CSV) and nulls (Parquet) are missing values. A row needs a time, a sensor and
