@@ -107,6 +107,10 @@ class Recording:
 RESYNC_CHECK_BYTES = 1
 """Resynchronising after damage, a candidate block's records must parse up to this many bytes
 (1: its first record; with a plausible header and successor)."""
+MAX_PARSE_FACTOR = 8
+"""At most this many times a unit's bytes (64 KiB at least) are parsed while reading it: a
+long damaged stretch (100 KB of bytes that all look like block headers took minutes) ends the
+unit's reading, the rest counted as ``unrecognised_bytes``; sound data are parsed once."""
 MAX_CHECKED_RECORD_BYTES = 1024
 """Bytes given to that check beyond its budget (a record longer than this fails it)."""
 CHUNK_BYTES = 1 << 20
@@ -330,6 +334,7 @@ class _Decoder:
         self.rows: list[tuple] = []  # one tuple per row, in the order of _COLUMNS
         self._memo: dict[tuple, Any] = {}
         self._resync_memo: tuple[Any, int, int | None] | None = None
+        self._parsed = 0  # bytes handed to libasterix, for the work limit of feed()
         self._lsbs: dict[type, float | None] = {}
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
@@ -349,6 +354,7 @@ class _Decoder:
         # The records' bits over a copy of this block's bytes only: libasterix's Bits copies
         # its buffer from the read position to the buffer's end for every integer it reads,
         # so over the whole unit (1 MiB) the cost per record grew with the unit's size.
+        self._parsed += stop - start
         bits = Bits.from_bytes(data[start:stop])
         out: list[tuple[Any, int]] = []
         while len(bits):
@@ -395,7 +401,13 @@ class _Decoder:
         """Decode the data blocks of ``data``, whose first byte is at file offset ``base``."""
         pos, end = 0, len(data)
         problems = self.problems
+        limit = self._parsed + MAX_PARSE_FACTOR * max(end, 1 << 16)
         while pos < end:
+            if self._parsed > limit:  # a long damaged stretch: linear work, the rest counted
+                problems.add("unrecognised_bytes", f"byte {base + pos}", f"{end - pos} bytes "
+                             "not read: the damage before them took the reader's work limit "
+                             f"({MAX_PARSE_FACTOR} times the bytes read)")
+                return
             if end - pos < 3:
                 problems.add("truncated_block", f"byte {base + pos}", f"{end - pos} byte(s) "
                              "left at the end, a block header has 3: skipped")
