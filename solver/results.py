@@ -226,3 +226,10 @@ def non_finite_part(rec: Reconstruction, estimates: dict[str, FilterEstimate] | 
     if not np.isfinite(np.asarray(rec.diagnostics.criterion_values, dtype=float)).all():
         return "diagnostics.criterion_values"
     return None
+
+
+def listed(indexes: np.ndarray | list[int], most: int = 50) -> str:
+    """``[3, 17, ...]`` for a warning: at most ``most`` plot indexes, saying how many more."""
+    values = np.asarray(indexes, dtype=int).tolist()
+    shown = str(values[:most])
+    return shown if len(values) <= most else f"{shown[:-1]}, ... ({len(values) - most} more)]"

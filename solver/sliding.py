@@ -61,7 +61,7 @@ from .inputs import FloatArray, InputError, Plots, Radar
 from .motion import propagate
 from .plots import PlotTable
 from .refine import DeadlineExceeded
-from .results import Diagnostics, FilterEstimate, Reconstruction, Segment, StateSeries
+from .results import Diagnostics, FilterEstimate, Reconstruction, Segment, StateSeries, listed
 from .trajectory import evaluate, sample_times
 from .window import SwitchFits, criterion, solve_free_start, solve_switches, solve_windows, w_box
 
@@ -294,10 +294,9 @@ def _not_wild(smoother: Callable[[], FilterEstimate], n: int, config: Reconstruc
     wild = np.flatnonzero(smoother().info.get("gated", ()))  # none from a numerical fallback
     if wild.size and n - wild.size >= 3:
         keep[wild] = False
-        shown = ", ".join(map(str, wild[:20])) + (", ..." if wild.size > 20 else "")
         diag.warnings.append(
             f"{wild.size} plot(s) far from a gated constant-velocity smoother were given no "
-            f"weight (wild plots): plots [{shown}]")
+            f"weight (wild plots): plots {listed(wild, 20)}")
     return keep
 
 

@@ -656,7 +656,7 @@ def test_the_filters_gate_is_set_and_kept_with_the_run(recording, tmp_path, caps
     assert gated == {"cv_rts": [], "alpha_beta": []}
     assert got["run"]["filter_gate_sigma"] is None
     assert sorted(w.split(":")[0] for w in warned) == ["filters.alpha_beta", "filters.cv_rts"]
-    assert all(f"used 1 plot(s) the reconstruction gave no weight as wild: {got['at']}" in w
+    assert all(f"used 1 plot(s) the reconstruction gave no weight as wild: [{got['at']}]" in w
                for w in warned)
     capsys.readouterr()
     assert main([*args, "--out", str(tmp_path / "off"), "--filter-gate", "4"]) == 2

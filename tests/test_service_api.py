@@ -230,13 +230,13 @@ def test_filters_report_the_plots_they_left_out(client, gate):
     assert f"given no weight: plots [{wild}]" in " ".join(out["diagnostics"]["warnings"])
     used = [w for w in out["diagnostics"]["warnings"] if "the reconstruction gave no weight" in w]
     for name, est in out["filters"].items():
-        said = f"filters.{name}: used 1 plot(s) the reconstruction gave no weight as wild: {wild}"
+        said = f"filters.{name}: used 1 plot(s) the reconstruction gave no weight as wild: [{wild}]"
         if name == "alpha_beta" or gate is None:
             assert est["gated"] == [] and said in used, (name, used)
             continue
         assert said not in used
         assert est["gated"] == [wild], name
-        assert any(w.startswith(f"filters.{name}: 1 plot(s) left out") and w.endswith(f": {wild}")
+        assert any(w.startswith(f"filters.{name}: 1 plot(s) left out") and w.endswith(f": [{wild}]")
                    for w in out["diagnostics"]["warnings"]), name
         rec = out["trajectory"]["at_plots"][wild]
         assert np.hypot(est["states"][wild]["x"] - rec["x"],

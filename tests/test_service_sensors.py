@@ -414,7 +414,7 @@ def test_filters_beside_gated_plots_say_which_they_used(client, wild, gate):
         assert not used and not left_out, warnings
         return
     assert used == (["filters.alpha_beta"] if gate else ["filters.alpha_beta", "filters.cv_rts"])
-    assert all(w.endswith(f"as wild: {first + 5}") for w in warnings if "as wild:" in w)
+    assert all(w.endswith(f"as wild: [{first + 5}]") for w in warnings if "as wild:" in w)
     assert out["filters"]["cv_rts"]["gated"] == ([first + 5] if gate else [])
     assert left_out == ([f"filters.cv_rts: 1 plot(s) left out, far from the filter's "
-                         f"prediction (wild plots?): {first + 5}"] if gate else [])
+                         f"prediction (wild plots?): [{first + 5}]"] if gate else [])

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..config import FILTER_GATE_SIGMA
 from ..config import check_filter_gate as check_gate
+from ..results import listed
 
 GATE_SIGMA = FILTER_GATE_SIGMA
 """Default gate (sigmas): :data:`solver.config.FILTER_GATE_SIGMA`, where its measured reason is."""
@@ -139,14 +140,9 @@ def gate_warnings(gated: dict[str, list[int]], no_weight: np.ndarray) -> list[st
     for name, left_out in gated.items():
         if left_out:
             out.append(f"filters.{name}: {len(left_out)} plot(s) left out, far from the "
-                       f"filter's prediction (wild plots?): {_listed(left_out)}")
+                       f"filter's prediction (wild plots?): {listed(left_out, 10)}")
         used = np.setdiff1d(wild, left_out).tolist()
         if used:
             out.append(f"filters.{name}: used {len(used)} plot(s) the reconstruction gave no "
-                       f"weight as wild: {_listed(used)}")
+                       f"weight as wild: {listed(used, 10)}")
     return out
-
-
-def _listed(indexes: list[int]) -> str:
-    """The first ten plot indexes."""
-    return ", ".join(map(str, indexes[:10])) + (", ..." if len(indexes) > 10 else "")

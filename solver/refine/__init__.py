@@ -26,7 +26,7 @@ import numpy as np
 from ..config import ReconstructionConfig, RefineSettings
 from ..inputs import Bounds, Plots, Radar
 from ..plots import PlotTable
-from ..results import Diagnostics, Reconstruction
+from ..results import Diagnostics, Reconstruction, listed
 from ..sensors import ALTITUDE_RANGE_M, MAX_ELEVATION_DEG
 from ..trajectory import sample_times
 from . import nlp
@@ -90,12 +90,6 @@ def unreachable_in(table: PlotTable, data: NodeData, plot_node: np.ndarray, boun
     out = [g[unreachable_plots(table.t[g], centre[g], sigma[g], spread[g], v_max)]
            for g in groups if g.size]
     return np.sort(np.concatenate(out)) if out else np.zeros(0, dtype=int)
-
-
-def _listed(plots: np.ndarray, most: int = 50) -> str:
-    """``[3, 17, ...]``: at most ``most`` indexes, saying how many more there are."""
-    shown = str(plots.tolist()[:most])
-    return shown if plots.size <= most else f"{shown[:-1]}, ... ({plots.size - most} more)]"
 
 
 def refine(plots: Plots, radar: Radar, config: ReconstructionConfig,
@@ -264,18 +258,18 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
             f"{impossible.size} plot(s) out of reach at bounds.v of the track's other plots "
             f"(off their longest chain in time, each in reach of the one before: a wild range "
             f"or azimuth) were given no weight: plots "
-            f"{_listed(impossible)}")
+            f"{listed(impossible)}")
     if overhead.size:
         diag.warnings.append(
             f"{overhead.size} plot(s) without altitude whose slant range cannot place them at "
             f"the track's height (above {MAX_ELEVATION_DEG:.0f} deg elevation there, or a range "
             f"shorter than the height: solver.sensors.MAX_ELEVATION_FRACTION) were given no "
-            f"weight: plots {_listed(overhead)}")
+            f"weight: plots {listed(overhead)}")
     rejected = np.setdiff1d(rejected, np.union1d(impossible, overhead))
     if rejected.size:
         diag.warnings.append(
             f"{rejected.size} plot(s) more than {st.outlier_gate:g} sigma from the track were "
-            f"given no weight: plots {_listed(rejected)}")
+            f"given no weight: plots {listed(rejected)}")
     rejected = np.union1d(np.union1d(rejected, impossible), overhead).astype(int)
     diag.extra["rejected_plots"] = int(rejected.size)
     diag.solver_failures += failures
