@@ -75,6 +75,7 @@ from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .frames import LocalFrame
 from .inputs import Bounds, FloatArray, InputError
 from .io.asterix import iter_recording, looks_like_recording, read_recording
+from .io.asterix import time_disorder_s as asterix_time_disorder_s
 from .io.problems import Problems
 from .io.sensors_file import SensorSet, load_sensors
 from .io.split import (
@@ -279,12 +280,8 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
         # rows by aircraft or by sensor: split in batches, an aircraft would be closed at a
         # batch's end and its later rows start a new track (60 aircraft became 70)
         rows, _ = read_table(recording, problems=out.problems)
-        out.problems.add("unordered_table", "file", f"rows up to {back:.0f} s out of time "
-                         f"order: read whole and sorted by time ({len(rows)} rows in memory; "
-                         "a table in time order is read in batches)")
-        rows = rows.take(np.argsort(rows.t, kind="stable"))
-        for i in range(0, len(rows), STREAM_BATCH_ROWS):
-            yield out._note(rows.take(np.arange(i, min(i + STREAM_BATCH_ROWS, len(rows)))))
+        yield from _sorted_parts(rows, out, "unordered_table", f"rows up to {back:.0f} s",
+                                 "a table")
         return
     with open(recording, "rb") as f:
         head = f.read(RECORDING_HEAD_BYTES)
@@ -294,6 +291,16 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
                          "nor a pcap/pcapng capture; a plot table's name ends in "
                          + " or ".join(TABLE_SUFFIXES))
     out.times_of_day = True  # ASTERIX: times of day, t from the midnight before the first
+    back = asterix_time_disorder_s(recording, out.sensors)
+    if back > DISORDER_S:  # e.g. two recordings concatenated: read whole, sorted
+        rec = read_recording(recording, out.sensors, executor=executor,
+                             chunk_bytes=STREAM_CHUNK_BYTES)
+        out.problems.extend(rec.problems)
+        out.scan_periods.update({sid: st.rotation_period_s for sid, st in rec.service.items()
+                                 if st.rotation_period_s})
+        yield from _sorted_parts(rec.rows, out, "unordered_recording",
+                                 f"reports {back:.0f} s or more", "a recording")
+        return
     for part in iter_recording(recording, out.sensors, chunk_bytes=STREAM_CHUNK_BYTES,
                                executor=executor):
         out.problems.extend(part.problems)
@@ -301,6 +308,18 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
             if st.rotation_period_s:
                 out.scan_periods[sid] = st.rotation_period_s
         yield out._note(part.rows)
+
+
+def _sorted_parts(rows: PlotRows, out: Streamed, kind: str, how_far: str, what: str
+                  ) -> Iterator[PlotRows]:
+    """A recording out of time order, read whole, sorted by time and handed on in batches
+    (said in the problems: its memory is the whole recording's)."""
+    out.problems.add(kind, "file", f"{how_far} out of time order: read whole "
+                     f"and sorted by time ({len(rows)} rows in memory; {what} in time order "
+                     "is read in parts)")
+    rows = rows.take(np.argsort(rows.t, kind="stable"))
+    for i in range(0, len(rows), STREAM_BATCH_ROWS):
+        yield out._note(rows.take(np.arange(i, min(i + STREAM_BATCH_ROWS, len(rows)))))
 
 
 class _Raised:

@@ -24,6 +24,7 @@ from test_io_asterix import FLIGHTS, SENSOR_FILE, encode_recording
 
 from solver.cli import main
 from solver.io.asterix import read_recording
+from solver.io.problems import Problems
 from solver.io.sensors_file import parse_sensors
 from solver.io.tables import write_table
 
@@ -381,6 +382,49 @@ def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkey
     assert time_disorder_s(tod) == 0.0
     tod.write_text("time_of_day_s,sensor\n3.5,R1\n86390,R1\n9,R1\n100,R1\n1,R1\n")
     assert time_disorder_s(tod) == pytest.approx(99.0)
+
+
+def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, monkeypatch):
+    """Two ASTERIX recordings concatenated (``cat later.ast earlier.ast``, raw and as a pcap
+    capture), streamed in small units as the command line does: each aircraft came out in
+    overlapping pieces (10 tracks for 2, nothing reported; a fuzz helper). The sampled times
+    show the backward jump: read whole and sorted, said in the problems, the two tracks with
+    every plot. A recording in time order across midnight (the fixture's) is streamed with no
+    alarm; a stream that still gets plots late (the sampling bypassed) counts each one."""
+    from test_io_asterix import SENSORS, pcap
+
+    import solver.cli as cli
+    from solver.io.asterix import iter_recording, time_disorder_s
+    from solver.io.split import split_stream
+
+    d, _ = recording
+    blocks = encode_recording(duration=1200.0).blocks
+    half = len(blocks) // 2
+    swapped = blocks[half:] + blocks[:half]
+    (tmp_path / "cat.ast").write_bytes(b"".join(swapped))
+    (tmp_path / "cat.pcap").write_bytes(pcap(swapped))
+    monkeypatch.setattr(cli, "STREAM_CHUNK_BYTES", 4096)
+    n = len(read_recording(tmp_path / "cat.ast", SENSORS).rows)
+    for name in ("cat.ast", "cat.pcap"):
+        assert 600 < time_disorder_s(tmp_path / name, SENSORS, every_bytes=4096) < 1200
+        read = cli.stream(tmp_path / name, d / "sensors.json")
+        tracks = list(read.tracks)
+        assert sorted(t.key for t in tracks) == sorted(f"{f.address:06X}" for f in FLIGHTS)
+        assert sum(len(t.table) for t in tracks) == n
+        assert all(np.all(np.diff(t.table.t) > 0) for t in tracks)
+        assert "unordered_recording" in read.problems.counts
+        assert "late_plots" not in read.problems.counts
+    assert time_disorder_s(d / "day.ast", SENSORS, every_bytes=64) == 0.0
+    read = cli.stream(d / "day.ast", d / "sensors.json")
+    assert len(list(read.tracks)) == 2 and "unordered_recording" not in read.problems.counts
+    problems = Problems()
+    late = list(split_stream((p.rows for p in iter_recording(tmp_path / "cat.ast", SENSORS,
+                                                             chunk_bytes=4096)),
+                             SENSORS, problems=problems))
+    assert len(late) > 2
+    first_half = sum(1 for p in encode_recording(duration=1200.0).plots if p["tod"] < 36_600)
+    assert problems.counts["late_plots"] == first_half
+    assert problems.of_kind("late_plots")[0].where.startswith("byte ")
 
 
 @pytest.mark.parametrize("detected", [0.95, 0.7, 0.5, 0.35, 0.2])

@@ -208,6 +208,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                 frame = recording_frame(sensors, rows)
             keep = _usable(rows, sensors, index, is_radar_sensor, problems)
             part = rows.take(keep)
+            _report_late(part, latest, disorder_s, problems)
             buffer = part if buffer is None else PlotRows.concat([buffer, part])
             numbers = np.concatenate([numbers, seen + np.flatnonzero(keep)])
             seen += len(rows)
@@ -251,6 +252,19 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
         buffer = buffer.take(~taken)
         numbers = numbers[~taken]
+
+
+def _report_late(rows: PlotRows, latest: float, disorder_s: float, problems: Problems
+                 ) -> None:
+    """Rows timed more than ``disorder_s`` before the ``latest`` of the parts read before
+    may belong to an aircraft already yielded: it then comes out in overlapping tracks.
+    Counted and located, each row (the command line sorts what it finds out of order before
+    splitting: a table by its times, an ASTERIX recording by sampled times; these got past)."""
+    for i in np.flatnonzero(rows.t < latest - disorder_s).tolist():
+        problems.add("late_plots", rows.where(i), f"timed {latest - rows.t[i]:.0f} s before "
+                     f"the latest plot read earlier (more than {disorder_s:g} s): its "
+                     "aircraft may have been finished already and come out again as "
+                     "overlapping tracks; sort the recording by time", key="late")
 
 
 def _undecided(rows: PlotRows, memory: TrackMemory, gap_s: float, horizon: float
