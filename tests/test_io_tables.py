@@ -234,3 +234,30 @@ def test_a_users_key_that_looks_like_a_piece_is_a_counted_bad_value():
     assert rows.aircraft.tolist() == ["A", "B#x"]
     assert problems.counts == {"bad_value": 1} and problems.dropped == {"bad_value": 1}
     assert "aircraft: ends in #<number>" in problems.summary()
+
+
+def test_a_parquet_integer_column_written_as_float_is_read_as_integers(tmp_path):
+    """pandas writes an integer column with missing values as float64, NaN where missing:
+    such a Parquet ``mode_s`` refused every row (a fuzz helper). Whole numbers are the
+    integers they are (``mode_s`` the address, ``mode_3a`` its octal digits, as an integer
+    column gives them), NaN is missing; a fraction or a value beyond 2^53 is a counted
+    bad value of its row only."""
+    nan = np.nan
+    table = pa.table({
+        "t": [1.0, 2.0, 3.0, 4.0, 5.0],
+        "sensor": ["R1"] * 5,
+        "range_m": [1e4] * 5,
+        "azimuth_deg": [10.0] * 5,
+        "mode_s": pa.array([0x4CA2D1, nan, 0x4CA2D1 + 0.5, 0x3C6DD4, 1e300], pa.float64()),
+        "mode_3a": pa.array([7000.0, 1234.0, nan, 7000.0, 7000.0], pa.float64()),
+        "track_number": pa.array([12.0, nan, 12.0, 7.0, 7.0], pa.float64()),
+    })
+    pq.write_table(table, tmp_path / "pandas.parquet")
+    rows, problems = read_table(tmp_path / "pandas.parquet")
+    assert rows.origin.tolist() == [1, 2, 4]
+    assert rows.mode_s.tolist() == [0x4CA2D1, -1, 0x3C6DD4]
+    assert rows.mode_3a.tolist() == [0o7000, 0o1234, 0o7000]
+    assert rows.track_number.tolist() == [12, -1, 7]
+    assert problems.counts == {"bad_value": 2}
+    assert [e.where for e in problems.entries] == ["row 3", "row 5"]
+    assert all("mode_s: must be a 24-bit hex address" in e.message for e in problems.entries)

@@ -31,7 +31,10 @@ column              meaning
                     ending in ``#<number>``, the name of a key's piece after a time gap)
 ==================  =======================================================================
 
-Empty cells (CSV) and nulls (Parquet) are missing values. A row needs a time, a sensor and
+Empty cells (CSV) and nulls (Parquet) are missing values; in Parquet, ``mode_s`` and
+``track_number`` may be integers (the value itself) and ``mode_3a`` an integer of its octal
+digits (7000), also as floats of whole numbers with NaN missing (as pandas writes an
+integer column with missing values). A row needs a time, a sensor and
 either ``range_m`` + ``azimuth_deg`` or ``lat_deg`` + ``lon_deg``. A missing required column
 raises :class:`solver.InputError` naming it; a bad value (unparsable, non-finite, out of range)
 is reported as a problem naming the row (1-based data row; in CSV files line = row + 1) and
@@ -532,6 +535,18 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
                                   ("mode_3a", 8, 0o7777, "4 octal digits (7000)"),
                                   ("track_number", 10, 2**31 - 1, "an integer >= 0")):
         values = np.full(n, NO_INT, dtype=np.int64)
+        if name in names and pa.types.is_floating(table.column(name).type):
+            # pandas writes an integer column with missing values as float, NaN where missing
+            # (every row of such a Parquet mode_s was refused; a fuzz helper): whole numbers
+            # are read as the integers they are
+            arr = np.array(table.column(name).to_numpy(zero_copy_only=False), dtype=float)
+            odd = np.flatnonzero(~np.isnan(arr) & ((np.abs(arr) > 2.0**53)
+                                                   | (arr != np.round(arr))))
+            if odd.size:
+                report(odd, name, f"must be {what}")
+                arr[odd] = np.nan
+            whole = pa.array(np.nan_to_num(arr).astype(np.int64), mask=np.isnan(arr))
+            table = table.set_column(names.index(name), name, whole)
         if name in names and pa.types.is_integer(table.column(name).type) and base != 8:
             col = table.column(name)
             arr = col.to_numpy(zero_copy_only=False)
