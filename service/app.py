@@ -27,10 +27,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from solver import compiled
 from solver.inputs import InputError, format_loc
+from solver.json_keys import TWICE, duplicate_key
 
 from . import __version__
 from .convert import client_loc, to_job
-from .json_keys import TWICE, duplicate_key
 from .logs import LOGGER, setup_logging
 from .metrics import Metrics
 from .models import ErrorResponse, Health, ReconstructionRequest, ReconstructionResponse

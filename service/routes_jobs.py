@@ -25,6 +25,7 @@ from solver.inputs import Bounds, InputError
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
 from solver.io.tables import PIECE_NAME, PlotRows, write_table
+from solver.json_keys import TWICE, duplicate_key
 from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
@@ -39,7 +40,6 @@ from .job_models import (
     SensorSummaryOut,
 )
 from .jobs import FINISHED, RESULT_FILES, Full, JobRecord, JobRunner
-from .json_keys import TWICE, duplicate_key
 from .models import ErrorResponse
 from .settings import Settings
 

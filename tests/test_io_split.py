@@ -180,6 +180,17 @@ def test_sensor_file_json_errors():
         parse_sensors('[{"id": "A", "kind": "position", "position_sigma_m": NaN}]')
     with pytest.raises(InputError, match=r"^sensors\[1\]\.id 'R1' repeats"):
         parse_sensors([SENSOR_FILE[0], {**SENSOR_FILE[1], "id": "R1"}])
+    # a key twice in one object: json keeps the last, the file's reader refuses it (the
+    # service does in requests; a fuzz helper found the sensor file kept the second)
+    text = json.dumps(SENSOR_FILE)
+    twice = text.replace('"range_error_m": 150.0', '"range_error_m": 150.0, "range_error_m": 5',
+                         1)
+    with pytest.raises(InputError, match=r"^sensors\[0\]\.range_error_m is given twice"):
+        parse_sensors(twice)
+    with pytest.raises(InputError, match=r"^reference\.lat_deg is given twice"):
+        parse_sensors('{"reference": {"lat_deg": 1, "lat_deg": 2, "lon_deg": 3}, "sensors": '
+                      + text + "}")
+    assert parse_sensors(text).sensors[0].range_error_m == 150.0
 
 
 PLOTS = st.lists(st.tuples(

@@ -341,7 +341,7 @@ def test_a_key_given_twice_is_422_naming_it(client):
 
 
 def test_duplicate_key_locates_the_key_at_any_depth():
-    from service.json_keys import duplicate_key
+    from solver.json_keys import duplicate_key
 
     assert duplicate_key(b'{"a": [{"b": 1}, {"c": {"d": 1, "d": 2}}]}') == ("a", 1, "c", "d")
     assert duplicate_key(b'{"a": 1, "b": 2}') is None

@@ -30,6 +30,7 @@ from pathlib import Path
 
 from ..frames import LocalFrame
 from ..inputs import InputError
+from ..json_keys import TWICE, duplicate_key
 from ..plots import validate_sensors
 from ..sensors import PositionSensor, RadarSensor, Sensor, Site
 
@@ -90,6 +91,9 @@ def parse_sensors(text: str | object) -> SensorSet:
         except RecursionError:  # json's C scanner recurses per nesting level
             raise InputError(("sensors",), "is nested too deeply (a sensor file is a list of "
                              "sensor objects)") from None
+        twice = duplicate_key(text)
+        if twice is not None:
+            raise InputError(("sensors", *twice) if isinstance(value, list) else twice, TWICE)
     else:
         value = text
     reference = None

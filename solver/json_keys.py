@@ -1,8 +1,11 @@
-"""Duplicate keys in a JSON body: a 422 naming the key, not the last value silently kept.
+"""Duplicate keys in a JSON document: an error naming the key, not the last value silently
+kept.
 
 ``json.loads`` (and so FastAPI and pydantic) keeps the last of two equal keys in an object: a
 request with ``"t"`` twice in a plot, or a job with a track name twice under ``tracks``, was
-answered as if the earlier value (a whole track) had never been sent.
+answered as if the earlier value (a whole track) had never been sent; a sensor file with a
+radar's ``range_error_m`` twice used the second (the service answers 422, the sensor file's
+reader an :class:`solver.InputError`).
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-TWICE = "is given twice in one JSON object: send each key once (a JSON parser keeps only one)"
+TWICE = "is given twice in one JSON object: give each key once (a JSON parser keeps only one)"
 
 
 class _Duplicated(dict):  # type: ignore[type-arg]
