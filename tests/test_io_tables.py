@@ -261,3 +261,48 @@ def test_a_parquet_integer_column_written_as_float_is_read_as_integers(tmp_path)
     assert problems.counts == {"bad_value": 2}
     assert [e.where for e in problems.entries] == ["row 3", "row 5"]
     assert all("mode_s: must be a 24-bit hex address" in e.message for e in problems.entries)
+
+
+ODD_CSV = (b"t,sensor,range_m,azimuth_deg,comment\n"
+           b"1,R1,1000,10,ok\n"
+           b"2,R1,1000,10,a,b\n"             # row 2: a field too many
+           b"3,R\xe9,1000,10,x\n"            # row 3: a Latin-1 sensor name
+           b"4,R1,1000,10,Z\xfcrich\n"       # row 4: Latin-1 in a column read past: fine
+           b"\"5\",R1,1000,10,\"two\nlines\"\n"
+           b"6,R1,1000\n"                    # row 6 (line 8): fields missing
+           b"7,R1,xx,10,\n"                  # row 7 (line 9): a bad value
+           b"8,R1,1000,10,\n")
+
+
+def test_a_row_of_the_wrong_width_or_not_utf8_is_skipped_and_the_rest_read(tmp_path):
+    """One CSV row with a field too many or too few, or a byte that is not UTF-8 in a column
+    read, refused the whole table (Arrow's reader; a fuzz helper). Such a row is now a
+    counted problem (``bad_row``, ``bad_value``) naming its row and line, and every later row
+    keeps its number and line (also after a quoted newline), whole and in batches; the
+    reader's time-order check reads past it too; ``strict`` raises at it."""
+    from solver.io.tables import iter_table, time_disorder_s
+
+    path = tmp_path / "odd.csv"
+    path.write_bytes(ODD_CSV)
+    for got in (read_csv(ODD_CSV), read_table(path)):
+        rows, problems = got
+        assert rows.origin.tolist() == [1, 4, 5, 8] and rows.t.tolist() == [1, 4, 5, 8]
+        assert problems.counts == {"bad_row": 2, "unknown_column": 1, "bad_value": 2}
+        assert [str(e).split(":")[0] for e in problems.entries if e.kind != "unknown_column"] \
+            == ["bad_row at row 2 (line 3)", "bad_row at row 6 (line 8)",
+                "bad_value at row 3 (line 4)", "bad_value at row 7 (line 9)"]
+        assert "has 6 field(s), the header 5" in problems.entries[0].message
+        assert problems.dropped["bad_row"] == 2
+    lines = ["t,sensor,range_m,azimuth_deg"] + [
+        f"{i},R1,1000,10" + (",x" if i in (700, 2999, 3000) else "") for i in range(3000, 0, -1)]
+    path.write_text("\n".join(lines) + "\n")
+    problems = Problems()
+    parts = list(iter_table(path, batch_rows=100, problems=problems))
+    assert len(parts) > 5
+    origin = [o for p in parts for o in p.origin.tolist()]
+    assert origin == [r for r in range(1, 3001) if r not in (1, 2, 2301)]
+    assert [e.where for e in problems.entries] == ["row 1 (line 2)", "row 2 (line 3)",
+                                                   "row 2301 (line 2302)"]
+    assert time_disorder_s(path) == pytest.approx(2999 - 1 - 1)  # rows 3 ... 2998 down
+    with pytest.raises(InputError, match="has 6 field"):
+        read_csv(ODD_CSV, strict=True)

@@ -51,6 +51,7 @@ import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -280,9 +281,11 @@ def _time_disorder_s(path: Path) -> float:
             return 0.0
         raw = header[names.index(name)]
         try:
-            col = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(
-                include_columns=[raw], column_types={raw: pa.string()},
-                strings_can_be_null=True)).column(0)
+            col = pacsv.read_csv(
+                path, parse_options=pacsv.ParseOptions(invalid_row_handler=lambda _: "skip"),
+                convert_options=pacsv.ConvertOptions(
+                    include_columns=[raw], column_types={raw: pa.string()},
+                    strings_can_be_null=True, check_utf8=False)).column(0)
         except pa.ArrowInvalid:
             return 0.0  # read_table says what is wrong with it
     if not pa.types.is_floating(col.type) and not pa.types.is_integer(col.type):
@@ -294,6 +297,14 @@ def _time_disorder_s(path: Path) -> float:
     if name == "time_of_day_s":
         t = unwrap_time_of_day(t)
     return float(np.max(np.maximum.accumulate(t) - t)) if t.size else 0.0
+
+
+def _is_utf8(value: bytes) -> bool:
+    try:
+        value.decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return True
 
 
 def read_table(path: str | Path, *, strict: bool = False, problems: Problems | None = None
@@ -323,15 +334,86 @@ def read_csv(data: bytes, *, strict: bool = False, problems: Problems | None = N
     header = next(csv.reader(first.splitlines()[:1]), [])
     if not header or not any(h.strip() for h in header):
         raise InputError(("file",), "has no header line")
+    odd = _OddRows()
     try:
-        table = pacsv.read_csv(
-            io.BytesIO(data),
-            convert_options=pacsv.ConvertOptions(
-                column_types={h: pa.string() for h in header}, strings_can_be_null=True,
-                null_values=[""], quoted_strings_can_be_null=True))
+        table = pacsv.read_csv(io.BytesIO(data), parse_options=odd.parse_options(),
+                               convert_options=_csv_convert_options(header))
     except pa.ArrowInvalid as e:
         raise InputError(("file",), f"is not a readable CSV table: {e}") from None
-    return rows_from_arrow(table, strict=strict, problems=problems, csv_lines=True)
+    problems = problems if problems is not None else Problems()
+    numbers = None
+    if odd.skipped:
+        records = _CsvRecords(io.TextIOWrapper(io.BytesIO(data), encoding="utf-8-sig",
+                                               errors="replace", newline=""), len(header))
+        numbers = records.take(table.num_rows, problems, strict)
+        records.take(0, problems, strict, to_end=True)
+    return rows_from_arrow(table, strict=strict, problems=problems, csv_lines=True,
+                           numbers=numbers)
+
+
+def _csv_convert_options(header: list[str]) -> pacsv.ConvertOptions:
+    """Every column as text (converted, and a bad value named by its row, here); UTF-8 is
+    checked here too, per row (:func:`rows_from_arrow`): Arrow's check refused the whole
+    table for one Latin-1 byte (a fuzz helper)."""
+    return pacsv.ConvertOptions(column_types={h: pa.string() for h in header},
+                                strings_can_be_null=True, null_values=[""],
+                                quoted_strings_can_be_null=True, check_utf8=False)
+
+
+class _OddRows:
+    """Arrow's CSV parser told to skip a row whose field count is not the header's (one such
+    row, a line cut short or a stray comma, refused the whole table; a fuzz helper), noting
+    that it did: Arrow does not say where the row was, :class:`_CsvRecords` finds it."""
+
+    def __init__(self) -> None:
+        self.skipped = 0
+
+    def parse_options(self) -> pacsv.ParseOptions:
+        def skip(_row: Any) -> str:
+            self.skipped += 1
+            return "skip"
+        return pacsv.ParseOptions(invalid_row_handler=skip)
+
+
+class _CsvRecords:
+    """The row and line numbers of a CSV's records by Python's csv reader (RFC 4180 quoting
+    as Arrow reads it; blank lines skipped and not numbered, as Arrow does), for the rows
+    Arrow kept once it skipped one: each skipped row is reported (``bad_row``, with its row
+    and line) and the later rows keep their numbers. About 1 s per 10^6 rows, only for a
+    table that has such a row."""
+
+    def __init__(self, lines: Any, fields: int):
+        self.reader = csv.reader(lines)
+        next(self.reader, None)  # the header
+        self.fields = fields
+        self.row = 0
+
+    def take(self, kept: int, problems: Problems, strict: bool, *, to_end: bool = False
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Row and line numbers of the next ``kept`` rows of the header's field count (or,
+        ``to_end``, of every row left); the others met on the way reported."""
+        rows: list[int] = []
+        lines: list[int] = []
+        while to_end or len(rows) < kept:
+            rec = next(self.reader, None)
+            if rec is None:
+                break
+            if not rec:
+                continue
+            self.row += 1
+            if len(rec) == self.fields:
+                rows.append(self.row)
+                lines.append(self.reader.line_num)
+                continue
+            where = f"row {self.row} (line {self.reader.line_num})"
+            message = (f"has {len(rec)} field(s), the header {self.fields}: the row is "
+                       "skipped")
+            if strict:
+                raise InputError(("rows", self.row), message)
+            problems.add("bad_row", where, message, dropped=1)
+        return np.array(rows, dtype=np.int64), np.array(lines, dtype=np.int64)
+
+
 
 
 def iter_table(path: str | Path, *, batch_rows: int = 1 << 17, strict: bool = False,
@@ -355,40 +437,59 @@ def iter_table(path: str | Path, *, batch_rows: int = 1 << 17, strict: bool = Fa
         header = next(csv.reader(first.splitlines()[:1]), [])
         if not header or not any(h.strip() for h in header):
             raise InputError(("file",), "has no header line")
+        odd = _OddRows()
         try:
             batches = pacsv.open_csv(
                 path, read_options=pacsv.ReadOptions(block_size=max(batch_rows * 64, 4096)),
-                convert_options=pacsv.ConvertOptions(
-                    column_types={h: pa.string() for h in header}, strings_can_be_null=True,
-                    null_values=[""], quoted_strings_can_be_null=True))
+                parse_options=odd.parse_options(), convert_options=_csv_convert_options(header))
         except pa.ArrowInvalid as e:
             raise InputError(("file",), f"is not a readable CSV table: {e}") from None
         csv_lines = True
     first_row, previous = 1, np.nan
-    while True:
-        try:
-            batch = next(batches)
-        except StopIteration:
-            return
-        except pa.ArrowInvalid as e:
-            raise InputError(("file",), f"is not a readable table after row {first_row - 1}: "
-                             f"{e}") from None
-        rows, _ = rows_from_arrow(pa.Table.from_batches([batch]), strict=strict,
-                                  problems=problems, csv_lines=csv_lines,
-                                  first_row=first_row, previous_t=previous)
-        first_row += batch.num_rows
-        finite = rows.t[np.isfinite(rows.t)]
-        if finite.size:
-            previous = float(finite[-1])
-        yield rows
+    records: _CsvRecords | None = None  # once Arrow skipped a row: the rows' numbers
+    text = None
+    try:
+        while True:
+            try:
+                batch = next(batches)
+            except StopIteration:
+                if records is not None:
+                    records.take(0, problems, strict, to_end=True)
+                return
+            except pa.ArrowInvalid as e:
+                raise InputError(("file",), f"is not a readable table after row "
+                                 f"{first_row - 1}: {e}") from None
+            numbers = None
+            if csv_lines and records is None and odd.skipped:
+                # Arrow has skipped a row in this batch or one it read ahead: number the
+                # rows from here on by the csv reader (the rows before: as they came)
+                text = open(path, encoding="utf-8-sig", errors="replace", newline="")
+                records = _CsvRecords(text, len(header))
+                records.take(first_row - 1, problems, strict)
+            if records is not None:
+                numbers = records.take(batch.num_rows, problems, strict)
+            rows, _ = rows_from_arrow(pa.Table.from_batches([batch]), strict=strict,
+                                      problems=problems, csv_lines=csv_lines,
+                                      first_row=first_row, previous_t=previous,
+                                      numbers=numbers)
+            first_row += batch.num_rows
+            finite = rows.t[np.isfinite(rows.t)]
+            if finite.size:
+                previous = float(finite[-1])
+            yield rows
+    finally:
+        if text is not None:
+            text.close()
 
 
 def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems | None = None,
-                    csv_lines: bool = False, first_row: int = 1, previous_t: float = np.nan
+                    csv_lines: bool = False, first_row: int = 1, previous_t: float = np.nan,
+                    numbers: tuple[np.ndarray, np.ndarray] | None = None
                     ) -> tuple[PlotRows, Problems]:
     """Convert and check an Arrow table of the documented columns (see the module docstring).
     ``first_row``: the number of its first row in the file; ``previous_t``: the unwrapped time
-    before it (a table read in batches)."""
+    before it (a table read in batches); ``numbers``: each row's number and line in the file
+    when they are not ``first_row`` on (a CSV with rows skipped)."""
     problems = problems if problems is not None else Problems()
     names = [n.strip() for n in table.column_names]
     table = table.rename_columns(names)
@@ -427,16 +528,37 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
 
     n = table.num_rows
     bad = np.zeros(n, dtype=bool)
+    row_of, line_of = numbers if numbers is not None else (
+        np.arange(first_row, first_row + n), np.arange(first_row + 1, first_row + n + 1))
+    if len(row_of) != n:  # the csv reader and Arrow read the records differently
+        raise InputError(("file",), f"is not a readable CSV table: {n} rows read after row "
+                         f"{first_row - 1} where the csv reader finds {len(row_of)}")
 
     def report(rows: np.ndarray, column: str, message: str) -> None:
         new = rows[~bad[rows]]
         for i in new.tolist():
-            row = i + first_row
-            where = f"row {row}" + (f" (line {row + 1})" if csv_lines else "")
+            row = int(row_of[i])
+            where = f"row {row}" + (f" (line {line_of[i]})" if csv_lines else "")
             if strict:
                 raise InputError(("rows", row, column), message)
             problems.add("bad_value", where, f"{column}: {message}", dropped=1)
         bad[new] = True
+
+    for name in names:  # text not UTF-8 (read unchecked): a bad value of its row
+        col = table.column(name)
+        if not (pa.types.is_string(col.type) or pa.types.is_large_string(col.type)):
+            continue
+        try:
+            col.validate(full=True)
+            continue
+        except pa.ArrowInvalid:
+            pass
+        raw = col.cast(pa.binary()).to_pylist()
+        odd = np.array([v is not None and not _is_utf8(v) for v in raw], dtype=bool)
+        report(np.flatnonzero(odd), name, "is not UTF-8 text")
+        table = table.set_column(names.index(name), name, pa.array(
+            [None if v is None or o else v.decode() for o, v in zip(odd.tolist(), raw,
+                                                                     strict=True)], col.type))
 
     def floats(name: str) -> FloatArray:
         if name not in names:
@@ -587,7 +709,7 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
         sensor=np.array(["" if s is None else s for s in sensor], dtype=object),
         range_m=cols["range_m"], azimuth_deg=cols["azimuth_deg"], lat_deg=cols["lat_deg"],
         lon_deg=cols["lon_deg"], altitude_m=altitude, flight_level=fl, aircraft=aircraft,
-        origin=np.arange(first_row, first_row + n), **ints)
+        origin=row_of.copy(), **ints)
     return rows.take(keep), problems
 
 
