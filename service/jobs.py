@@ -716,6 +716,7 @@ class JobRunner:
                    "failed": progress.failed, "plots": progress.plots_done,
                    "rows_in_recording": len(loaded.rows),
                    "problems": dict(loaded.problems.counts),
+                   "dropped": loaded.problems.left_out(),
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None, **settings.as_json()}
@@ -860,7 +861,7 @@ class JobRunner:
 def problems_summary(problems: Any) -> dict[str, Any]:
     """Counts by kind, their total, and the first examples (each locating its problem)."""
     return {"total": problems.total, "counts": dict(problems.counts),
-            "dropped": {k: n for k, n in problems.dropped.items() if n},
+            "dropped": problems.left_out(),
             "examples": [str(p) for p in list(problems.entries)[:PROBLEM_EXAMPLES]]}
 
 

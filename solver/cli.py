@@ -802,7 +802,8 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
         "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
         "time_to_first_result_s": first_result_s,
-        "problems": dict(loaded.problems.counts), "failures": summary.failures,
+        "problems": dict(loaded.problems.counts),
+        "dropped": loaded.problems.left_out(), "failures": summary.failures,
         "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "manoeuvres": manoeuvres,
         "output": state, "sensors": sensor_rows}
     if chosen is not None and chosen.keys is not None:
@@ -881,8 +882,10 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
           f"{p['skipped']} finished before); plots: {p['plots']}; "
           f"{p['plots_per_s']:.0f} plots/s; {p['elapsed_s']:.1f} s in all", file=file)
     if p["problems"]:
-        print("left out or reported: " + ", ".join(f"{k} {n}" for k, n in
-                                                   p["problems"].items()), file=file)
+        lost = p.get("dropped") or {}
+        print("left out or reported: " + ", ".join(
+            f"{k} {n}" + (f" ({lost[k]} plots left out)" if lost.get(k) else "")
+            for k, n in p["problems"].items()), file=file)
     for key, why in list(p["failures"].items())[:10]:
         print(f"failed {key}: {why}", file=file)
     state = p.get("output")

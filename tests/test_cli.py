@@ -384,6 +384,32 @@ def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkey
     assert time_disorder_s(tod) == pytest.approx(99.0)
 
 
+def test_the_summary_counts_the_plots_left_out(recording, tmp_path, capsys, scheduler):
+    """``summary.json`` says how many plots each problem left out (``dropped``, from the
+    problems' counts of what they dropped), and they add up: every data row of a table is a
+    plot reconstructed or a plot left out (a row of the wrong width, a bad value, a sensor not
+    in the sensor file). Printed beside the problems' counts."""
+    d, _ = recording
+    rows = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE)).rows
+    write_table(rows, tmp_path / "plots.csv")
+    with open(tmp_path / "plots.csv", newline="") as f:
+        table = list(csv.reader(f))
+    head = table[0]
+    table[5].append("surplus")                                # bad_row
+    table[9][head.index("sensor")] = "R9"                     # unknown_sensor
+    table[20][head.index("t")] = "soon"                       # bad_value
+    with open(tmp_path / "plots.csv", "w", newline="") as f:
+        csv.writer(f).writerows(table)
+    code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
+                 str(tmp_path / "out"), "--scheduler", scheduler, "--no-progress"])
+    assert code == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["dropped"] == {"bad_row": 1, "bad_value": 1, "unknown_sensor": 1}
+    assert summary["rows_in_recording"] == len(rows) - 2
+    assert summary["plots"] + sum(summary["dropped"].values()) == len(rows)
+    assert "bad_row 1 (1 plots left out)" in capsys.readouterr().out
+
+
 def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, monkeypatch):
     """Two ASTERIX recordings concatenated (``cat later.ast earlier.ast``, raw and as a pcap
     capture), streamed in small units as the command line does: each aircraft came out in

@@ -88,6 +88,12 @@ class Problems:
         self._keyed, self._per_kind = {}, {}
         return out
 
+    def left_out(self) -> dict[str, int]:
+        """Plots (records, rows) left out per kind, where any were: what a run's
+        ``summary.json`` and a job's status report as ``dropped`` (damaged stretches of an
+        ASTERIX file hold records of no known count: their problems say how many bytes)."""
+        return {k: n for k, n in self.dropped.items() if n}
+
     def of_kind(self, kind: str) -> list[Problem]:
         return [e for e in self.entries if e.kind == kind]
 
