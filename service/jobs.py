@@ -60,6 +60,7 @@ from solver.cli import (
 )
 from solver.config import FILTER_GATE_SIGMA, ReconstructionConfig
 from solver.inputs import InputError, format_loc
+from solver.io.altitudes import offsets_summary
 from solver.io.problems import Problems
 from solver.io.split import recording_frame
 from solver.io.tables import PlotRows
@@ -669,7 +670,8 @@ class JobRunner:
         if self._stop_requested(job.id):
             return
         solved = time.monotonic()
-        self._finish_outputs(job.id, loaded)
+        self._finish_outputs(job.id, loaded, [t.pressure_offset_m for t in tracks
+                                              if t.pressure_offset_m is not None])
         reason = _nothing_reconstructed(self.progress(job.id), loaded.problems)
         self._db().finish(job.id, "failed" if reason else "done", reason)
         LOGGER.info("job failed" if reason else "job done", extra={"fields": {
@@ -689,7 +691,7 @@ class JobRunner:
     def _stop_requested(self, job_id: str) -> bool:
         return self._stopping or job_id in self._cancelled
 
-    def _finish_outputs(self, job_id: str, loaded: Any) -> None:
+    def _finish_outputs(self, job_id: str, loaded: Any, mode_c_offsets: list[float]) -> None:
         """The whole-recording outputs of :mod:`solver.cli` (CSV, GeoJSON lines, map,
         sensors' statistics, problems, summary) and single-file Parquet downloads."""
         out = self.job_dir(job_id) / "out"
@@ -717,6 +719,7 @@ class JobRunner:
                    "rows_in_recording": len(loaded.rows),
                    "problems": dict(loaded.problems.counts),
                    "dropped": loaded.problems.left_out(),
+                   "mode_c_offsets": offsets_summary(mode_c_offsets),
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None, **settings.as_json()}

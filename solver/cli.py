@@ -74,6 +74,7 @@ from .batch import (
 from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .frames import LocalFrame
 from .inputs import Bounds, FloatArray, InputError
+from .io.altitudes import offsets_summary
 from .io.asterix import iter_recording, looks_like_recording, read_recording
 from .io.asterix import time_disorder_s as asterix_time_disorder_s
 from .io.problems import Problems
@@ -232,6 +233,7 @@ class Streamed:
     rows_read: int = 0
     frame: LocalFrame | None = None
     times_of_day: bool | None = None
+    mode_c_offsets: list[float] = field(default_factory=list)  # per track whose Mode C moved
 
     def _note(self, rows: PlotRows) -> PlotRows:
         self.rows_read += len(rows)
@@ -265,7 +267,14 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
             yield first
         yield from parts
 
-    out.tracks = _read_ahead(split_stream(rows(), sensors, problems=out.problems), read_ahead)
+    def noted(tracks: Iterator[AircraftTrack]) -> Iterator[AircraftTrack]:
+        for track in tracks:
+            if track.pressure_offset_m is not None:
+                out.mode_c_offsets.append(track.pressure_offset_m)
+            yield track
+
+    out.tracks = _read_ahead(noted(split_stream(rows(), sensors, problems=out.problems)),
+                             read_ahead)
     return out
 
 
@@ -802,6 +811,7 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
         "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
         "time_to_first_result_s": first_result_s,
+        "mode_c_offsets": offsets_summary(loaded.mode_c_offsets),
         "problems": dict(loaded.problems.counts),
         "dropped": loaded.problems.left_out(), "failures": summary.failures,
         "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "manoeuvres": manoeuvres,

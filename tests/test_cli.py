@@ -26,7 +26,7 @@ from solver.cli import main
 from solver.io.asterix import read_recording
 from solver.io.problems import Problems
 from solver.io.sensors_file import parse_sensors
-from solver.io.tables import write_table
+from solver.io.tables import FL_M, write_table
 
 
 @pytest.fixture(scope="module")
@@ -408,6 +408,55 @@ def test_the_summary_counts_the_plots_left_out(recording, tmp_path, capsys, sche
     assert summary["rows_in_recording"] == len(rows) - 2
     assert summary["plots"] + sum(summary["dropped"].values()) == len(rows)
     assert "bad_row 1 (1 plots left out)" in capsys.readouterr().out
+
+
+def test_mode_c_is_made_geometric_by_the_aircrafts_adsb(tmp_path, capsys, scheduler):
+    """An aircraft at 10 km passing 8 km abeam R1, its Mode C 250 m under its geometric height
+    (a warm day), its ADS-B reporting both heights: R1's range residuals against the
+    reconstruction were biased by the wrong height (about ``h dh / r``: the plots measured
+    longer than the track at the pressure height gives, +112 m in the mean here) and are now
+    not (measured 0.0 m); with the ADS-B's flight level only (nothing to tell the offset by)
+    the bias stays, as the docs say."""
+    from solver.frames import LocalFrame, slant_and_azimuth
+
+    site = (46.0, 14.0, 300.0)
+    t_adsb = np.arange(0.0, 340.0, 1.0)
+    t_radar = np.arange(0.5, 340.0, 4.8)
+    frame = LocalFrame(46.0, 14.0)
+    geo = 10_000.0
+
+    def at(t):
+        return frame.to_geodetic(-39_000.0 + 230.0 * t, np.full(t.shape, 8_000.0))
+
+    lat, lon = at(t_radar)
+    r, az, _ = slant_and_azimuth(site, lat, lon, np.full(t_radar.shape, geo))
+    fl = np.round((geo - 250.0) / (FL_M / 4)) / 4  # 25-ft Mode S altitude
+    alat, alon = at(t_adsb)
+    head = ["t", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m",
+            "flight_level", "mode_s"]
+    radar_rows = [[f"{t:.3f}", "R1", f"{ri:.2f}", f"{np.rad2deg(ai):.5f}", "", "", "",
+                   f"{fl}", "4CA2D1"] for t, ri, ai in zip(t_radar, r, az, strict=True)]
+    sensors = tmp_path / "sensors.json"
+    sensors.write_text(json.dumps(SENSOR_FILE))
+    bias = {}
+    for case, height in (("both", f"{geo}"), ("fl_only", "")):
+        adsb_rows = [[f"{t:.3f}", "ADSB", "", "", f"{la:.8f}", f"{lo:.8f}", height, f"{fl}",
+                      "4CA2D1"] for t, la, lo in zip(t_adsb, alat, alon, strict=True)]
+        path = tmp_path / f"{case}.csv"
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows([head, *sorted(radar_rows + adsb_rows,
+                                                   key=lambda row: float(row[0]))])
+        assert main([str(path), "--sensors", str(sensors), "--out", str(tmp_path / case),
+                     "--scheduler", scheduler, "--no-progress"]) == 0
+        rows = json.loads((tmp_path / case / "sensors.json").read_text())
+        bias[case] = next(x for x in rows if x["sensor"] == "R1")["range_residual_mean_m"]
+        moved = json.loads((tmp_path / case / "summary.json").read_text())["mode_c_offsets"]
+        if case == "both":
+            assert moved["tracks"] == 1 and abs(moved["median_m"] - 250.0) < FL_M / 4, moved
+        else:
+            assert moved is None
+    assert abs(bias["both"]) < 10.0, bias
+    assert bias["fl_only"] > 60.0, bias
 
 
 def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, monkeypatch):

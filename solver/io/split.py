@@ -43,6 +43,7 @@ from ..frames import LocalFrame
 from ..inputs import InputError, format_loc
 from ..plots import PlotTable
 from ..sensors import RadarSensor
+from .altitudes import geometric_altitudes
 from .problems import Problems
 from .sensors_file import SensorSet
 from .tables import PlotRows
@@ -66,6 +67,9 @@ class AircraftTrack:
     rows: np.ndarray
     origin: np.ndarray
     origin_unit: str = "row"
+    pressure_offset_m: float | None = None
+    """The median geometric minus pressure altitude its ADS-B gave, by which its Mode C
+    altitudes were moved (:mod:`solver.io.altitudes`); None: none moved."""
 
 
 def recording_frame(sensors: SensorSet, rows: PlotRows) -> LocalFrame | None:
@@ -359,12 +363,16 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
             return None
         used = np.unique(sensor_idx[m])
         local = np.searchsorted(used, sensor_idx[m])
+        position = np.array([not isinstance(sensors.sensors[k], RadarSensor)
+                             for k in used.tolist()])[local]
+        heights = geometric_altitudes(rows.t[m], rows.altitude_m[m], rows.flight_level[m],
+                                      position)
         try:
             table = PlotTable.build(
                 [sensors.sensors[k] for k in used.tolist()], rows.t[m], local,
                 range_m=rows.range_m[m], azimuth_rad=np.deg2rad(rows.azimuth_deg[m]),
                 lat_deg=rows.lat_deg[m], lon_deg=rows.lon_deg[m],
-                altitude_m=rows.altitude_m[m], reference=frame)
+                altitude_m=heights.altitude_m, reference=frame)
         except InputError as e:
             if len(e.loc) >= 2 and e.loc[0] == "plots" and isinstance(e.loc[1], int):
                 i = int(m[e.loc[1]])
@@ -376,7 +384,8 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
             problems.add("bad_track", f"aircraft {key}", f"{e}: left out",
                          dropped=int(m.size))
             return None
-        return AircraftTrack(key, table, m, rows.origin[m], rows.origin_unit)
+        return AircraftTrack(key, table, m, rows.origin[m], rows.origin_unit,
+                             heights.median_m if heights.corrected else None)
     problems.add("bad_track", f"aircraft {key}", f"more than {_MAX_ROW_RETRIES} bad plots: "
                  "left out", dropped=int(m.size))
     return None
