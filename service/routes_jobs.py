@@ -21,6 +21,7 @@ from starlette.datastructures import UploadFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from solver.cli import RECORDING_HEAD_BYTES, check_recording_head
 from solver.inputs import Bounds, InputError
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
@@ -309,13 +310,15 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
         raise InputError(("options", *e.loc), e.message) from None
     src = recording.file
     src.seek(0)
-    head = src.read(4096)
+    head = src.read(RECORDING_HEAD_BYTES)
     if not head:
         raise InputError(("recording",), "is empty")
     suffix = TABLE_SUFFIXES.get(Path(recording.filename or "").suffix.lower())
     if suffix is None:
         suffix = ".parquet" if head[:4] == b"PAR1" else ".csv" if _looks_like_csv(head) \
             else ".ast"
+    if suffix == ".ast":  # a JSON or text file read as ASTERIX: one line, not CAT123 blocks
+        check_recording_head(head)
     src.seek(0)
     with open(inputs / f"recording{suffix}", "wb") as f:
         shutil.copyfileobj(src, f, 1 << 20)

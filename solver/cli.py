@@ -293,12 +293,7 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
                                  "a table")
         return
     with open(recording, "rb") as f:
-        head = f.read(RECORDING_HEAD_BYTES)
-    if not looks_like_recording(head):
-        raise InputError(("recording",), f"is not an ASTERIX recording (its first bytes "
-                         f"{head[:8].hex(' ')} are no data block header followed by another), "
-                         "nor a pcap/pcapng capture; a plot table's name ends in "
-                         + " or ".join(TABLE_SUFFIXES))
+        check_recording_head(f.read(RECORDING_HEAD_BYTES))
     out.times_of_day = True  # ASTERIX: times of day, t from the midnight before the first
     back = asterix_time_disorder_s(recording, out.sensors)
     if back > DISORDER_S:  # e.g. two recordings concatenated: read whole, sorted
@@ -317,6 +312,16 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
             if st.rotation_period_s:
                 out.scan_periods[sid] = st.rotation_period_s
         yield out._note(part.rows)
+
+
+def check_recording_head(head: bytes) -> None:
+    """Raise :class:`InputError` at ``recording`` unless ``head`` (a file's first
+    :data:`RECORDING_HEAD_BYTES`, or all of it) starts an ASTERIX recording or a capture."""
+    if not looks_like_recording(head):
+        raise InputError(("recording",), f"is not an ASTERIX recording (its first bytes "
+                         f"{head[:8].hex(' ')} are no data block header followed by another), "
+                         "nor a pcap/pcapng capture; a plot table's name ends in "
+                         + " or ".join(TABLE_SUFFIXES))
 
 
 def _sorted_parts(rows: PlotRows, out: Streamed, kind: str, how_far: str, what: str

@@ -19,9 +19,11 @@ import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 from test_io_asterix import (
+    C048,
     FLIGHTS,
     SENSOR_FILE,
     Flight,
+    cat048,
     dpkt_frame,
     encode_recording,
     pcapng_section,
@@ -650,16 +652,28 @@ def test_unreadable_recording_is_accepted_and_fails_with_the_reason(client):
                                       "`time_of_day_s` column (columns: a, b)"), status
     assert client.get(r.headers["location"] + "/results/tracks.csv").status_code == 409
 
+    # bytes that are no recording at all (random, a JSON file sent as the recording): refused
+    # at the upload naming the part, as the command line does (a new user's JSON file was
+    # accepted and failed as "unknown_category at byte 0: CAT123 ...")
     garbage = bytes(np.random.default_rng(7).integers(0, 256, 5000, dtype=np.uint8))
-    r = upload(client, garbage, name="noise.bin")
-    assert r.status_code == 202
+    for data, name in ((garbage, "noise.bin"), (json.dumps(SENSOR_FILE).encode(), "r.json")):
+        r = upload(client, data, name=name)
+        assert r.status_code == 422, r.text
+        assert r.json()["message"].startswith("recording is not an ASTERIX recording (its "
+                                              "first bytes "), r.json()
+    # a recording whose blocks hold no plot (every record of a SAC/SIC not in the sensor
+    # file): accepted, failed with the reason; what was read is there to see
+    alien = b"".join(C048.create([cat048("R1", 100.0 + k, 30.0, 10.0, 350.0, 0x4CA2D1, 7,
+                                         code=(9, 9))]).unparse().to_bytes() for k in range(5))
+    r = upload(client, alien, name="alien.ast")
+    assert r.status_code == 202, r.text
     status = wait(client, r.headers["location"])
     assert status["state"] == "failed" and status["rows"] == 0, status
     assert status["error"].startswith("no plot could be read from the recording ("), status
-    assert status["problems"]["total"] >= 1 and "byte 0" in status["problems"]["examples"][0]
+    assert status["problems"]["total"] >= 1 and "byte 3" in status["problems"]["examples"][0]
     # what was read is there to see (the status shows a few examples): 409 before
     problems = client.get(r.headers["location"] + "/results/problems.txt")
-    assert problems.status_code == 200 and "byte 0" in problems.text
+    assert problems.status_code == 200 and "byte 3" in problems.text
     summary = client.get(r.headers["location"] + "/results/summary.json").json()
     assert summary["error"] == status["error"] and summary["tracks"] == 0
 
