@@ -4,6 +4,7 @@ registration, and the single flat radar unchanged."""
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -508,6 +509,36 @@ def test_a_position_sensors_latency_is_estimated():
     assert abs(rep.along_track_residual_mean_m) < 10.0
     assert fits[False][1].time_bias_s is None
     assert rms < 25.0 and rms < 0.2 * fits[False][2], (rms, fits[False][2])
+
+
+def test_every_sensors_time_offset_estimated_takes_the_radars_as_the_time_reference():
+    """Every sensor estimating its offsets, ADS-B 1 s late: a shift common to all time offsets
+    cannot be observed; their sum held at zero split it by the priors (ADS-B +0.69 s, the
+    radars -0.32 and -0.36 s: a walkthrough helper). The radars' mean is now held at zero:
+    ADS-B recovered within 3 sigma of 1 s, the radars' offsets within 3 sigma of 0 and their
+    mean at zero to a millisecond; without radars (two position sensors) their sum is, as
+    before."""
+    from solver.refine import time_reference
+
+    sensors = (replace(SSR_A, estimate_bias=True), replace(SSR_B, estimate_bias=True),
+               PositionSensor("ADSB", 30.0, estimate_bias=True))
+    table, x, z, _ = _simulate(sensors, ((4.8, 0.3), (4.0, 1.1), (5.0, 2.0)), noise=1.0,
+                               seed=3, biases={2: (0.0, 0.0, 1.0)}, mode_c=True)
+    rec = reconstruct(table)
+    reps = {r.id: r for r in rec.sensors}
+    adsb = reps["ADSB"]
+    assert abs(adsb.time_bias_s - 1.0) < 3 * adsb.time_bias_sigma_s, adsb
+    radars = [reps[s.id] for s in sensors[:2]]
+    for r in radars:
+        assert abs(r.time_bias_s) < 3 * r.time_bias_sigma_s, r
+    assert abs(np.mean([r.time_bias_s for r in radars])) < 1e-3
+    assert _rms(rec, x, z) < 25.0
+    g = time_reference(sensors, [0, 1, 2])
+    assert g[0] == g[1] > 0 and g[2] == 0
+    assert time_reference(sensors, [0, 2]).tolist() == [0.0, 0.0]  # B keeps time
+    two = (PositionSensor("A", 30.0, estimate_bias=True), PositionSensor("B", 30.0,
+                                                                          estimate_bias=True))
+    assert time_reference(two, [0, 1]).tolist() == [1e3, 1e3]
 
 
 def test_radar_and_adsb_with_a_gap():

@@ -20,6 +20,7 @@ offset.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -27,7 +28,7 @@ from ..config import ReconstructionConfig, RefineSettings
 from ..inputs import Bounds, Plots, Radar
 from ..plots import PlotTable
 from ..results import Diagnostics, Reconstruction, listed
-from ..sensors import ALTITUDE_RANGE_M, MAX_ELEVATION_DEG
+from ..sensors import ALTITUDE_RANGE_M, MAX_ELEVATION_DEG, Sensor
 from ..trajectory import sample_times
 from . import nlp
 from .blocks import (
@@ -60,11 +61,27 @@ from .nodes import (
 )
 from .output import plot_residuals, segments, sensor_reports, series
 
-TIME_GAUGE_INFO = 1e6  # 1/s^2: the time offsets' sum held at zero to a millisecond
+TIME_GAUGE_INFO = 1e6  # 1/s^2: the reference's time offsets held at zero to a millisecond
 
 __all__ = ["LADDER", "DeadlineExceeded", "build_solvers", "node_grid", "refine", "refine_table",
-           "unreachable_in"]
+           "time_reference", "unreachable_in"]
 
+
+def time_reference(sensors: Sequence[Sensor], bias_sensors: list[int]) -> np.ndarray:
+    """Weights ``g`` (one per offset-estimating sensor) of the time gauge ``g . b_t = 0``:
+    zero when some sensor keeps absolute time (estimates no offset). When every sensor
+    estimates its time offset a shift common to all of them is a shift of the whole track in
+    time and cannot be observed (left free it drifted 7-10 s, 800 m, in the benchmark): the
+    radars' mean offset is then held at zero, their time stamps the reference (else the sum
+    over the position sensors). The sum over every sensor, as before, split the common part
+    by the priors: a 1-s ADS-B latency came out as ADS-B +0.69 s and the radars -0.32 and
+    -0.36 s (a walkthrough helper); now ADS-B +1.0 s and the radars 0."""
+    g = np.zeros(len(bias_sensors))
+    if not bias_sensors or len(bias_sensors) < len(sensors):
+        return g
+    radar = np.array([sensors[k].kind == "radar" for k in bias_sensors])
+    g[radar if radar.any() else slice(None)] = np.sqrt(TIME_GAUGE_INFO)
+    return g
 
 def unreachable_in(table: PlotTable, data: NodeData, plot_node: np.ndarray, bounds: Bounds,
                  bias_sensors: list[int] | None = None) -> np.ndarray:
@@ -137,9 +154,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     lone = bool(bias_sensors) and len(table.sensors) < 2
     if lone:  # nothing to register against: the penalties, not the plots, would set them
         bias_sensors = []
-    # no sensor keeps absolute time: hold the time offsets' sum at zero (a common shift is a
-    # shift of the whole track in time; left free it drifted 7-10 s, 800 m, in the benchmark)
-    time_gauge = TIME_GAUGE_INFO if len(bias_sensors) == len(table.sensors) else 0.0
+    time_gauge = time_reference(table.sensors, bias_sensors)
     variant = Variant(altitude=table.estimate_altitude(), biases=len(bias_sensors))
     fixes = table.fixes()
     data = NodeData.assemble(table, fixes, n, plot_node, variant, bias_sensors)

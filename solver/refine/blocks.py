@@ -105,7 +105,7 @@ class Problem(NamedTuple):
     settings: RefineSettings
     delta: float  # pseudo-Huber threshold (sigmas)
     bias_info: FloatArray  # (biases * 3,) prior information of the offsets
-    time_gauge: float = 0.0  # information of sum(time offsets) = 0 (no absolute time reference)
+    time_gauge: FloatArray | None = None  # (biases,) weights g of g . b_t = 0 (time_reference)
 
 
 def solve_block(pb: Problem, start: int, stop: int, data: NodeData, guess: np.ndarray,
@@ -180,7 +180,7 @@ def solve_block(pb: Problem, start: int, stop: int, data: NodeData, guess: np.nd
         par[P["d_azimuth"], :m] = data.d_azimuth[sl].T
         par[P["sensor"], :m] = data.sensor[sl].T
         extra[E["bias_info"]] = pb.bias_info
-        extra[E["time_gauge"]] = pb.time_gauge
+        extra[E["time_gauge"]] = 0.0 if pb.time_gauge is None else pb.time_gauge
     if prev is None:
         par[P["switch"], 0] = 0.0  # the first controls are free
     else:

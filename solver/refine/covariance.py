@@ -64,7 +64,7 @@ def state_size(variant: Variant) -> int:
 def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, data: NodeData,
                     variant: Variant, st: RefineSettings, delta: float, bounds: Bounds,
                     hd_info: FloatArray, bias_sigma: FloatArray,
-                    consider_from: int | None = None, time_gauge: float = 0.0,
+                    consider_from: int | None = None, time_gauge: np.ndarray | None = None,
                     check: Callable[[], None] | None = None) -> np.ndarray:
     """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets).
 
@@ -97,10 +97,10 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
         prior += [(ALTITUDE_RANGE_M[1] - ALTITUDE_RANGE_M[0]) ** 2 / 12, HD_MAX**2 / 3]
     prior += list(np.asarray(bias_sigma, float) ** 2)
     P0 = np.diag(prior)
-    if time_gauge > 0:  # the pseudo-measurement sum(time offsets) = 0 (see the NLP's gauge)
+    if time_gauge is not None and np.any(time_gauge):  # the NLP's gauge g . b_t = 0
         g = np.zeros((1, nx))
-        g[0, NH + 2 * variant.altitude + 2::BIAS_TERMS] = 1.0
-        P0 = covariance_update(P0, g, np.array([[1.0 / time_gauge]]))
+        g[0, NH + 2 * variant.altitude + 2::BIAS_TERMS] = time_gauge
+        P0 = covariance_update(P0, g, np.array([[1.0]]))
     informed = np.ones((n, nx))  # the states a measurement at each node may inform
     if consider_from is not None:  # the offsets' rows of every gain are zero from there on
         informed[consider_from:, NH + 2 * variant.altitude:] = 0.0

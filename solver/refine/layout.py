@@ -97,15 +97,15 @@ def block_parameters(v: Variant) -> Layout:
     """Per block: the controls before its first node (``u_prev``, ``w_prev``), the pseudo-Huber
     threshold, the level penalties and their smoothing; with altitude the vertical rate before
     the first node; with biases the prior information (1 / sigma^2) of each offset and the
-    information holding the sum of the time offsets at zero (``time_gauge``: when no sensor
-    keeps absolute time, a shift common to every time offset moves the whole track in time
-    and cannot be observed)."""
+    weights ``g`` of the pseudo-measurement ``g . b_t = 0`` of the time offsets
+    (``time_gauge``: when no sensor keeps absolute time, a shift common to every time offset
+    moves the whole track in time and cannot be observed; :func:`solver.refine.time_reference`)."""
     fields = [("u_prev", 1), ("w_prev", 1), ("huber", 1), ("level_u", 1), ("level_w", 1),
               ("level_eps", 1)]
     if v.altitude:
         fields += [("hd_prev", 1)]
     if v.biases:
-        fields += [("bias_info", BIAS_TERMS * v.biases), ("time_gauge", 1)]
+        fields += [("bias_info", BIAS_TERMS * v.biases), ("time_gauge", v.biases)]
     return Layout(fields)
 
 

@@ -228,7 +228,7 @@ def block_nlp(n: int, variant: Variant, motion: ca.Function) -> dict[str, ca.MX]
     if variant.biases:
         B = Bs * ca.DM(global_scale(variant))
         pen += ca.sum1(Em[E["bias_info"]] * B**2)
-        pen += Em[E["time_gauge"]] * ca.sum1(B[2::BIAS_TERMS]) ** 2
+        pen += ca.dot(Em[E["time_gauge"]], B[2::BIAS_TERMS]) ** 2
     nlp = {
         "x": ca.vertcat(ca.vec(Xs), Bs),
         "p": ca.vertcat(ca.vec(Pm), Em),
