@@ -181,12 +181,13 @@ class PlotTable:
                 i = int(bad[0])
                 raise InputError(("plots", i, "altitude_m"),
                                  f"must be finite, >= 0 and below the slant range ({alt[i]})")
-        else:
-            bad = rad[alt[rad] - self.site_heights()[rad] >= r[rad]]
-            if bad.size:
-                i = int(bad[0])
-                raise InputError(("plots", i, "altitude_m"), f"({alt[i]}) is further above "
-                                 "the radar than the slant range reaches")
+        else:  # the straight line to a plot is at least its height difference with the site
+            dh = alt[rad] - self.site_heights()[rad]
+            for side, bad in (("above", rad[dh >= r[rad]]), ("below", rad[-dh >= r[rad]])):
+                if bad.size:  # below: a plot was put on the site, a confident fix (audit)
+                    i = int(bad[0])
+                    raise InputError(("plots", i, "altitude_m"), f"({alt[i]}) is further "
+                                     f"{side} the radar than the slant range reaches")
         for k in range(len(self.sensors)):
             rows = np.flatnonzero(self.sensor == k)
             step = np.flatnonzero(np.diff(self.t[rows]) <= 0)

@@ -89,14 +89,17 @@ def test_flat_radar_fixes_are_the_statistical_ellipses():
     assert np.abs(np.angle(np.exp(1j * (f.psi - e.psi)))).max() < 1e-9
 
 
+@pytest.mark.parametrize("ref_lat", [46.0, 60.0, 66.0])
 @pytest.mark.parametrize("r, tol", [(6e3, 0.05), (12e3, 0.15), (30e3, 0.01), (100e3, 1e-3),
                                     (250e3, 1e-4)])
-def test_unknown_altitude_centre_follows_the_exact_position(r, tol):
+def test_unknown_altitude_centre_follows_the_exact_position(r, tol, ref_lat):
     """c(h) of a radar plot without altitude: within 15 cm (close in, where the height range
     is widest for the range; 1 cm from 30 km) of the exact curved-earth position over its whole
-    height range (a quintic remainder over the flat ground distance; the reach up to 74 deg
-    elevation), against sigmas of metres."""
-    frame = LocalFrame(46.0, 14.8)
+    height range (a quintic remainder over the flat ground distance times the plane's scale;
+    the reach up to 74 deg elevation), against sigmas of metres; also with the reference
+    1,530 and 2,200 km from the radar (scale 1.014 and 1.03: without the scale in the exact
+    term 1-4 m off at 12-20 km, an audit helper)."""
+    frame = LocalFrame(ref_lat, 14.8)
     radar = RadarSensor(150.0, np.deg2rad(0.24), id="A", site=Site(*SITE))
     psi = np.deg2rad(np.arange(0.0, 360.0, 30.0))
     rr = np.full(psi.size, r)
@@ -159,11 +162,23 @@ def test_table_allows_equal_times_across_sensors_and_sets_the_frame():
      ("sensors", 2, "position_sigma_m")),
     # any real azimuth is normalised (spec api.md), until it has no precision left
     (dict(azimuth_rad=[1.0, 1e300, 1.01, np.nan]), ("plots", 1, "azimuth_rad")),
+    # an altitude further above or below B's site (900 m) than the slant range reaches: below,
+    # the plot was put on the site as a confident fix (an audit helper)
+    (dict(range_m=[50e3, 2e3, 51e3, np.nan], altitude_m=[np.nan, 3000.0, np.nan, np.nan]),
+     ("plots", 1, "altitude_m")),
+    (dict(range_m=[50e3, 1e3, 51e3, np.nan], altitude_m=[np.nan, -500.0, np.nan, np.nan]),
+     ("plots", 1, "altitude_m")),
 ])
 def test_table_rejects_bad_input_naming_the_field(change, loc):
     with pytest.raises(InputError) as e:
         _table(**change)
     assert e.value.loc == loc, e.value
+    if loc[-1] == "altitude_m":
+        side = "above" if change["altitude_m"][1] > 900 else "below"
+        assert e.value.message.endswith(f"further {side} the radar than the slant range "
+                                        "reaches"), e.value
+    reach = dict(range_m=[50e3, 2e3, 51e3, np.nan], altitude_m=[np.nan, 2800.0, np.nan, np.nan])
+    assert len(_table(**reach)) == 4  # 1,900 m above in 2 km: within reach
 
 
 def test_input_error_survives_pickling():
