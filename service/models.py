@@ -282,8 +282,9 @@ class ReconstructionRequest(_In):
 
 Cov = list[list[float]]
 _COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2. It does not "
-        "include the bias of about h^2 / 2r away from the radar that plots without `altitude_m` "
-        "carry (a constant altitude is not observable from 2-D plots)")
+        "include the bias away from the radar that plots without `altitude_m` carry (about "
+        "h^2 / 2d for the single flat radar, h^2 / 2d + h d / 2R on the earth: a constant "
+        "altitude is not observable from 2-D plots)")
 
 
 def _absent(value: object) -> bool:

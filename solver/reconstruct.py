@@ -79,8 +79,11 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
 def _warn_heights_not_estimated(table: PlotTable, result: Reconstruction) -> None:
     """Radar plots without altitude on a track whose height is not estimated (a lone sensor:
     nothing to estimate it from) sit at their radar's height, the seed's convention: their
-    ground range is then ``h^2 / 2r`` too long (985 m in the median for a tester's PSR alone
-    at 10 km), in the reconstruction and the filters alike. Say so."""
+    ground range is then too long by ``h^2 / 2d`` on a flat earth and ``h^2 / 2d + h d / 2R``
+    on the earth's (radius ``R``; the curvature's share grows with the distance ``d``: 396 m
+    at 250 km and 10 km, where ``h^2 / 2r`` says 200 m; an audit helper, against the exact
+    positions) (985 m in the median for a tester's PSR alone at 10 km), in the
+    reconstruction and the filters alike. Say so."""
     if table.estimate_altitude():
         return
     rows = table.radar_rows() & np.isnan(table.altitude_m)
@@ -89,8 +92,9 @@ def _warn_heights_not_estimated(table: PlotTable, result: Reconstruction) -> Non
         result.diagnostics.warnings.append(
             f"{n} plot(s) of radar {table.sensors[k].id!r} have no altitude and no other "
             "sensor sees the aircraft: they are placed at the radar's height, so their ground "
-            "range is too long by about h^2 / 2r for an aircraft at height h (1 km at 50 km "
-            "range and 10 km, 200 m at 250 km); give their Mode C altitude or a second sensor")
+            "range is too long by about h^2 / 2d + h d / 2R for an aircraft at height h and "
+            "distance d (R the earth's radius: 1.05 km at 50 km and 10 km, 400 m at 250 km); "
+            "give their Mode C altitude or a second sensor")
 
 
 MIRROR_CHI2 = 9.0
