@@ -214,9 +214,10 @@ def residuals_figure(sensors: Sequence[SensorResiduals]) -> Figure:
             row[1].set_xlim(0.0, 360.0)
         row[0].annotate(f"{res.plots} plots, {res.gated} wild", (0.01, 0.97),
                         xycoords="axes fraction", va="top", fontsize=8)
-    fig.suptitle("Plots against the reconstruction (measured minus reconstructed, after "
-                 "estimated offsets; along-track: ahead positive, a late report lies behind)",
-                 fontsize=10)
+    fig.suptitle("Plots against the reconstruction (measured minus reconstructed; after the "
+                 "offsets of sensors with estimate_bias, and without it an offset shows only in "
+                 "part, the track drawn towards the plots;\nalong-track: ahead positive, a late "
+                 "report lies behind)", fontsize=10)
     fig.tight_layout()
     return fig
 
