@@ -9,10 +9,12 @@ draw with the settings the stored tracks were made with.
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -150,14 +152,38 @@ def fingerprint(path: Path) -> dict[str, Any]:
     return {"name": path.name, "bytes": size, "sha256_ends": digest.hexdigest()}
 
 
+_WHAT = {"recording": "the recording", "sensors": "the sensor file",
+         "software": "the software (version and solver sources)"}
+
+
+@cache
+def software() -> dict[str, str]:
+    """This software's version and the SHA-256 of the solver's sources (every ``.py`` and
+    ``.sh`` under ``solver/``, by relative path): what made a run's tracks. A rerun after an
+    upgrade resumed the run and mixed two versions' tracks without a word (up to 8.7 m and
+    0.7 m/s apart; a walkthrough helper)."""
+    try:
+        version = importlib.metadata.version("radar-trajrecon")
+    except importlib.metadata.PackageNotFoundError:
+        version = "0+unknown"
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".sh")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return {"version": version, "solver_sha256": digest.hexdigest()}
+
+
 def keep_inputs(out: Path, recording: Path, sensors: Path) -> None:
-    """Record which recording and sensor file ``out``'s run reads (``DIR/inputs.json``);
-    :class:`InputError` when ``out`` holds a run of other inputs: its finished tracks would be
-    kept as the new recording's (they were, silently, when only the settings were compared;
-    found by a fuzz helper)."""
+    """Record which recording and sensor file ``out``'s run reads, and which software
+    (:func:`software`) reads them (``DIR/inputs.json``); :class:`InputError` when ``out`` holds
+    a run of other inputs (its finished tracks would be kept as the new recording's: they
+    were, silently, when only the settings were compared; found by a fuzz helper) or made by
+    other software (its tracks and the new ones would differ)."""
     if not (recording.is_file() and sensors.is_file()):
         return  # the readers say what is wrong with them
-    now = {"recording": fingerprint(recording), "sensors": fingerprint(sensors)}
+    now = {"recording": fingerprint(recording), "sensors": fingerprint(sensors),
+           "software": software()}
     path = out / INPUTS_FILE
     if path.is_file():
         try:
@@ -166,8 +192,7 @@ def keep_inputs(out: Path, recording: Path, sensors: Path) -> None:
             before = None
         differ = [k for k in now if not isinstance(before, dict) or before.get(k) != now[k]]
         if differ:
-            what = " and ".join("the recording" if k == "recording" else "the sensor file"
-                                for k in differ)
+            what = " and ".join(_WHAT[k] for k in differ)
             verb = "differ" if len(differ) > 1 else "differs"
             raise InputError(("out",), f"{out} holds a run made from other inputs ({what} "
                              f"{verb} from {path.name}'s): a rerun resumes that run, so it "

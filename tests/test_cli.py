@@ -22,6 +22,7 @@ import pytest
 from asterix.base import Bits, ParsingMode
 from test_io_asterix import FLIGHTS, SENSOR_FILE, encode_recording
 
+from solver import run_settings
 from solver.cli import main
 from solver.io.asterix import read_recording
 from solver.io.problems import Problems
@@ -787,11 +788,12 @@ def test_the_filters_gate_is_set_and_kept_with_the_run(recording, tmp_path, caps
         assert f"{bad!r} is not a positive number of sigmas or off" in capsys.readouterr().err
 
 
-def test_a_rerun_on_another_recording_is_refused(recording, tmp_path, capsys, scheduler):
+def test_a_rerun_on_another_recording_is_refused(recording, tmp_path, capsys, scheduler,
+                                                monkeypatch):
     """A rerun resumes by aircraft key: into an --out made from another recording (the same
     Mode S addresses, other flights) it kept the old tracks as the new recording's, exit 0
     (a fuzz helper). The inputs are kept in inputs.json; other files are refused, naming them;
-    the same files resume."""
+    the same files resume; other software is refused."""
     d, _ = recording
     other = tmp_path / "other.ast"
     other.write_bytes(encode_recording(tod0=50_000.0, duration=60.0).data)
@@ -806,6 +808,14 @@ def test_a_rerun_on_another_recording_is_refused(recording, tmp_path, capsys, sc
     assert "holds a run made from other inputs (the recording differs" in capsys.readouterr().err
     assert main([str(d / "day.ast"), *args]) == 0  # the same files: resumed
     assert "finished before" in capsys.readouterr().out
+    # another version of the solver (an upgrade between the runs): its tracks would differ
+    # from the finished ones (a walkthrough helper: up to 8.7 m), so it is refused too
+    assert kept["software"] == run_settings.software()
+    upgraded = {**run_settings.software(), "solver_sha256": "0" * 64}
+    monkeypatch.setattr(run_settings, "software", lambda: upgraded)
+    assert main([str(d / "day.ast"), *args]) == 2
+    err = capsys.readouterr().err
+    assert "(the software (version and solver sources) differs from inputs.json's)" in err
 
 
 def test_odd_tables_and_sensor_files_get_a_line_not_a_traceback(recording, tmp_path, capsys,
