@@ -56,7 +56,7 @@ from .stopping import STOP_SIGNALS
 
 COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_vx", "cov_z_vz",
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
-RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "range_residual_m",
+RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "plot_altitude_m", "range_residual_m",
                     "azimuth_residual_deg", "position_residual_m", "along_track_residual_m",
                     "cross_track_residual_m", "gated")
 TRACK_COLUMNS = ("aircraft", "plot", "source", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
@@ -73,7 +73,10 @@ true north (deg clockwise; :meth:`solver.results.StateSeries.heading_deg_and_spe
 covariance over ``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where
 it was estimated (else null), and the plot against the state, as the sensors' statistics take it
 (:func:`solver.refine.output.plot_residuals`): a radar plot's measured slant range and azimuth
-(``plot_range_m``, ``plot_azimuth_deg``) and its residuals after the sensor's estimated offsets
+(``plot_range_m``, ``plot_azimuth_deg``), the altitude a plot was placed at
+(``plot_altitude_m``: Mode C made geometric by the aircraft's ADS-B where it could be,
+:mod:`solver.io.altitudes`; ADS-B's geometric height; null without one) and its residuals
+after the sensor's estimated offsets
 (``range_residual_m``, ``azimuth_residual_deg``), a position plot's horizontal distance
 (``position_residual_m``) and its parts along and across the track (``along_track_residual_m``:
 ahead of the state positive, a late report's is negative; ``cross_track_residual_m``: right of
@@ -286,6 +289,7 @@ def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
     n, res = len(s), residuals
     cols.update(  # the table's range and azimuth are NaN on position rows
         plot_range_m=table.range_m, plot_azimuth_deg=np.rad2deg(table.azimuth_rad),
+        plot_altitude_m=table.altitude_m,
         range_residual_m=None if res is None else res.range_m,
         azimuth_residual_deg=None if res is None else np.rad2deg(res.azimuth_rad),
         position_residual_m=None if res is None else res.position_m,

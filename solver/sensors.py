@@ -216,8 +216,9 @@ class RadarSensor(Radar):
 
         Known altitude: the exact position at that height. Unknown: at the site's height (the
         slant range taken for the ground range, the seed's convention, whose bias, ``h^2 / 2d``
-        flat and ``h^2 / 2d + h d / 2R`` on the earth, a single radar cannot remove), and with ``estimate_altitude`` the position as a function
-        of the height (:class:`PlaneFixes`). One-sigma ellipse: along the ray ``sigma_r |dc/dr|``
+        flat and ``h^2 / 2d + h d / 2R`` on the earth, a single radar cannot remove), and with
+        ``estimate_altitude`` the position as a function of the height (:class:`PlaneFixes`).
+        One-sigma ellipse: along the ray ``sigma_r |dc/dr|``
         (at most ``sqrt(2 r sigma_r) |dc/dr| d / r`` overhead, :func:`ground_range_error`) and,
         where the altitude is known, the ``hypot`` of that and ``altitude_sigma_m |dc/dh|``
         (:meth:`_height_term`); across ``max(sigma_psi |dc/dpsi|, 1 m)``.

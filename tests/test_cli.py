@@ -452,6 +452,12 @@ def test_mode_c_is_made_geometric_by_the_aircrafts_adsb(tmp_path, capsys, schedu
         rows = json.loads((tmp_path / case / "sensors.json").read_text())
         bias[case] = next(x for x in rows if x["sensor"] == "R1")["range_residual_mean_m"]
         moved = json.loads((tmp_path / case / "summary.json").read_text())["mode_c_offsets"]
+        states = pq.read_table(tmp_path / case / "tracks.parquet").to_pydict()
+        placed = np.array([h for h, sid in zip(states["plot_altitude_m"], states["sensor"],
+                                               strict=True) if sid == "R1"], dtype=float)
+        assert placed.size == t_radar.size  # tracks.parquet says where each plot was put
+        np.testing.assert_allclose(placed, geo if case == "both" else fl * FL_M,
+                                   atol=FL_M / 4)
         if case == "both":
             assert moved["tracks"] == 1 and abs(moved["median_m"] - 250.0) < FL_M / 4, moved
         else:
