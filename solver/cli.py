@@ -931,7 +931,9 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
         if r.get("range_bias_m") is not None:
             print(f"{r['sensor']}: estimated offsets range {r['range_bias_m']:+.1f} m, azimuth "
                   f"{r['azimuth_bias_deg']:+.4f} deg, time {r['time_bias_s']:+.3f} s (medians "
-                  "over its tracks)", file=file)
+                  "over its tracks; to take them off every track it sees, those it sees alone "
+                  "too, add them to its sensor-file entry's range_offset_m, azimuth_offset_deg "
+                  "and time_offset_s)", file=file)
     for r in p["sensors"]:
         if r.get("along_track_residual_mean_m") is not None:
             print(f"{r['sensor']}: along the track {r['along_track_residual_mean_m']:+.1f} m "

@@ -466,6 +466,71 @@ def test_mode_c_is_made_geometric_by_the_aircrafts_adsb(tmp_path, capsys, schedu
     assert bias["fl_only"] > 60.0, bias
 
 
+def test_known_offsets_reach_the_tracks_a_radar_sees_alone(tmp_path, capsys, scheduler):
+    """R1 reports ranges 150 m long and azimuths 0.2 deg clockwise. A run with its
+    ``estimate_bias`` finds them on the aircraft ADS-B also sees, but the aircraft R1 sees
+    alone (no Mode S: a track number) keeps them (175 m at 50 km: not observable alone; a
+    walkthrough helper). Given back as the sensor file's known offsets they are taken off
+    every R1 plot: the lone track within 25 m of the truth (noise-free plots: measured
+    0.001 m; 190 m before)."""
+    from solver.frames import LocalFrame, slant_and_azimuth
+
+    site = (46.0, 14.0, 300.0)
+    frame = LocalFrame(46.0, 14.0)
+    t_radar = np.arange(0.5, 300.0, 4.8)
+    t_adsb = np.arange(0.0, 300.0, 1.0)
+    geo = 9_000.0
+    flights = {"A": (-30_000.0, 40_000.0, 200.0, 0.0), "B": (20_000.0, -45_000.0, 0.0, 210.0)}
+
+    def at(name, t):
+        x0, z0, vx, vz = flights[name]
+        return frame.to_geodetic(x0 + vx * t, z0 + vz * t)
+
+    head = ["t", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m",
+            "mode_s", "track_number"]
+    rows = []
+    for name in flights:
+        lat, lon = at(name, t_radar)
+        r, az, _ = slant_and_azimuth(site, lat, lon, np.full(t_radar.shape, geo))
+        rows += [[f"{t:.3f}", "R1", f"{ri + 150.0:.2f}", f"{np.rad2deg(ai) + 0.2:.5f}", "", "",
+                  f"{geo}", "4CA2D1" if name == "A" else "", "" if name == "A" else "7"]
+                 for t, ri, ai in zip(t_radar, r, az, strict=True)]
+    lat, lon = at("A", t_adsb)
+    rows += [[f"{t:.3f}", "ADSB", "", "", f"{la:.8f}", f"{lo:.8f}", f"{geo}", "4CA2D1", ""]
+             for t, la, lo in zip(t_adsb, lat, lon, strict=True)]
+    table = tmp_path / "plots.csv"
+    with open(table, "w", newline="") as f:
+        csv.writer(f).writerows([head, *sorted(rows, key=lambda row: float(row[0]))])
+    r1 = {"id": "R1", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0, "height_m": 300.0,
+          "range_error_m": 150.0, "azimuth_error_deg": 0.24}
+    adsb = {"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}
+    err = {}
+    for run, entry in (("estimated", {**r1, "estimate_bias": True}), ("known", None)):
+        if entry is None:  # the first run's estimates, given back as known offsets
+            found = next(x for x in json.loads((tmp_path / "estimated" / "sensors.json")
+                                               .read_text()) if x["sensor"] == "R1")
+            entry = {**r1, "range_offset_m": found["range_bias_m"],
+                     "azimuth_offset_deg": found["azimuth_bias_deg"]}
+            assert abs(found["range_bias_m"] - 150.0) < 15.0, found
+            assert abs(found["azimuth_bias_deg"] - 0.2) < 0.02, found
+        sensors = tmp_path / f"{run}.json"
+        sensors.write_text(json.dumps([entry, adsb]))
+        capsys.readouterr()
+        assert main([str(table), "--sensors", str(sensors), "--out", str(tmp_path / run),
+                     "--scheduler", scheduler, "--no-progress"]) == 0
+        if run == "estimated":
+            assert "add them to its sensor-file entry's range_offset_m" in capsys.readouterr().out
+        states = pq.read_table(tmp_path / run / "tracks.parquet").to_pydict()
+        lone = np.array([a == "R1:track:7" for a in states["aircraft"]])
+        t = np.array(states["t"])[lone]
+        lat, lon = at("B", t)
+        x, z = frame.to_plane(np.array(states["lat_deg"])[lone],
+                              np.array(states["lon_deg"])[lone])
+        tx, tz = frame.to_plane(lat, lon)
+        err[run] = float(np.sqrt(np.mean((x - tx) ** 2 + (z - tz) ** 2)))
+    assert err["estimated"] > 150.0 and err["known"] < 25.0, err
+
+
 def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, monkeypatch):
     """Two ASTERIX recordings concatenated (``cat later.ast earlier.ast``, raw and as a pcap
     capture), streamed in small units as the command line does: each aircraft came out in

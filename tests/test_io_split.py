@@ -166,11 +166,43 @@ def test_sensor_file(tmp_path):
     ({"lon_deg": None}, r"^sensors\[0\]\.lon_deg must be a finite number"),
     ({"kind": "sonar"}, r"^sensors\[0\]\.kind must be \"radar\" or \"position\""),
     ({"sic": 202}, r"^sensors\[1\]\.sic SAC 25 / SIC 202 repeats sensors\[0\]"),
+    ({"range_offset_m": 1e4}, r"^sensors\[0\]\.range_offset_m must be within \+-5000"),
+    ({"azimuth_offset_deg": "0.2"}, r"^sensors\[0\]\.azimuth_offset_deg must be a finite"),
+    ({"time_offset_s": -61}, r"^sensors\[0\]\.time_offset_s must be within \+-60"),
 ])
 def test_sensor_file_errors_are_named(change, message):
     first = {**SENSOR_FILE[0], **change}
     with pytest.raises(InputError, match=message):
         parse_sensors([first, *SENSOR_FILE[1:]])
+
+
+def test_known_offsets_in_the_sensor_file():
+    """A radar's range, azimuth and time offsets and a position sensor's time offset, default
+    none; a position sensor has no range offset."""
+    s = parse_sensors([{**SENSOR_FILE[0], "range_offset_m": 57.2, "azimuth_offset_deg": 0.05},
+                       SENSOR_FILE[1], {**SENSOR_FILE[2], "time_offset_s": 1.0}])
+    r, a, t = s.known_offsets()
+    assert r.tolist() == [57.2, 0, 0] and a.tolist() == [0.05, 0, 0] and t.tolist() == [0, 0, 1]
+    assert parse_sensors(SENSOR_FILE).known_offsets() is None
+    with pytest.raises(InputError, match=r"^sensors\[2\]\.range_offset_m is not a field of a "
+                       "position sensor"):
+        parse_sensors([*SENSOR_FILE[:2], {**SENSOR_FILE[2], "range_offset_m": 5.0}])
+    # taken off the plots as the tracks are built: range minus, azimuth minus, time minus
+    n = 6
+    rows = PlotRows.from_columns(
+        n, t=np.arange(n, dtype=float), sensor=np.array(["R1", "ADSB"] * 3, dtype=object),
+        range_m=np.where(np.arange(n) % 2, np.nan, 60_000.0),
+        azimuth_deg=np.where(np.arange(n) % 2, np.nan, 10.0),
+        lat_deg=np.where(np.arange(n) % 2, 46.5, np.nan),
+        lon_deg=np.where(np.arange(n) % 2, 14.5, np.nan), altitude_m=np.full(n, 9_000.0),
+        mode_s=np.full(n, 0xABCDEF))
+    (track,) = split_aircraft(rows, s)
+    tab = track.table
+    radar = tab.sensor == 0
+    assert tab.range_m[radar].tolist() == [60_000.0 - 57.2] * 3
+    np.testing.assert_allclose(np.rad2deg(tab.azimuth_rad[radar]), 9.95)
+    assert tab.t[radar].tolist() == [0.0, 2.0, 4.0]
+    assert tab.t[~radar].tolist() == [0.0, 2.0, 4.0]  # ADS-B 1 s late: 1, 3, 5 -> 0, 2, 4
 
 
 def test_sensor_file_json_errors():

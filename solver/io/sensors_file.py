@@ -11,10 +11,12 @@ neither, unique pairs) so ASTERIX records find their sensor::
       "range_error_m": 150.0, "azimuth_error_deg": 0.24,
       "range_sigma_m": 50.0, "azimuth_sigma_deg": 0.08,            # optional (default /3)
       "max_altitude_m": 0.0, "max_elevation_deg": 0.0,             # optional
-      "estimate_bias": false},                                      # optional
+      "estimate_bias": false,                                       # optional
+      "range_offset_m": 0.0, "azimuth_offset_deg": 0.0,            # known offsets: optional
+      "time_offset_s": 0.0},
      {"id": "ADSB", "kind": "position", "sac": 25, "sic": 1,
       "position_sigma_m": 30.0, "altitude_sigma_m": 15.0,          # altitude: optional
-      "estimate_bias": false}]                                      # its time offset: optional
+      "estimate_bias": false, "time_offset_s": 0.0}]                # its time offset: optional
 
 A radar without ``lat_deg``/``lon_deg`` sits at the reference point. Unknown keys, wrong types,
 NaN and bad values raise :class:`solver.InputError` at ``sensors[j].field``; JSON syntax errors
@@ -28,6 +30,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..frames import LocalFrame
 from ..inputs import InputError
 from ..json_keys import TWICE, duplicate_key
@@ -38,9 +42,28 @@ Loc = tuple[str | int, ...]
 
 _RADAR_KEYS = {"id", "kind", "sac", "sic", "lat_deg", "lon_deg", "height_m", "range_error_m",
                "azimuth_error_deg", "range_sigma_m", "azimuth_sigma_deg", "max_altitude_m",
-               "max_elevation_deg", "altitude_sigma_m", "estimate_bias"}
+               "max_elevation_deg", "altitude_sigma_m", "estimate_bias", "range_offset_m",
+               "azimuth_offset_deg", "time_offset_s"}
 _POSITION_KEYS = {"id", "kind", "sac", "sic", "position_sigma_m", "altitude_sigma_m",
-                  "estimate_bias"}
+                  "estimate_bias", "time_offset_s"}
+MAX_OFFSETS = {"range_offset_m": 5_000.0, "azimuth_offset_deg": 10.0, "time_offset_s": 60.0}
+"""Known offsets beyond these are refused (no registration finds more)."""
+
+
+@dataclass(frozen=True)
+class KnownOffsets:
+    """A sensor's known offsets (a registration's result: ``sensors.json``'s ``range_bias_m``,
+    ``azimuth_bias_deg``, ``time_bias_s`` of an earlier run with ``estimate_bias``), taken off
+    its plots before anything else: range minus ``range_m``, azimuth minus ``azimuth_deg``,
+    time minus ``time_s`` (a report late by ``time_s`` is of that much earlier). They reach
+    every track the sensor sees, those it sees alone too, whose offsets cannot be estimated."""
+
+    range_m: float = 0.0
+    azimuth_deg: float = 0.0
+    time_s: float = 0.0
+
+    def __bool__(self) -> bool:
+        return bool(self.range_m or self.azimuth_deg or self.time_s)
 
 
 @dataclass(frozen=True)
@@ -54,6 +77,17 @@ class SensorSet:
     sensors: tuple[Sensor, ...]
     codes: dict[tuple[int, int], int]
     reference: LocalFrame | None = None
+    offsets: tuple[KnownOffsets, ...] = ()
+    """Per sensor (in order) its known offsets; empty: none."""
+
+    def known_offsets(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(range_m, azimuth_deg, time_s)`` per sensor index, or None when no sensor has
+        any (:class:`KnownOffsets`)."""
+        if not any(self.offsets):
+            return None
+        return (np.array([o.range_m for o in self.offsets]),
+                np.array([o.azimuth_deg for o in self.offsets]),
+                np.array([o.time_s for o in self.offsets]))
 
     def index(self) -> dict[str, int]:
         """Sensor id -> index."""
@@ -114,9 +148,11 @@ def parse_sensors(text: str | object) -> SensorSet:
         raise InputError(("sensors",), "must be a non-empty list of sensor objects")
     sensors: list[Sensor] = []
     codes: dict[tuple[int, int], int] = {}
+    offsets: list[KnownOffsets] = []
     for j, obj in enumerate(value):
         loc: Loc = ("sensors", j)
         sensor, code = _sensor(obj, loc)
+        offsets.append(_offsets(obj, loc))
         if code is not None:
             if code in codes:
                 raise InputError((*loc, "sic"), f"SAC {code[0]} / SIC {code[1]} repeats "
@@ -140,7 +176,18 @@ def parse_sensors(text: str | object) -> SensorSet:
                 raise InputError(e.loc, f"{e.message}: the plane's reference defaults to the "
                                  "first radar's site; give the file a `reference` away from "
                                  "the pole") from None
-    return SensorSet(tuple(sensors), codes, reference)
+    return SensorSet(tuple(sensors), codes, reference, tuple(offsets))
+
+
+def _offsets(obj: dict, loc: Loc) -> KnownOffsets:
+    values = {}
+    for name, top in MAX_OFFSETS.items():
+        v = _number(obj, name, loc, default=0.0)
+        if abs(v) > top:  # type: ignore[arg-type]
+            raise InputError((*loc, name), f"must be within +-{top:g} ({v:g})")
+        values[name] = v
+    return KnownOffsets(values["range_offset_m"], values["azimuth_offset_deg"],  # type: ignore[arg-type]
+                        values["time_offset_s"])  # type: ignore[arg-type]
 
 
 def _sensor(obj: object, loc: Loc) -> tuple[Sensor, tuple[int, int] | None]:

@@ -34,7 +34,7 @@ one ``x``/``z`` plane.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -338,13 +338,32 @@ def _usable(rows: PlotRows, sensors: SensorSet, index: dict[str, int],
     return usable & ~no_key
 
 
+def _corrected(rows: PlotRows, sensors: SensorSet, sensor_idx: np.ndarray
+               ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``(t, range_m, azimuth_deg)`` of rows ``m`` with their sensors' known offsets taken
+    off (a report late by ``time_s`` is of that much earlier)."""
+    known = sensors.known_offsets()
+
+    def at(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        t, r, az = rows.t[m], rows.range_m[m], rows.azimuth_deg[m]
+        if known is None:
+            return t, r, az
+        k = sensor_idx[m]
+        return t - known[2][k], r - known[0][k], az - known[1][k]
+
+    return at
+
+
 def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
            sensor_idx: np.ndarray, frame: LocalFrame | None, min_plots: int,
            problems: Problems) -> AircraftTrack | None:
-    """One aircraft's validated table, or None (reported) when too little is left."""
-    m = members[np.argsort(rows.t[members], kind="stable")]
+    """One aircraft's validated table, or None (reported) when too little is left; the
+    sensors' known offsets (:class:`solver.io.sensors_file.KnownOffsets`) taken off its
+    plots."""
+    t_r_az = _corrected(rows, sensors, sensor_idx)
+    m = members[np.argsort(t_r_az(members)[0], kind="stable")]
     # a sensor's second plot at the same instant: keep the first
-    s, t = sensor_idx[m], rows.t[m]
+    s, t = sensor_idx[m], t_r_az(m)[0]
     order = np.lexsort((np.arange(m.size), t, s))
     dup_sorted = np.zeros(m.size, dtype=bool)
     dup_sorted[1:] = (s[order][1:] == s[order][:-1]) & (t[order][1:] == t[order][:-1])
@@ -365,12 +384,12 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
         local = np.searchsorted(used, sensor_idx[m])
         position = np.array([not isinstance(sensors.sensors[k], RadarSensor)
                              for k in used.tolist()])[local]
-        heights = geometric_altitudes(rows.t[m], rows.altitude_m[m], rows.flight_level[m],
-                                      position)
+        t, r, az = t_r_az(m)
+        heights = geometric_altitudes(t, rows.altitude_m[m], rows.flight_level[m], position)
         try:
             table = PlotTable.build(
-                [sensors.sensors[k] for k in used.tolist()], rows.t[m], local,
-                range_m=rows.range_m[m], azimuth_rad=np.deg2rad(rows.azimuth_deg[m]),
+                [sensors.sensors[k] for k in used.tolist()], t, local,
+                range_m=r, azimuth_rad=np.deg2rad(az),
                 lat_deg=rows.lat_deg[m], lon_deg=rows.lon_deg[m],
                 altitude_m=heights.altitude_m, reference=frame)
         except InputError as e:
