@@ -29,7 +29,7 @@ from .models import (
 )
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
-TrackStatus = Literal["pending", "done", "failed"]
+TrackStatus = Literal["pending", "done", "failed", "cancelled"]
 
 _EXAMPLE_TRACKS = {
     "sensors": [{"id": "R1", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0,

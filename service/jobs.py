@@ -211,6 +211,14 @@ class JobStore:
             row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return None if row is None else self._record(row)
 
+    def recent(self, limit: int, state: str | None = None) -> list[JobRecord]:
+        """The ``limit`` newest jobs (of ``state`` when given), newest first."""
+        where, args = ("WHERE state = ?", (state,)) if state else ("", ())
+        with self._lock:
+            rows = self._db.execute(f"SELECT * FROM jobs {where} ORDER BY created DESC, rowid "
+                                    "DESC LIMIT ?", (*args, limit)).fetchall()
+        return [self._record(r) for r in rows]
+
     def ids(self) -> set[str]:
         with self._lock:
             return {r[0] for r in self._db.execute("SELECT id FROM jobs")}
@@ -389,6 +397,10 @@ def figure_dir(root: Path, key: str) -> Path:
 
 
 # --------------------------------------------------------------------------------- runner
+
+
+def _mode_c_offsets(tracks: list[Any]) -> list[float]:
+    return [t.pressure_offset_m for t in tracks if t.pressure_offset_m is not None]
 
 
 class JobRunner:
@@ -666,12 +678,13 @@ class JobRunner:
                              sources=json_sources(loaded.rows) if job.kind == "tracks" else None)
         except Aborted:
             LOGGER.info("job stopped", extra={"fields": {"job": job.id}})
+            self._finish_cancelled(job.id, loaded, tracks)
             return
         if self._stop_requested(job.id):
+            self._finish_cancelled(job.id, loaded, tracks)
             return
         solved = time.monotonic()
-        self._finish_outputs(job.id, loaded, [t.pressure_offset_m for t in tracks
-                                              if t.pressure_offset_m is not None])
+        self._finish_outputs(job.id, loaded, _mode_c_offsets(tracks))
         reason = _nothing_reconstructed(self.progress(job.id), loaded.problems)
         self._db().finish(job.id, "failed" if reason else "done", reason)
         LOGGER.info("job failed" if reason else "job done", extra={"fields": {
@@ -691,9 +704,23 @@ class JobRunner:
     def _stop_requested(self, job_id: str) -> bool:
         return self._stopping or job_id in self._cancelled
 
-    def _finish_outputs(self, job_id: str, loaded: Any, mode_c_offsets: list[float]) -> None:
+    def _finish_cancelled(self, job_id: str, loaded: Any, tracks: list[Any]) -> None:
+        """A cancelled job's whole-job outputs of the tracks it finished (a walkthrough
+        helper's cancelled job had 21 finished tracks readable only one by one, its map,
+        sensors and results 409); not when the service is stopping (the job resumes)."""
+        if self._stopping or job_id not in self._cancelled or not self.progress(job_id).entries:
+            return
+        try:
+            self._finish_outputs(job_id, loaded, _mode_c_offsets(tracks), cancelled=True)
+        except Exception:  # the finished tracks stay readable one by one
+            LOGGER.exception("cancelled job's outputs failed", extra={"fields": {
+                "job": job_id}})
+
+    def _finish_outputs(self, job_id: str, loaded: Any, mode_c_offsets: list[float],
+                        cancelled: bool = False) -> None:
         """The whole-recording outputs of :mod:`solver.cli` (CSV, GeoJSON lines, map,
-        sensors' statistics, problems, summary) and single-file Parquet downloads."""
+        sensors' statistics, problems, summary) and single-file Parquet downloads; of the
+        tracks finished when ``cancelled`` (the summary says so)."""
         out = self.job_dir(job_id) / "out"
         stats = SensorStats(loaded.sensors, loaded.scan_periods)
         for reports in _sensor_reports(out).values():
@@ -723,6 +750,9 @@ class JobRunner:
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
                    "runs": record.runs if record else None, **settings.as_json()}
+        if cancelled:
+            summary.update(cancelled=True, not_reconstructed=len(self.tracks(job_id))
+                           - len(progress.entries))
         warned = output_state(out)  # and warnings.csv: every track's warnings
         summary.update(tracks_with_warnings=warned["tracks_with_warnings"],
                        warnings=warned["warnings"])
@@ -763,6 +793,9 @@ class JobRunner:
 
     def get(self, job_id: str) -> JobRecord | None:
         return self._db().get(job_id)
+
+    def recent(self, limit: int, state: str | None = None) -> list[JobRecord]:
+        return self._db().recent(limit, state)
 
     def progress(self, job_id: str) -> Progress:
         """The job's finished tracks from its commit log (cached on the file's size and

@@ -452,6 +452,24 @@ def _job(runner: JobRunner, job_id: str) -> JobRecord:
     return job
 
 
+MAX_LISTED_JOBS = 500
+"""At most this many jobs in one ``GET /v1/jobs`` (the cost of a listing is bounded)."""
+
+
+@router.get(JOBS_PATH, response_model=list[JobStatus], summary="The service's jobs, newest first")
+def list_jobs(request: Request,
+              limit: Annotated[int, Query(ge=1, le=MAX_LISTED_JOBS,
+                                          description="At most this many jobs.")] = 50,
+              state: Annotated[Literal["queued", "running", "done", "failed", "cancelled"]
+                               | None, Query(description="Only jobs in this state.")] = None
+              ) -> list[JobStatus]:
+    """Every job the service keeps (until deleted), newest first, each as ``GET
+    /v1/jobs/{id}`` gives it: to find a job whose id was lost, or what is still running (a
+    walkthrough helper found no way to)."""
+    runner = _runner(request)
+    return [_status(runner, job) for job in runner.recent(limit, state)]
+
+
 @router.get(JOBS_PATH + "/{job_id}", response_model=JobStatus, responses=_NOT_FOUND,
             summary="A job's state and progress")
 def get_job(job_id: str, request: Request) -> JobStatus:
@@ -483,12 +501,12 @@ def list_job_tracks(job_id: str, request: Request) -> list[JobTrack]:
     """Every aircraft of the job (empty until the recording has been read), in order of first
     plot: pending, done or failed (with the reason)."""
     runner = _runner(request)
-    _job(runner, job_id)
+    unfinished = "cancelled" if _job(runner, job_id).state == "cancelled" else "pending"
     entries = runner.progress(job_id).entries
     out = []
     for key, plots in runner.tracks(job_id):
         e = entries.get(key)
-        out.append(JobTrack(aircraft=key, plots=plots, status="pending") if e is None else
+        out.append(JobTrack(aircraft=key, plots=plots, status=unfinished) if e is None else
                    JobTrack(aircraft=key, plots=plots, status=e["status"], error=e["error"],
                             elapsed_s=e.get("elapsed_s"), warnings=e.get("warnings") or []))
     return out
@@ -660,10 +678,11 @@ def _finished(runner: JobRunner, job_id: str) -> JobRecord:
     """A done job, or a failed one that ran to its end (no track reconstructed: its summary,
     problems and failures are there to read); else 409."""
     job = _job(runner, job_id)
-    if job.state != "done" and not (job.state == "failed"
+    if job.state != "done" and not (job.state in ("failed", "cancelled")
                                     and runner.result_file(job_id, "summary.json")):
         raise HTTPException(409, f"job {job_id} is {job.state}; whole-job results are made "
-                            "when it is done (finished tracks: GET .../tracks/{aircraft})")
+                            "when it is done, or cancelled after finishing a track (finished "
+                            "tracks: GET .../tracks/{aircraft})")
     return job
 
 

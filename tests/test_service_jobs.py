@@ -461,8 +461,34 @@ def test_cancel_and_the_concurrent_job_limit(client):
     assert later["state"] == "cancelled" and later["tracks_done"] < len(MANY)
     assert later["tracks_done"] == cancelled["tracks_done"]
     assert later["tracks_failed"] == 0  # the stop is not recorded as the tracks' failure
-    assert client.get(first.headers["location"] + "/map.png").status_code == 409
+    # its finished tracks' whole-job results (a walkthrough helper found them 409, readable
+    # only one by one); the unfinished ones listed as cancelled, not pending for good
+    loc = first.headers["location"]
+    end = time.monotonic() + 60
+    while (summary := client.get(loc + "/results/summary.json")).status_code != 200:
+        assert summary.status_code == 409 and time.monotonic() < end, summary.text
+        time.sleep(0.2)
+    summary = summary.json()
+    assert summary["cancelled"] and summary["done"] == later["tracks_done"]
+    assert summary["not_reconstructed"] == later["tracks_total"] - later["tracks_done"] > 0
+    listed = client.get(loc + "/tracks").json()
+    assert {t["status"] for t in listed} == {"done", "cancelled"}
+    assert sum(t["status"] == "done" for t in listed) == later["tracks_done"]
+    assert client.get(loc + "/map.png").status_code == 200
+    assert client.get(loc + "/sensors").status_code == 200
+    csv_rows = client.get(loc + "/results/tracks.csv").text.count("\n") - 1
+    assert csv_rows == later["plots_done"]
     assert client.get(second.headers["location"] + "/tracks").json() == []
+    assert client.get(second.headers["location"] + "/map.png").status_code == 409  # none done
+    # the jobs, newest first (a lost id found again), by state too
+    jobs = client.get("/v1/jobs").json()
+    assert [j["id"] for j in jobs[:2]] == [r.headers["location"].rsplit("/", 1)[1]
+                                           for r in (second, first)]
+    assert {j["state"] for j in client.get("/v1/jobs", params={"state": "cancelled"}).json()
+            } == {"cancelled"}
+    assert len(client.get("/v1/jobs", params={"limit": 1}).json()) == 1
+    assert client.get("/v1/jobs", params={"limit": 0}).status_code == 422
+    assert client.get("/v1/jobs", params={"state": "lost"}).status_code == 422
     for r in (first, second):  # deleting a finished (cancelled) job removes it
         assert client.delete(r.headers["location"]).status_code == 204
         assert client.get(r.headers["location"]).status_code == 404

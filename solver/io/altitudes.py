@@ -31,7 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import median_filter
+from numpy.lib.stride_tricks import sliding_window_view
 
 from ..inputs import FloatArray
 from .tables import FL_M
@@ -106,11 +106,13 @@ def _matched(t: FloatArray, alt: FloatArray, fl: FloatArray, pressure: np.ndarra
 
 def _running_median(t: FloatArray, v: FloatArray, window_s: float) -> FloatArray:
     """Median of ``v`` over about ``window_s`` around each value (``t`` sorted): a window of
-    as many values as the median spacing puts in it (scipy's median filter; reports come at a
-    steady rate, and a Python median per value cost 10 us each in the reader's thread)."""
+    as many values as the median spacing puts in it, the ends padded with the end values
+    (numpy's sliding windows: reports come at a steady rate, and a Python median per value
+    cost 10 us each in the reader's thread; scipy.ndimage is not in the Docker image)."""
     step = float(np.median(np.diff(t))) if t.size > 1 else window_s
     size = int(np.clip(window_s / max(step, 1e-3), 1, t.size)) | 1
-    return median_filter(v, size=size, mode="nearest")
+    padded = np.pad(v, size // 2, mode="edge")
+    return np.median(sliding_window_view(padded, size), axis=1)
 
 
 def offsets_summary(offsets: list[float]) -> dict[str, float | int] | None:
