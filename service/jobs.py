@@ -57,6 +57,7 @@ from solver.cli import (
     write_csv_and_geojson,
     write_manoeuvres,
     write_map,
+    write_sensor_csv,
 )
 from solver.config import FILTER_GATE_SIGMA, ReconstructionConfig
 from solver.inputs import InputError, format_loc
@@ -75,8 +76,8 @@ ACTIVE: frozenset[str] = frozenset({"queued", "running"})
 PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet", "samples.parquet")
 """Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
 RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "manoeuvres.csv",
-                "warnings.csv", "sensors.json", "problems.txt", "summary.json", "map.png",
-                "sensors.png", "results.zip")
+                "warnings.csv", "sensors.json", "sensors.csv", "problems.txt", "summary.json",
+                "map.png", "sensors.png", "results.zip")
 PROBLEM_EXAMPLES = 20  # problems listed in a job's status (every kind is counted)
 
 _SCHEMA = """
@@ -725,11 +726,13 @@ class JobRunner:
         stats = SensorStats(loaded.sensors, loaded.scan_periods)
         for reports in _sensor_reports(out).values():
             stats.add(reports)
-        (out / "sensors.json").write_text(json.dumps(stats.rows(), indent=1) + "\n",
+        sensor_rows = stats.rows()
+        (out / "sensors.json").write_text(json.dumps(sensor_rows, indent=1) + "\n",
                                           encoding="utf-8")
-        write_csv_and_geojson(out)
+        write_sensor_csv(out, sensor_rows)  # as the command line's outputs (a walkthrough)
+        csv_rows, geo_tracks = write_csv_and_geojson(out)
         frame = recording_frame(loaded.sensors, loaded.rows)
-        write_manoeuvres(out, frame)
+        manoeuvres = write_manoeuvres(out, frame)
         write_map(out, loaded.sensors, frame=frame)
         write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
         (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
@@ -749,7 +752,9 @@ class JobRunner:
                    "mode_c_offsets": offsets_summary(mode_c_offsets),
                    "failures": {k: e["error"] for k, e in progress.entries.items()
                                 if e["status"] == "failed"},
-                   "runs": record.runs if record else None, **settings.as_json()}
+                   "runs": record.runs if record else None, **settings.as_json(),
+                   "csv_rows": csv_rows, "geojson_tracks": geo_tracks, "manoeuvres": manoeuvres,
+                   "sensors": sensor_rows}
         if cancelled:
             summary.update(cancelled=True, not_reconstructed=len(self.tracks(job_id))
                            - len(progress.entries))

@@ -628,7 +628,8 @@ def write_map(out: Path, sensors: SensorSet, rows: PlotRows | None = None, *,
     return save(recording_map(lines, sites, title=f"{len(lines)} tracks"), out / "map.png")
 
 
-def _write_sensor_csv(out: Path, rows: list[dict[str, Any]]) -> None:
+def write_sensor_csv(out: Path, rows: list[dict[str, Any]]) -> None:
+    """``out/sensors.csv``: the sensors' statistics (:data:`SENSOR_COLUMNS`)."""
     cols = {k: [r[k] for r in rows] for k in SENSOR_COLUMNS}
     types = {k: pa.string() if k in ("sensor", "kind") else
              pa.int64() if k in ("tracks", "plots", "plots_gated", "plots_wild") else pa.float64()
@@ -799,7 +800,7 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
     for reports in _iter_stats(stats_path):
         stats.add(reports)
     sensor_rows = stats.rows()
-    _write_sensor_csv(out, sensor_rows)
+    write_sensor_csv(out, sensor_rows)
     (out / "sensors.json").write_text(json.dumps(sensor_rows, indent=1) + "\n",
                                       encoding="utf-8")
     (out / "summary.json").unlink(missing_ok=True)  # stale while the files below are written

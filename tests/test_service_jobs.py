@@ -157,8 +157,14 @@ def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
     assert set(sensors) == {"R1", "R2", "ADSB"} and sensors["R1"]["scan_period_s"] == 4.0
     archive = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content))
     assert {"tracks.parquet", "segments.parquet", "tracks.csv", "tracks.geojsonl",
-            "manoeuvres.csv", "sensors.json", "summary.json", "problems.txt", "map.png",
-            "sensors.png"} <= set(archive.namelist())
+            "manoeuvres.csv", "sensors.json", "sensors.csv", "summary.json", "problems.txt",
+            "map.png", "sensors.png"} <= set(archive.namelist())
+    # the command line's summary fields too (a walkthrough helper found them missing)
+    summary = json.loads(archive.read("summary.json"))
+    assert [s["sensor"] for s in summary["sensors"]] == ["R1", "R2", "ADSB"]
+    assert summary["csv_rows"] == summary["plots"] and summary["geojson_tracks"] == len(keys)
+    assert summary["manoeuvres"] == 0
+    assert archive.read("sensors.csv").decode().splitlines()[0].startswith('"sensor","kind",')
     lines = client.get(loc + "/results/tracks.geojsonl").text.splitlines()
     assert sorted(json.loads(x)["properties"]["aircraft"] for x in lines) == sorted(keys)
     assert client.get(f"{loc}/tracks/NOPE").status_code == 404
