@@ -7,7 +7,7 @@ exists once; it renames the solver's radian fields back to the degree fields the
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -17,6 +17,7 @@ from solver.estimation import FUSION_NAMES
 from solver.estimation.gating import gate_warnings
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar, format_loc
+from solver.io.sensors_file import KnownOffsets
 from solver.manoeuvres import from_segments
 from solver.plots import PlotTable, validate_sensors
 from solver.results import (
@@ -234,8 +235,11 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
             except InputError as e:
                 raise unsent_reference(e, listed, ("plots",)) from None
         sensors = [s for s in sensors if s.id in used]
+    offsets = {s.id: KnownOffsets(getattr(s, "range_offset_m", 0.0),
+                                  getattr(s, "azimuth_offset_deg", 0.0), s.time_offset_s)
+               for s in req.sensors}
     try:
-        return plot_table(sensors, req.plots, reference)
+        return plot_table(sensors, req.plots, reference, offsets=offsets)
     except InputError as e:
         if sent or e.loc[:1] != ("reference",):
             raise
@@ -257,18 +261,26 @@ def require_fields(plot: PlotIn, kind: str | None, loc: tuple[str | int, ...]) -
 
 
 def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
-               reference: LocalFrame | None, loc: tuple[str | int, ...] = ("plots",)
-               ) -> PlotTable:
+               reference: LocalFrame | None, loc: tuple[str | int, ...] = ("plots",),
+               offsets: Mapping[str, KnownOffsets] | None = None) -> PlotTable:
     """The validated table of request plots, each naming one of ``sensors`` (every one
-    used); an error at a plot is named at ``loc`` (a job's track ``("tracks", key)``: the
-    plot's index within the track)."""
+    used), each sensor's known ``offsets`` (by id) taken off its plots; an error at a plot
+    is named at ``loc`` (a job's track ``("tracks", key)``: the plot's index within the
+    track)."""
     kinds = {s.id: s.kind for s in sensors}
     for i, p in enumerate(plots):
         require_fields(p, kinds.get(p.sensor), (*loc, i))
 
+    known = {k: v for k, v in (offsets or {}).items() if v}
+    off = {"t": "time_s", "range_m": "range_m", "azimuth_deg": "azimuth_deg"}
+
     def col(name: str, scale: float = 1.0) -> np.ndarray:
-        return np.array([np.nan if getattr(p, name) is None else getattr(p, name) * scale
-                         for p in plots], dtype=float)
+        v = np.array([np.nan if getattr(p, name) is None else getattr(p, name) for p in plots],
+                     dtype=float)
+        if known and name in off:
+            v = v - np.array([getattr(known[p.sensor], off[name]) if p.sensor in known else 0.0
+                              for p in plots])
+        return v * scale
 
     try:
         return PlotTable.build(sensors, col("t"), [p.sensor for p in plots], col("range_m"),

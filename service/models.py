@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from solver.config import FILTER_GATE_SIGMA, MAX_FILTER_GATE_SIGMA
 from solver.estimation import FILTER_NAMES, GATING_NAMES
+from solver.io.sensors_file import MAX_OFFSETS
 from solver.manoeuvres import (
     ACCELERATION,
     MIN_HEADING_CHANGE_DEG,
@@ -122,6 +123,17 @@ class RadarSensorIn(RadarIn, SiteFields, AsterixCodes):
         False, description="Estimate this radar's range offset (m), azimuth offset (deg) and "
         "time offset (s) with the trajectory (priors: 300 m, 0.5 deg, 1 s); reported in "
         "`sensors`.")
+    range_offset_m: float = Field(
+        0.0, ge=-MAX_OFFSETS["range_offset_m"], le=MAX_OFFSETS["range_offset_m"],
+        description="Known range offset (m, measured minus true; an earlier registration's "
+        "`range_bias_m`), taken off every plot of the radar before anything else.")
+    azimuth_offset_deg: float = Field(
+        0.0, ge=-MAX_OFFSETS["azimuth_offset_deg"], le=MAX_OFFSETS["azimuth_offset_deg"],
+        description="Known azimuth offset (deg, clockwise), taken off every plot.")
+    time_offset_s: float = Field(
+        0.0, ge=-MAX_OFFSETS["time_offset_s"], le=MAX_OFFSETS["time_offset_s"],
+        description="Known time offset (s; a plot late by d s is of d s before: its state is "
+        "at `t` minus d), taken off every plot.")
 
 
 class PositionSensorIn(AsterixCodes):
@@ -139,6 +151,10 @@ class PositionSensorIn(AsterixCodes):
         False, description="Estimate this sensor's time offset (s; its latency: a report late "
         "by d s gives where the aircraft was d s before) against the other sensors, with the "
         "trajectory (prior 1 s); reported in `sensors` as `time_bias_s`.")
+    time_offset_s: float = Field(
+        0.0, ge=-MAX_OFFSETS["time_offset_s"], le=MAX_OFFSETS["time_offset_s"],
+        description="Known time offset (s, its latency; an earlier run's `time_bias_s`), taken "
+        "off every plot: its state is at `t` minus it.")
 
 
 SensorIn = Annotated[RadarSensorIn | PositionSensorIn, Field(discriminator="kind")]
