@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from solver.io.altitudes import MIN_PAIRS, geometric_altitudes
+from solver.io.problems import Problems
 from solver.io.sensors_file import parse_sensors
 from solver.io.split import split_aircraft
 from solver.io.tables import FL_M, PlotRows
@@ -111,3 +112,35 @@ def test_the_reader_builds_tracks_with_geometric_heights():
     assert np.abs(h - geo[~adsb]).max() < QUARTER_FL_M
     (plain,) = split_aircraft(rows.take(~adsb), sensors)
     assert plain.pressure_offset_m is None
+
+
+def test_a_bad_geometric_height_is_not_used_and_is_reported():
+    """ADS-B reporting a geometric height of 0 m at 9-10 km beside a right flight level: the
+    offset it gives (-10 km) is no atmosphere's; every Mode C of the aircraft was moved to 0 m
+    (a review helper). Pairs more than MAX_OFFSET_M apart are not used and counted: nothing
+    moved, and the reader reports it; a few bad ones among good ones are outvoted."""
+    t, alt, fl, adsb, geo = flight(200.0)
+    bad = np.where(adsb, 0.0, alt)
+    got = geometric_altitudes(t, bad, fl, adsb)
+    assert got.corrected == 0 and got.rejected == np.count_nonzero(adsb)
+    np.testing.assert_array_equal(got.altitude_m, bad)
+    some = alt.copy()
+    some[np.flatnonzero(adsb)[::10]] = 0.0  # one report in ten
+    got = geometric_altitudes(t, some, fl, adsb)
+    assert got.rejected == np.flatnonzero(adsb)[::10].size
+    assert np.abs(got.altitude_m - geo)[~adsb].max() < QUARTER_FL_M
+    sensors = parse_sensors([
+        {"id": "R1", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0, "height_m": 300.0,
+         "range_error_m": 150.0, "azimuth_error_deg": 0.24},
+        {"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}])
+    n = t.size
+    rows = PlotRows.from_columns(
+        n, t=t, sensor=np.where(adsb, "ADSB", "R1").astype(object),
+        range_m=np.where(adsb, np.nan, 60_000.0), azimuth_deg=np.where(adsb, np.nan, 10.0),
+        lat_deg=np.where(adsb, 46.5, np.nan), lon_deg=np.where(adsb, 14.1, np.nan),
+        altitude_m=bad, flight_level=fl, mode_s=np.full(n, 0x4CA2D1))
+    problems = Problems()
+    (track,) = split_aircraft(rows, sensors, problems=problems)
+    assert track.pressure_offset_m is None
+    assert problems.counts == {"implausible_altitude": 1}
+    assert problems.entries[0].where == "aircraft 4CA2D1"

@@ -42,6 +42,11 @@ MATCH_S = 5.0
 """A geometric height pairs with a pressure altitude of another plot at most this far in time."""
 MIN_PAIRS = 3
 """Fewer pairs than this leave the altitudes as they are."""
+MAX_OFFSET_M = 1_500.0
+"""A geometric height further than this from the barometric altitude is not an offset of the
+atmosphere (QNH moves it some 400 m at sea level, a 30 K warm or cold air mass 10 % of the
+height) but a bad height (a report of 0 m at 9 km moved every Mode C of its aircraft to 0 m: a
+review helper): such pairs are not used, and counted (``rejected``)."""
 PRESSURE_TOLERANCE_M = 0.01
 """An altitude within this of its flight level's is that flight level's pressure altitude."""
 
@@ -55,6 +60,7 @@ class Offsets:
     corrected: int
     median_m: float | None
     pairs: int
+    rejected: int = 0  # pairs further apart than MAX_OFFSET_M, not used
 
 
 def geometric_altitudes(t: FloatArray, altitude_m: FloatArray, flight_level: FloatArray,
@@ -72,12 +78,16 @@ def geometric_altitudes(t: FloatArray, altitude_m: FloatArray, flight_level: Flo
         at, offset = t[both], alt[both] - fl[both] * FL_M
     else:
         at, offset = _matched(t, alt, fl, pressure, geometric)
+    plausible = np.abs(offset) <= MAX_OFFSET_M
+    rejected = int(np.count_nonzero(~plausible))
+    at, offset = at[plausible], offset[plausible]
     if at.size < MIN_PAIRS or not pressure.any():
-        return Offsets(alt, 0, None, int(at.size))
+        return Offsets(alt, 0, None, int(at.size), rejected)
     smooth = _running_median(at, offset, OFFSET_WINDOW_S)
     out = alt.copy()
     out[pressure] = alt[pressure] + np.interp(t[pressure], at, smooth)
-    return Offsets(out, int(np.count_nonzero(pressure)), float(np.median(offset)), int(at.size))
+    return Offsets(out, int(np.count_nonzero(pressure)), float(np.median(offset)), int(at.size),
+                   rejected)
 
 
 def _matched(t: FloatArray, alt: FloatArray, fl: FloatArray, pressure: np.ndarray,

@@ -43,7 +43,7 @@ from ..frames import LocalFrame
 from ..inputs import InputError, format_loc
 from ..plots import PlotTable
 from ..sensors import RadarSensor
-from .altitudes import geometric_altitudes
+from .altitudes import MAX_OFFSET_M, geometric_altitudes
 from .problems import Problems
 from .sensors_file import SensorSet
 from .tables import PlotRows
@@ -375,7 +375,7 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
                      f"{rows.sensor[i]!r} at t = {rows.t[i]:.3f} s: left out (the first is "
                      "kept)", key=key, dropped=1)
     m = m[~dup]
-    for _ in range(_MAX_ROW_RETRIES):
+    for attempt in range(_MAX_ROW_RETRIES):
         if m.size < min_plots:
             problems.add("short_track", f"aircraft {key}", f"{m.size} plot(s), fewer than the "
                          f"{min_plots} a reconstruction needs: left out", dropped=int(m.size))
@@ -386,6 +386,11 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
                              for k in used.tolist()])[local]
         t, r, az = t_r_az(m)
         heights = geometric_altitudes(t, rows.altitude_m[m], rows.flight_level[m], position)
+        if heights.rejected and attempt == 0:  # once, not per bad plot retried
+            problems.add("implausible_altitude", f"aircraft {key}", f"{heights.rejected} "
+                         f"geometric height(s) differ from the aircraft's barometric altitude "
+                         f"by more than {MAX_OFFSET_M:g} m: not used to make its Mode C "
+                         "geometric", key=key)
         try:
             table = PlotTable.build(
                 [sensors.sensors[k] for k in used.tolist()], t, local,
