@@ -18,6 +18,7 @@ from solver.io.problems import Problems
 from solver.io.tables import (
     PlotRows,
     counts_from_midnight,
+    iter_table,
     read_csv,
     read_table,
     unwrap_time_of_day,
@@ -306,3 +307,25 @@ def test_a_row_of_the_wrong_width_or_not_utf8_is_skipped_and_the_rest_read(tmp_p
     assert time_disorder_s(path) == pytest.approx(2999 - 1 - 1)  # rows 3 ... 2998 down
     with pytest.raises(InputError, match="has 6 field"):
         read_csv(ODD_CSV, strict=True)
+
+
+def test_a_latin1_header_and_a_long_field_before_a_short_row(tmp_path):
+    """Two tracebacks a review helper found: a header line that is not UTF-8 (now an error
+    naming the file's header and the byte), and a field longer than the csv module's default
+    limit (128 KiB) before a row of the wrong width, which the row numbering reads with it
+    (now read: the short row skipped and counted)."""
+    path = tmp_path / "latin1.csv"
+    path.write_bytes("t,sensor,range_m,azimuth_deg,comment\u00e9\n1,R1,1000,10,x\n"
+                     .encode("latin-1"))
+    for read in (read_table, lambda p: list(iter_table(p))):
+        with pytest.raises(InputError, match=r"header line that is not UTF-8 text \(byte 36\)"):
+            read(path)
+    long = "x" * 200_000
+    path = tmp_path / "long.csv"
+    path.write_text(f"t,sensor,range_m,azimuth_deg,comment\n1,R1,1000,10,{long}\n2,R1,1000\n"
+                    "3,R1,1000,10,y\n")
+    for rows, problems in (read_table(path),):
+        assert rows.origin.tolist() == [1, 3] and problems.counts.get("bad_row") == 1
+    problems = Problems()
+    assert [r.origin.tolist() for r in iter_table(path, problems=problems)] == [[1, 3]]
+    assert problems.counts.get("bad_row") == 1

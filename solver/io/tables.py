@@ -330,7 +330,7 @@ def read_csv(data: bytes, *, strict: bool = False, problems: Problems | None = N
              ) -> tuple[PlotRows, Problems]:
     """Read a CSV plot table from bytes (every column read as text, then converted here so a
     bad value is named by its row)."""
-    first = data.split(b"\n", 1)[0].decode("utf-8-sig", errors="replace")
+    first = _header_line(data.split(b"\n", 1)[0])
     header = next(csv.reader(first.splitlines()[:1]), [])
     if not header or not any(h.strip() for h in header):
         raise InputError(("file",), "has no header line")
@@ -349,6 +349,16 @@ def read_csv(data: bytes, *, strict: bool = False, problems: Problems | None = N
         records.take(0, problems, strict, to_end=True)
     return rows_from_arrow(table, strict=strict, problems=problems, csv_lines=True,
                            numbers=numbers)
+
+
+def _header_line(line: bytes) -> str:
+    """A CSV's first line as text; :class:`InputError` when it is not UTF-8 (the column names
+    cannot be read: a Latin-1 header made a traceback; a review helper)."""
+    try:
+        return line.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise InputError(("file",), f"has a header line that is not UTF-8 text (byte {e.start}):"
+                         " save the table as UTF-8") from None
 
 
 def _csv_convert_options(header: list[str]) -> pacsv.ConvertOptions:
@@ -383,6 +393,9 @@ class _CsvRecords:
     table that has such a row."""
 
     def __init__(self, lines: Any, fields: int):
+        # Arrow reads fields of any length; the csv module stops at 128 KiB by default (a
+        # traceback on a long field before a short row; a review helper)
+        csv.field_size_limit(max(csv.field_size_limit(), 1 << 30))
         self.reader = csv.reader(lines)
         next(self.reader, None)  # the header
         self.fields = fields
@@ -433,7 +446,7 @@ def iter_table(path: str | Path, *, batch_rows: int = 1 << 17, strict: bool = Fa
         csv_lines = False
     else:
         with open(path, "rb") as f:
-            first = f.readline().decode("utf-8-sig", errors="replace")
+            first = _header_line(f.readline())
         header = next(csv.reader(first.splitlines()[:1]), [])
         if not header or not any(h.strip() for h in header):
             raise InputError(("file",), "has no header line")
