@@ -329,3 +329,21 @@ def test_a_latin1_header_and_a_long_field_before_a_short_row(tmp_path):
     problems = Problems()
     assert [r.origin.tolist() for r in iter_table(path, problems=problems)] == [[1, 3]]
     assert problems.counts.get("bad_row") == 1
+
+
+def test_a_bad_value_after_a_quoted_newline_or_a_blank_line_names_its_line(tmp_path):
+    """With no row skipped the lines were ``row + 1``: one early after a value spanning two
+    lines or a blank line (a review helper). A problem's line is now the csv reader's (read
+    only when a problem needs it), whole and in batches; the rows keep their numbers."""
+    for text, where in (('t,sensor,range_m,azimuth_deg,aircraft\n1,R1,5e4,10,\n2,R1,5e4,10,'
+                         '"two\nlines"\n3,R1,abc,10,\n4,R1,5e4,10,\n', "row 3 (line 5)"),
+                        ("t,sensor,range_m,azimuth_deg\n1,R1,5e4,10\n\n3,R1,abc,10\n",
+                         "row 2 (line 4)")):
+        path = tmp_path / "t.csv"
+        path.write_text(text)
+        rows, problems = read_table(path)
+        assert [e.where for e in problems.entries] == [where]
+        batched = Problems()
+        parts = list(iter_table(path, batch_rows=1, problems=batched))
+        assert [e.where for e in batched.entries] == [where]
+        assert [o for p in parts for o in p.origin.tolist()] == rows.origin.tolist()

@@ -48,7 +48,7 @@ from __future__ import annotations
 import csv
 import io
 import re
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -341,14 +341,18 @@ def read_csv(data: bytes, *, strict: bool = False, problems: Problems | None = N
     except pa.ArrowInvalid as e:
         raise InputError(("file",), f"is not a readable CSV table: {e}") from None
     problems = problems if problems is not None else Problems()
-    numbers = None
-    if odd.skipped:
+
+    def numbered() -> tuple[np.ndarray, np.ndarray]:
         records = _CsvRecords(io.TextIOWrapper(io.BytesIO(data), encoding="utf-8-sig",
                                                errors="replace", newline=""), len(header))
-        numbers = records.take(table.num_rows, problems, strict)
+        out = records.take(table.num_rows, problems, strict)
         records.take(0, problems, strict, to_end=True)
+        return out
+
+    # rows skipped: numbered now; else only when a problem needs its line (a quoted newline
+    # or a blank line before it moves the lines: the rows' numbers are Arrow's)
     return rows_from_arrow(table, strict=strict, problems=problems, csv_lines=True,
-                           numbers=numbers)
+                           numbers=numbered() if odd.skipped else numbered)
 
 
 def _header_line(line: bytes) -> str:
@@ -472,15 +476,26 @@ def iter_table(path: str | Path, *, batch_rows: int = 1 << 17, strict: bool = Fa
             except pa.ArrowInvalid as e:
                 raise InputError(("file",), f"is not a readable table after row "
                                  f"{first_row - 1}: {e}") from None
-            numbers = None
+            def start(first: int = first_row) -> _CsvRecords:
+                """The csv reader, past the rows before this batch (as Arrow read them)."""
+                nonlocal records, text
+                text = open(path, encoding="utf-8-sig", errors="replace", newline="")
+                records = _CsvRecords(text, len(header))
+                records.take(first - 1, problems, strict)
+                return records
+
+            def numbered(n: int = batch.num_rows) -> tuple[np.ndarray, np.ndarray]:
+                return (records or start()).take(n, problems, strict)
+
+            numbers: Any = None
             if csv_lines and records is None and odd.skipped:
                 # Arrow has skipped a row in this batch or one it read ahead: number the
                 # rows from here on by the csv reader (the rows before: as they came)
-                text = open(path, encoding="utf-8-sig", errors="replace", newline="")
-                records = _CsvRecords(text, len(header))
-                records.take(first_row - 1, problems, strict)
+                start()
             if records is not None:
-                numbers = records.take(batch.num_rows, problems, strict)
+                numbers = numbered()
+            elif csv_lines:  # numbered only if a problem needs its line (then from here on)
+                numbers = numbered
             rows, _ = rows_from_arrow(pa.Table.from_batches([batch]), strict=strict,
                                       problems=problems, csv_lines=csv_lines,
                                       first_row=first_row, previous_t=previous,
@@ -497,12 +512,15 @@ def iter_table(path: str | Path, *, batch_rows: int = 1 << 17, strict: bool = Fa
 
 def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems | None = None,
                     csv_lines: bool = False, first_row: int = 1, previous_t: float = np.nan,
-                    numbers: tuple[np.ndarray, np.ndarray] | None = None
+                    numbers: tuple[np.ndarray, np.ndarray]
+                    | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
                     ) -> tuple[PlotRows, Problems]:
     """Convert and check an Arrow table of the documented columns (see the module docstring).
     ``first_row``: the number of its first row in the file; ``previous_t``: the unwrapped time
     before it (a table read in batches); ``numbers``: each row's number and line in the file
-    when they are not ``first_row`` on (a CSV with rows skipped)."""
+    when they are not ``first_row`` on (a CSV with rows skipped), or a function giving them,
+    called when a problem first needs a row's line (the line is ``row + 1`` only when no row
+    before it spans lines or is blank)."""
     problems = problems if problems is not None else Problems()
     names = [n.strip() for n in table.column_names]
     table = table.rename_columns(names)
@@ -541,14 +559,24 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
 
     n = table.num_rows
     bad = np.zeros(n, dtype=bool)
-    row_of, line_of = numbers if numbers is not None else (
+    lazy = numbers if callable(numbers) else None
+    row_of, line_of = numbers if numbers is not None and lazy is None else (
         np.arange(first_row, first_row + n), np.arange(first_row + 1, first_row + n + 1))
-    if len(row_of) != n:  # the csv reader and Arrow read the records differently
-        raise InputError(("file",), f"is not a readable CSV table: {n} rows read after row "
-                         f"{first_row - 1} where the csv reader finds {len(row_of)}")
+
+    def check(found: np.ndarray) -> None:
+        if len(found) != n:  # the csv reader and Arrow read the records differently
+            raise InputError(("file",), f"is not a readable CSV table: {n} rows read after "
+                             f"row {first_row - 1} where the csv reader finds {len(found)}")
+
+    check(row_of)
 
     def report(rows: np.ndarray, column: str, message: str) -> None:
+        nonlocal lazy, row_of, line_of
         new = rows[~bad[rows]]
+        if lazy is not None and new.size:  # the first problem: the rows' true lines
+            row_of, line_of = lazy()
+            lazy = None
+            check(row_of)
         for i in new.tolist():
             row = int(row_of[i])
             where = f"row {row}" + (f" (line {line_of[i]})" if csv_lines else "")
