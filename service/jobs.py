@@ -65,7 +65,7 @@ from solver.io.altitudes import offsets_summary
 from solver.io.problems import Problems
 from solver.io.split import recording_frame
 from solver.io.tables import PlotRows
-from solver.run_settings import RunSettings
+from solver.run_settings import RunSettings, software
 
 from .logs import LOGGER
 from .settings import Settings
@@ -601,11 +601,17 @@ class JobRunner:
         d = self.job_dir(job.id)
         out = d / "out"
         out.mkdir(exist_ok=True)
+        redone = self._same_software(job.id, out)
         LOGGER.info("job started", extra={"fields": {"job": job.id, "run": job.runs}})
         began = time.monotonic()
         try:
             recording = next((d / "inputs").glob("recording.*"))
             loaded = load(recording, d / "inputs" / "sensors.json")
+            if redone:
+                loaded.problems.add("software_changed", "job", f"resumed by other software "
+                                    f"(version {software()['version']}, solver sources "
+                                    f"changed): its {redone} finished track(s) were redone, "
+                                    "so every track is this version's")
             chosen = Selection(self.aircraft(job.id))
             tracks = list(chosen.filter(loaded.tracks))
             for key in chosen.missing():
@@ -692,6 +698,31 @@ class JobRunner:
             "job": job.id, "seconds": round(time.monotonic() - began, 3),
             "outputs_s": round(time.monotonic() - solved, 3),
             **({"error": reason[:300]} if reason else {})}})
+
+    def _same_software(self, job_id: str, out: Path) -> int:
+        """Keep ``out/software.json`` (:func:`solver.run_settings.software`); a job resumed by
+        other software (the service upgraded while it ran) has its finished tracks removed,
+        to be redone: two versions' tracks in one job differed by up to 8.7 m (a walkthrough
+        helper, the command line's reruns; a review helper found the service's resume
+        unchecked). Returns how many were removed."""
+        now = software()
+        path = out / "software.json"
+        try:
+            before = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            before = None
+        done = len(self.progress(job_id).entries)
+        if before != now and done:
+            LOGGER.info("job resumed by other software: finished tracks redone", extra={
+                "fields": {"job": job_id, "tracks": done}})
+            shutil.rmtree(out)
+            out.mkdir()
+            self._progress_cache.pop(job_id, None)
+        if before != now or not path.is_file():
+            tmp = out / ".software.json.tmp"
+            tmp.write_text(json.dumps(now) + "\n", encoding="utf-8")
+            os.replace(tmp, path)
+        return done if before != now else 0
 
     def _public(self, job_id: str, reason: str) -> str:
         """A failed job's ``reason`` without this server's paths (a reader's message may hold

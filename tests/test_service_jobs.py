@@ -927,3 +927,42 @@ def test_a_json_track_key_may_not_look_like_a_piece(client):
     r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"A#2": [plot] * 3}})
     assert r.status_code == 422, r.text
     assert "may not end in #<number>" in r.json()["message"], r.json()
+
+
+def test_a_job_resumed_by_other_software_redoes_its_finished_tracks(client, monkeypatch):
+    """A job the service resumes after an upgrade (its record running again at a start) kept
+    the old version's finished tracks beside the new ones' (the command line refuses such a
+    rerun; a review helper found the service's resume unchecked). The finished tracks are
+    removed and redone, and the status says so; the same software resumes as ever."""
+    import service.jobs as jobs_module
+
+    r = upload(client, encode_recording().data)
+    assert r.status_code == 202
+    loc = r.headers["location"]
+    first = wait(client, loc)
+    assert first["state"] == "done" and first["tracks_done"] == first["tracks_total"] > 0
+    runner = client.app.state.jobs
+    job_id = loc.rsplit("/", 1)[1]
+    kept = json.loads((runner.job_dir(job_id) / "out" / "software.json").read_text())
+    assert kept == jobs_module.software()
+    upgraded = {**kept, "solver_sha256": "f" * 64}
+    monkeypatch.setattr(jobs_module, "software", lambda: upgraded)
+    progress = runner.job_dir(job_id) / "out" / "progress.jsonl"
+    old_lines = progress.read_text().splitlines()
+    with runner._db()._tx() as db:  # as a start finds a job its stop left running
+        db.execute("UPDATE jobs SET state = 'queued' WHERE id = ?", (job_id,))
+    with runner._wake:
+        runner._wake.notify()
+    end = time.monotonic() + 120
+    while (again := client.get(loc).json())["runs"] == first["runs"] or again["state"] != "done":
+        assert time.monotonic() < end, again
+        time.sleep(0.2)
+    assert again["tracks_done"] == first["tracks_done"] and again["tracks_failed"] == 0
+    assert again["problems"]["counts"].get("software_changed") == 1, again["problems"]
+    said = next(e for e in again["problems"]["examples"] if "software_changed" in e)
+    assert f"its {first['tracks_done']} finished track(s) were redone" in said
+    new_lines = progress.read_text().splitlines()  # every track solved again, once
+    assert len(new_lines) == len(old_lines) and not set(new_lines) & set(old_lines)
+    assert json.loads((runner.job_dir(job_id) / "out" / "software.json").read_text()) \
+        == upgraded
+    assert client.delete(loc).status_code == 204
