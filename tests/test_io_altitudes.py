@@ -34,6 +34,22 @@ def flight(offset_m, n_adsb: int = 300, climb_m_s: float = 0.0, radar_every: int
     return t, alt, fl, adsb, geo
 
 
+SENSORS = parse_sensors([
+    {"id": "R1", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0, "height_m": 300.0,
+     "range_error_m": 150.0, "azimuth_error_deg": 0.24},
+    {"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}])
+
+
+def one_aircraft(t, alt, fl, adsb) -> PlotRows:
+    """One aircraft's rows (Mode S 4CA2D1): R1's plots and its ADS-B reports."""
+    n = t.size
+    return PlotRows.from_columns(
+        n, t=t, sensor=np.where(adsb, "ADSB", "R1").astype(object),
+        range_m=np.where(adsb, np.nan, 60_000.0), azimuth_deg=np.where(adsb, np.nan, 10.0),
+        lat_deg=np.where(adsb, 46.5, np.nan), lon_deg=np.where(adsb, 14.1, np.nan),
+        altitude_m=alt, flight_level=fl, mode_s=np.full(n, 0x4CA2D1))
+
+
 def test_reports_with_both_heights_give_the_offset():
     """ADS-B with geometric height and flight level: every Mode C altitude moved by the
     offset, to the geometric height within the 25-ft quantisation (7.6 m); the ADS-B heights
@@ -96,21 +112,12 @@ def test_the_reader_builds_tracks_with_geometric_heights():
     """:func:`split_aircraft`: one aircraft's radar rows reach the table at their geometric
     height, and the track says by how much they were moved."""
     t, alt, fl, adsb, geo = flight(250.0)
-    sensors = parse_sensors([
-        {"id": "R1", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0, "height_m": 300.0,
-         "range_error_m": 150.0, "azimuth_error_deg": 0.24},
-        {"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}])
-    n = t.size
-    rows = PlotRows.from_columns(
-        n, t=t, sensor=np.where(adsb, "ADSB", "R1").astype(object),
-        range_m=np.where(adsb, np.nan, 60_000.0), azimuth_deg=np.where(adsb, np.nan, 10.0),
-        lat_deg=np.where(adsb, 46.5, np.nan), lon_deg=np.where(adsb, 14.1, np.nan),
-        altitude_m=alt, flight_level=fl, mode_s=np.full(n, 0x4CA2D1))
-    (track,) = split_aircraft(rows, sensors)
+    rows = one_aircraft(t, alt, fl, adsb)
+    (track,) = split_aircraft(rows, SENSORS)
     assert track.pressure_offset_m == pytest.approx(250.0, abs=QUARTER_FL_M)
     h = track.table.altitude_m[track.table.radar_rows()]
     assert np.abs(h - geo[~adsb]).max() < QUARTER_FL_M
-    (plain,) = split_aircraft(rows.take(~adsb), sensors)
+    (plain,) = split_aircraft(rows.take(~adsb), SENSORS)
     assert plain.pressure_offset_m is None
 
 
@@ -129,18 +136,8 @@ def test_a_bad_geometric_height_is_not_used_and_is_reported():
     got = geometric_altitudes(t, some, fl, adsb)
     assert got.rejected == np.flatnonzero(adsb)[::10].size
     assert np.abs(got.altitude_m - geo)[~adsb].max() < QUARTER_FL_M
-    sensors = parse_sensors([
-        {"id": "R1", "kind": "radar", "lat_deg": 46.0, "lon_deg": 14.0, "height_m": 300.0,
-         "range_error_m": 150.0, "azimuth_error_deg": 0.24},
-        {"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}])
-    n = t.size
-    rows = PlotRows.from_columns(
-        n, t=t, sensor=np.where(adsb, "ADSB", "R1").astype(object),
-        range_m=np.where(adsb, np.nan, 60_000.0), azimuth_deg=np.where(adsb, np.nan, 10.0),
-        lat_deg=np.where(adsb, 46.5, np.nan), lon_deg=np.where(adsb, 14.1, np.nan),
-        altitude_m=bad, flight_level=fl, mode_s=np.full(n, 0x4CA2D1))
     problems = Problems()
-    (track,) = split_aircraft(rows, sensors, problems=problems)
+    (track,) = split_aircraft(one_aircraft(t, bad, fl, adsb), SENSORS, problems=problems)
     assert track.pressure_offset_m is None
     assert problems.counts == {"implausible_altitude": 1}
     assert problems.entries[0].where == "aircraft 4CA2D1"
