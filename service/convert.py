@@ -17,7 +17,7 @@ from solver.estimation import FUSION_NAMES
 from solver.estimation.gating import gate_warnings
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar, format_loc
-from solver.io.sensors_file import KnownOffsets
+from solver.io.sensors_file import KnownOffsets, offset_arrays, take_off_offsets
 from solver.manoeuvres import from_segments
 from solver.plots import PlotTable, validate_sensors
 from solver.results import (
@@ -271,21 +271,19 @@ def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
     for i, p in enumerate(plots):
         require_fields(p, kinds.get(p.sensor), (*loc, i))
 
-    known = {k: v for k, v in (offsets or {}).items() if v}
-    off = {"t": "time_s", "range_m": "range_m", "azimuth_deg": "azimuth_deg"}
+    def col(name: str) -> np.ndarray:
+        return np.array([np.nan if getattr(p, name) is None else getattr(p, name)
+                         for p in plots], dtype=float)
 
-    def col(name: str, scale: float = 1.0) -> np.ndarray:
-        v = np.array([np.nan if getattr(p, name) is None else getattr(p, name) for p in plots],
-                     dtype=float)
-        if known and name in off:
-            v = v - np.array([getattr(known[p.sensor], off[name]) if p.sensor in known else 0.0
-                              for p in plots])
-        return v * scale
-
+    index = {s.id: j for j, s in enumerate(sensors)}
+    t, r, az = take_off_offsets(
+        offset_arrays([(offsets or {}).get(s.id, KnownOffsets()) for s in sensors]),
+        np.array([index.get(p.sensor or "", 0) for p in plots], dtype=int),
+        col("t"), col("range_m"), col("azimuth_deg"))
     try:
-        return PlotTable.build(sensors, col("t"), [p.sensor for p in plots], col("range_m"),
-                               col("azimuth_deg", np.pi / 180), col("lat_deg"),
-                               col("lon_deg"), col("altitude_m"), reference=reference)
+        return PlotTable.build(sensors, t, [p.sensor for p in plots], r, np.deg2rad(az),
+                               col("lat_deg"), col("lon_deg"), col("altitude_m"),
+                               reference=reference)
     except InputError as e:
         if loc == ("plots",) or e.loc[:1] != ("plots",):
             raise

@@ -133,9 +133,9 @@ def _from_a_sound_start(name: str, meas: PolarPlots | SensorPlots, params: dict[
     :data:`START_JUDGE` over the first :data:`REVERSED_PLOTS` plots in reverse (times
     mirrored, so they grow) reaches them with a converged state, and what its gate leaves out
     of them (the rule of :mod:`.gating`, the filter's gate) is left out of the forward run
-    too. Their states are the backward
-    run's (velocity turned back: no causal estimate exists without them), marked ``gated``,
-    their other diagnostics the forward run's at its first plot. Filters without a gate, a
+    too. Their states are the backward run's (velocity turned back: no causal estimate exists
+    without them), marked ``gated``, their other diagnostics the forward run's at its first
+    plot. Filters without a gate, a
     gate of None, and fewer plots than :data:`REVERSED_PLOTS` run as they are."""
     run = _RUNNERS[name]
     n = len(meas)

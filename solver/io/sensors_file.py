@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,11 +84,7 @@ class SensorSet:
     def known_offsets(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """``(range_m, azimuth_deg, time_s)`` per sensor index, or None when no sensor has
         any (:class:`KnownOffsets`)."""
-        if not any(self.offsets):
-            return None
-        return (np.array([o.range_m for o in self.offsets]),
-                np.array([o.azimuth_deg for o in self.offsets]),
-                np.array([o.time_s for o in self.offsets]))
+        return offset_arrays(self.offsets)
 
     def index(self) -> dict[str, int]:
         """Sensor id -> index."""
@@ -177,6 +174,27 @@ def parse_sensors(text: str | object) -> SensorSet:
                                  "first radar's site; give the file a `reference` away from "
                                  "the pole") from None
     return SensorSet(tuple(sensors), codes, reference, tuple(offsets))
+
+
+def offset_arrays(offsets: Sequence[KnownOffsets]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(range_m, azimuth_deg, time_s)`` of each sensor's known offsets (in order), or None
+    when none has any."""
+    if not any(offsets):
+        return None
+    return (np.array([o.range_m for o in offsets]), np.array([o.azimuth_deg for o in offsets]),
+            np.array([o.time_s for o in offsets]))
+
+
+def take_off_offsets(known: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+                     sensor: np.ndarray, t: np.ndarray, range_m: np.ndarray,
+                     azimuth_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plots' ``(t, range_m, azimuth_deg)`` with their sensors' (index ``sensor``) known
+    offsets (:func:`offset_arrays`) taken off: the one rule of the sensor file, a request and
+    a job (a report late by ``time_s`` is of that much earlier)."""
+    if known is None:
+        return t, range_m, azimuth_deg
+    return t - known[2][sensor], range_m - known[0][sensor], azimuth_deg - known[1][sensor]
 
 
 def _offsets(obj: dict, loc: Loc) -> KnownOffsets:

@@ -45,7 +45,7 @@ from ..plots import PlotTable
 from ..sensors import RadarSensor
 from .altitudes import MAX_OFFSET_M, geometric_altitudes
 from .problems import Problems
-from .sensors_file import SensorSet
+from .sensors_file import SensorSet, take_off_offsets
 from .tables import PlotRows
 
 GAP_S = 300.0
@@ -345,11 +345,8 @@ def _corrected(rows: PlotRows, sensors: SensorSet, sensor_idx: np.ndarray
     known = sensors.known_offsets()
 
     def at(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        t, r, az = rows.t[m], rows.range_m[m], rows.azimuth_deg[m]
-        if known is None:
-            return t, r, az
-        k = sensor_idx[m]
-        return t - known[2][k], r - known[0][k], az - known[1][k]
+        return take_off_offsets(known, sensor_idx[m], rows.t[m], rows.range_m[m],
+                                rows.azimuth_deg[m])
 
     return at
 

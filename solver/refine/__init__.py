@@ -83,6 +83,7 @@ def time_reference(sensors: Sequence[Sensor], bias_sensors: list[int]) -> np.nda
     g[radar if radar.any() else slice(None)] = np.sqrt(TIME_GAUGE_INFO)
     return g
 
+
 def unreachable_in(table: PlotTable, data: NodeData, plot_node: np.ndarray, bounds: Bounds,
                  bias_sensors: list[int] | None = None) -> np.ndarray:
     """:func:`solver.refine.gate.unreachable_plots` of the table's plots: their centres (at the
