@@ -21,13 +21,15 @@ Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=``
   ``flight_level`` and the pressure altitude ``altitude_m = FL * 30.48`` (used only when its
   V and G bits say validated and not garbled), I220 Mode S address, I070 Mode 3/A (validated,
   not garbled), I161 track number. Reports flagged simulated or test (I020 SIM, TST) or from a
-  fixed transponder (RAB) are not aircraft: counted as ``not_aircraft`` and left out.
+  fixed transponder (RAB) are not aircraft: counted as ``not_aircraft`` and left out. Reports
+  whose I230 flight status (STAT 1 or 3, the aircraft's Mode S downlink) says on the ground are
+  counted as ``on_ground`` and left out: the aircraft model and its bounds are those of flight.
 - CAT021 ADS-B: I010 SAC/SIC (ground station) -> sensor, time of applicability for position
   I071 (else time of message reception I073), position I131 (high resolution) or I130,
   geometric height I140 (ft -> m) for ``altitude_m``, else the flight level I145 as the
   pressure altitude (I145 always gives ``flight_level``),
-  target address I080, Mode 3/A I070, track number I161. SIM/TST flagged reports are left out
-  (counted).
+  target address I080, Mode 3/A I070, track number I161. I040 SIM/TST/RAB flagged reports
+  are left out (``not_aircraft``), reports with I040 GBS (ground bit set) too (``on_ground``).
 - CAT034 service messages: per sensor the count of messages, north markers and sector
   crossings and the antenna rotation period I041 (:class:`ServiceStats`).
 
@@ -589,11 +591,13 @@ class _Decoder:
                           "left out", f"{sac}/{sic}/{cat}", 1)
         return sensor.id, None
 
-    def _flagged(self, item: Any, names: tuple[str, ...], sensor: str, at: int, cat: int
-                 ) -> bool:
+    def _flagged(self, item: Any, names: tuple[str, ...], sensor: str, at: int, cat: int,
+                 kind: str = "not_aircraft") -> bool:
+        """Whether one of the subitems ``names`` of ``item`` is set; such a report is left
+        out, counted as a ``kind`` problem."""
         if item is None:
             return False
-        memo_key = ("flags", cat, item.unparse().to_bytes())
+        memo_key = ("flags", cat, names, item.unparse().to_bytes())
         name = self._memo.get(memo_key, False)
         if name is False:
             name = None
@@ -605,10 +609,28 @@ class _Decoder:
             self._memo[memo_key] = name
         if name is None:
             return False
-        self.problems.add("not_aircraft", f"byte {at}", f"CAT{cat:03d} report of "
-                          f"{sensor!r} flagged {name}: left out",
-                          key=f"{sensor}/{name}", dropped=1)
+        self._left_out(kind, f"CAT{cat:03d} report of {sensor!r} flagged {name}", sensor,
+                       name, at)
         return True
+
+    def _on_ground_230(self, item: Any, sensor: str, at: int) -> bool:
+        """Whether a CAT048 report's I230 flight status (STAT, the aircraft's own Mode S
+        downlink) says on the ground: 1 or 3 (no alert / alert, no SPI, on the ground)."""
+        if item is None:
+            return False
+        memo_key = ("230", item.as_uint())
+        stat = self._memo.get(memo_key)
+        if stat is None:
+            stat = self._memo[memo_key] = int(item.variation.get_item("STAT").as_uint())
+        if stat not in ON_GROUND_STAT:
+            return False
+        self._left_out("on_ground", f"CAT048 report of {sensor!r} with I230 STAT={stat} "
+                       "(aircraft on the ground)", sensor, "STAT", at)
+        return True
+
+    def _left_out(self, kind: str, what: str, sensor: str, name: str, at: int) -> None:
+        self.problems.add(kind, f"byte {at}", f"{what}: left out" + (
+            ON_GROUND_NOTE if kind == "on_ground" else ""), key=f"{sensor}/{name}", dropped=1)
 
     def _missing(self, cat: int, item: str, sensor: str, at: int) -> None:
         self.problems.add("missing_item", f"byte {at}", f"CAT{cat:03d} report of {sensor!r} "
@@ -682,6 +704,8 @@ class _Decoder:
         get = rec.get_item
         if self._flagged(get("020"), ("SIM", "TST", "RAB"), sensor, at, 48):
             return None
+        if self._on_ground_230(get("230"), sensor, at):
+            return None
         i140, i040 = get("140"), get("040")
         if i140 is None:
             return self._missing(48, "140", sensor, at)
@@ -719,7 +743,10 @@ class _Decoder:
         if sensor is None:
             return None
         get = rec.get_item
-        if self._flagged(get("040"), ("SIM", "TST"), sensor, at, 21):
+        i040 = get("040")
+        if self._flagged(i040, ("SIM", "TST", "RAB"), sensor, at, 21):
+            return None
+        if self._flagged(i040, ("GBS",), sensor, at, 21, kind="on_ground"):
             return None
         time = get("071") or get("073")
         if time is None:
@@ -793,6 +820,12 @@ _HANDLERS = {48: _Decoder._cat048, 21: _Decoder._cat021, 34: _Decoder._cat034}
 _COLUMNS = ("time_of_day_s", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
             "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number", "origin")
 """The order of a decoded row's values."""
+
+ON_GROUND_STAT = frozenset({1, 3})
+"""CAT048 I230 STAT values of an aircraft on the ground (its Mode S flight status)."""
+
+ON_GROUND_NOTE = (" (outside the flight model: a parked aircraft's SSR plots were fitted "
+                  "at bounds.v's lowest speed, 150-300 m off)")
 
 _INVALID = object()
 """A memoised reading that is not validated or garbled."""

@@ -29,6 +29,10 @@ column              meaning
 ``track_number``    optional: the sensor's track number (integer >= 0)
 ``aircraft``        optional: an aircraft key the user already has (overrides the others; not
                     ending in ``#<number>``, the name of a key's piece after a time gap)
+``on_ground``       optional: ``true``/``false`` (or ``1``/``0``; Parquet: boolean or
+                    integer), the report says the aircraft is on the ground (ADS-B's GBS, Mode
+                    S's flight status): such a row is left out, counted as ``on_ground`` (the
+                    aircraft model is that of flight); empty: airborne
 ==================  =======================================================================
 
 Empty cells (CSV) and nulls (Parquet) are missing values; in Parquet, ``mode_s`` and
@@ -524,7 +528,7 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
     problems = problems if problems is not None else Problems()
     names = [n.strip() for n in table.column_names]
     table = table.rename_columns(names)
-    known = {"t", "time_of_day_s", *STR_COLUMNS, *FLOAT_COLUMNS, *INT_COLUMNS}
+    known = {"t", "time_of_day_s", *STR_COLUMNS, *FLOAT_COLUMNS, *INT_COLUMNS, "on_ground"}
     unknown = [n for n in names if n not in known]
     if unknown and strict:
         raise InputError((unknown[0],), f"is not a column of the plot table (columns: "
@@ -570,19 +574,23 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
 
     check(row_of)
 
-    def report(rows: np.ndarray, column: str, message: str) -> None:
+    def where(i: int) -> str:
+        """Row ``i``'s place in the file (its line too in a CSV table)."""
         nonlocal lazy, row_of, line_of
-        new = rows[~bad[rows]]
-        if lazy is not None and new.size:  # the first problem: the rows' true lines
+        if lazy is not None:  # the first problem: the rows' true lines
             row_of, line_of = lazy()
             lazy = None
             check(row_of)
+        return f"row {int(row_of[i])}" + (f" (line {line_of[i]})" if csv_lines else "")
+
+    def report(rows: np.ndarray, column: str, message: str) -> None:
+        new = rows[~bad[rows]]
         for i in new.tolist():
+            at = where(i)  # first: it numbers the rows
             row = int(row_of[i])
-            where = f"row {row}" + (f" (line {line_of[i]})" if csv_lines else "")
             if strict:
                 raise InputError(("rows", row, column), message)
-            problems.add("bad_value", where, f"{column}: {message}", dropped=1)
+            problems.add("bad_value", at, f"{column}: {message}", dropped=1)
         bad[new] = True
 
     for name in names:  # text not UTF-8 (read unchecked): a bad value of its row
@@ -739,6 +747,13 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
         report(piece_like, "aircraft", "ends in #<number>, the name of a key's piece after a "
                "time gap: rename the key")
 
+    ground = np.flatnonzero(on_ground_column(table, names, report) & ~bad)
+    for i in ground.tolist():
+        problems.add("on_ground", where(i), "report of an aircraft on the ground "
+                     "(`on_ground`): left out (the aircraft model and its bounds are those of "
+                     "flight)", key="table", dropped=1)
+    bad[ground] = True
+
     altitude = cols["altitude_m"]
     fl = cols["flight_level"]
     altitude = np.where(np.isnan(altitude), fl * FL_M, altitude)
@@ -752,6 +767,39 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
         lon_deg=cols["lon_deg"], altitude_m=altitude, flight_level=fl, aircraft=aircraft,
         origin=row_of.copy(), **ints)
     return rows.take(keep), problems
+
+
+GROUND_WORDS = {"true": True, "1": True, "false": False, "0": False}
+"""The values of a text ``on_ground`` cell (case-insensitive; empty: airborne)."""
+
+
+def on_ground_column(table: pa.Table, names: list[str],
+                     report: Callable[[np.ndarray, str, str], None]) -> np.ndarray:
+    """The rows whose ``on_ground`` is true (none without the column); a value that is no
+    boolean is reported as a bad value of its row."""
+    n = table.num_rows
+    if "on_ground" not in names:
+        return np.zeros(n, dtype=bool)
+    col = table.column("on_ground")
+    if pa.types.is_boolean(col.type) or pa.types.is_integer(col.type):
+        values = np.asarray(pc.fill_null(pc.cast(col, pa.int64()), 0).to_numpy(
+            zero_copy_only=False))
+        odd = np.flatnonzero((values != 0) & (values != 1))
+        if odd.size:
+            report(odd, "on_ground", "must be true or false (1 or 0)")
+        return values == 1
+    if not (pa.types.is_string(col.type) or pa.types.is_large_string(col.type)):
+        raise InputError(("on_ground",), f"has type {col.type}, expected true/false")
+    out = np.zeros(n, dtype=bool)
+    for i, v in enumerate(col.to_pylist()):
+        word = None if v is None else v.strip().lower()
+        if not word:
+            continue
+        if word not in GROUND_WORDS:
+            report(np.array([i]), "on_ground", f"{v!r} is not true or false (1 or 0)")
+            continue
+        out[i] = GROUND_WORDS[word]
+    return out
 
 
 # ---------------------------------------------------------------------------- writing
