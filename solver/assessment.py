@@ -70,14 +70,14 @@ class SensorResiduals:
     (deg); a position sensor's along- and across-track residuals (m) over the ground speed
     (m/s), where a report late by ``d`` s lies about ``speed * d`` behind. Binned statistics
     per panel, totals, and a scatter sample (columns: axis 0, axis 1, residual 0, residual 1,
-    gated)."""
+    wild); the statistics leave the wild plots out, as ``sensors.json`` does."""
 
     sensor: str
     kind: str = "radar"
     first: _Binned = field(default_factory=lambda: _Binned.empty(_range_bins()))
     second: _Binned = field(default_factory=lambda: _Binned.empty(_azimuth_bins()))
     plots: int = 0
-    gated: int = 0
+    wild: int = 0
     total: np.ndarray = field(default_factory=lambda: np.zeros(5))  # n, s0, s00, s1, s11
     sample: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -88,17 +88,17 @@ class SensorResiduals:
                    _Binned.empty(_speed_bins()))
 
     def add(self, x0: FloatArray, x1: FloatArray, y0: FloatArray, y1: FloatArray,
-            gated: np.ndarray, keys: FloatArray) -> None:
+            wild: np.ndarray, keys: FloatArray) -> None:
         self.plots += x0.size
-        self.gated += int(gated.sum())
-        ok = ~gated
+        self.wild += int(wild.sum())
+        ok = ~wild
         bins = ((_range_bin(x0[ok]), _azimuth_bin(x1[ok])) if self.kind == "radar"
                 else (_speed_bin(x0[ok]), _speed_bin(x1[ok])))
         self.first.add(bins[0], y0[ok])
         self.second.add(bins[1], y1[ok])
         self.total += [ok.sum(), y0[ok].sum(), (y0[ok] ** 2).sum(), y1[ok].sum(),
                        (y1[ok] ** 2).sum()]
-        rows = np.column_stack([x0, x1, y0, y1, gated.astype(float)])
+        rows = np.column_stack([x0, x1, y0, y1, wild.astype(float)])
         self.sample = np.concatenate([self.sample, rows])
         self.keys = np.concatenate([self.keys, keys])
         if self.keys.size > SCATTER_POINTS:
@@ -106,7 +106,7 @@ class SensorResiduals:
             self.sample, self.keys = self.sample[best], self.keys[best]
 
     def bias_sigma(self) -> tuple[float, float, float, float]:
-        """Mean and standard deviation of the two residuals outside the gated plots (a
+        """Mean and standard deviation of the two residuals outside the wild plots (a
         radar's range in m and azimuth in deg; a position sensor's along and across the
         track, m)."""
         n, s1, s2, a1, a2 = self.total
@@ -151,11 +151,14 @@ def sensor_residuals(out: Path, order: Sequence[str] = ()) -> list[SensorResidua
         names = set(pq.read_schema(part).names)
         if not set(_COLUMNS) <= names:  # a part of an earlier version: no residuals
             continue
-        wanted = _COLUMNS + (_POSITION_COLUMNS if set(_POSITION_COLUMNS) <= names else [])
+        wanted = _COLUMNS + (_POSITION_COLUMNS if set(_POSITION_COLUMNS) <= names else []) + (
+            ["wild"] if "wild" in names else [])
         t = pq.read_table(part, columns=wanted)
         cols = {c: t.column(c).to_numpy(zero_copy_only=False) for c in wanted}
         sensors = cols["sensor"].astype(str)
-        gated = cols["gated"].astype(bool)
+        # the plots the sensors' statistics leave out (sensors.json); a part written before
+        # that column: the gated ones
+        wild = cols["wild" if "wild" in cols else "gated"].astype(bool)
         keys = rng.random(t.num_rows)
         panels = [("radar", cols["plot_range_m"], cols["plot_azimuth_deg"],
                    cols["range_residual_m"], cols["azimuth_residual_deg"])]
@@ -171,7 +174,7 @@ def sensor_residuals(out: Path, order: Sequence[str] = ()) -> list[SensorResidua
                     found[(kind, sid)] = (SensorResiduals(sid) if kind == "radar"
                                           else SensorResiduals.position(sid))
                 found[(kind, sid)].add(x0[sel].astype(float), x1[sel].astype(float), y0[sel],
-                                       y1[sel].astype(float), gated[sel], keys[sel])
+                                       y1[sel].astype(float), wild[sel], keys[sel])
     rank = {sid: k for k, sid in enumerate(order)}
     return sorted(found.values(), key=lambda x: (x.kind != "radar", rank.get(x.sensor, len(rank)),
                                                  x.sensor))

@@ -58,7 +58,7 @@ COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_v
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
 RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "plot_altitude_m", "range_residual_m",
                     "azimuth_residual_deg", "position_residual_m", "along_track_residual_m",
-                    "cross_track_residual_m", "gated")
+                    "cross_track_residual_m", "gated", "wild")
 TRACK_COLUMNS = ("aircraft", "plot", "source", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
                  "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m",
                  *RESIDUAL_COLUMNS)
@@ -81,7 +81,9 @@ after the sensor's estimated offsets
 (``position_residual_m``) and its parts along and across the track (``along_track_residual_m``:
 ahead of the state positive, a late report's is negative; ``cross_track_residual_m``: right of
 the track positive); null where they do not apply or the method gives none; ``gated``: given no
-weight as wild."""
+weight as wild; ``wild``: left out of the sensors' statistics (``sensors.json``, ``sensors.png``:
+a radar's plots far out in its own residuals' spread, :func:`solver.refine.output.statistics_wild`;
+another sensor's gated plots)."""
 FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
                   "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS, "gated")
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
@@ -94,7 +96,8 @@ track's first plot to its last (the last plot's time always included), propagate
 solution with its covariance, as the single-track answer's ``trajectory.samples``."""
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
 _TYPES = {"aircraft": pa.string(), "sensor": pa.string(), "filter": pa.string(),
-          "source": pa.string(), "plot": pa.int32(), "gated": pa.bool_()}  # others: float64
+          "source": pa.string(), "plot": pa.int32(), "gated": pa.bool_(),
+          "wild": pa.bool_()}  # others: float64
 
 
 def read_part(path: Path, names: Sequence[str] = TRACK_COLUMNS) -> pa.Table:
@@ -271,7 +274,7 @@ def _samples_table(key: str, table: PlotTable, s: StateSeries, times_of_day: boo
 
 
 _NULLABLE = frozenset({"time_of_day_s", "lat_deg", "lon_deg", "h_m", "h_sigma_m",
-                       *RESIDUAL_COLUMNS[:-1]})
+                       *RESIDUAL_COLUMNS[:-2]})
 """Columns whose NaN means "not known" (null in Parquet); elsewhere a NaN stays a NaN."""
 
 
@@ -296,6 +299,8 @@ def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
         along_track_residual_m=None if res is None else res.along_m,
         cross_track_residual_m=None if res is None else res.cross_m,
         gated=pa.array(np.zeros(n, bool) if res is None else res.gated, pa.bool_()),
+        wild=pa.array(np.zeros(n, bool) if res is None or res.wild is None else res.wild,
+                      pa.bool_()),
         source=pa.nulls(n, pa.string()))  # named by reconstruct_many (with_sources)
     return _arrow(cols, TRACK_COLUMNS, n)
 

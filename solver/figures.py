@@ -16,6 +16,7 @@ labels when the plane has a frame).
 from __future__ import annotations
 
 import io
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -188,7 +189,7 @@ def recording_map(tracks: Sequence[tuple[str, FloatArray, FloatArray]],
 def residuals_figure(sensors: Sequence[SensorResiduals]) -> Figure:
     """One row per sensor: a radar's range residual (m) over the slant range and azimuth
     residual (deg) over the azimuth; a position sensor's along- and across-track residuals (m)
-    over the ground speed. In each panel a sample of the plots (gated ones as red crosses),
+    over the ground speed. In each panel a sample of the plots (wild ones as red crosses),
     the binned mean (line) and mean +- sigma (band); the axes span the mean +- 5 sigma of the
     plots kept."""
     from .assessment import AZIMUTH_BIN_DEG, RANGE_BIN_M, SPEED_BIN_MS
@@ -212,12 +213,14 @@ def residuals_figure(sensors: Sequence[SensorResiduals]) -> Figure:
             _residual_panel(ax, smp, res.sensor, *panel)
         if res.kind == "radar":
             row[1].set_xlim(0.0, 360.0)
-        row[0].annotate(f"{res.plots} plots, {res.gated} wild", (0.01, 0.97),
+        row[0].annotate(f"{res.plots} plots, {res.wild} wild", (0.01, 0.97),
                         xycoords="axes fraction", va="top", fontsize=8)
-    fig.suptitle("Plots against the reconstruction (measured minus reconstructed; after the "
-                 "offsets of sensors with estimate_bias, and without it an offset shows only in "
-                 "part, the track drawn towards the plots;\nalong-track: ahead positive, a late "
-                 "report lies behind)", fontsize=10)
+    # wrapped: on one line the title ran past both edges of the figure (cut off)
+    fig.suptitle(textwrap.fill(
+        "Plots against the reconstruction (measured minus reconstructed; after the offsets of "
+        "sensors with estimate_bias, and without it an offset shows only in part, the track "
+        "drawn towards the plots; along-track: ahead positive, a late report lies behind)",
+        120), fontsize=10)
     fig.tight_layout()
     return fig
 

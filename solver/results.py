@@ -167,7 +167,8 @@ class PlotResiduals:
     ``position_m`` (horizontal distance) for position plots, split along the track's velocity
     (``along_m``: ahead of the state positive, so a report late by ``d`` s gives about
     ``-speed * d``) and across it (``cross_m``: right of the track positive); NaN where a kind
-    does not apply; ``gated``: given no weight as wild."""
+    does not apply; ``gated``: given no weight as wild; ``wild``: left out of the sensors'
+    statistics (:func:`solver.refine.output.statistics_wild`)."""
 
     range_m: FloatArray
     azimuth_rad: FloatArray
@@ -175,6 +176,7 @@ class PlotResiduals:
     gated: np.ndarray
     along_m: FloatArray | None = None
     cross_m: FloatArray | None = None
+    wild: np.ndarray | None = None
 
 
 @dataclass

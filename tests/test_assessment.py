@@ -58,7 +58,7 @@ def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path,
     pos = found[-1]
     sel = (sensor == "ADSB") & newer
     ok = sel & ~gated
-    assert pos.plots == sel.sum() and pos.gated == (sel & gated).sum()
+    assert pos.plots == sel.sum() and pos.wild == (sel & gated).sum()
     np.testing.assert_allclose(pos.bias_sigma(), (along[ok].mean(), along[ok].std(),
                                                   cross[ok].mean(), cross[ok].std()), rtol=1e-9)
     (mean, _), (mean2, sigma2) = pos.first.mean_sigma(), pos.second.mean_sigma()
@@ -76,7 +76,7 @@ def test_streamed_statistics_equal_the_whole_and_the_sample_is_bounded(tmp_path,
     for sid, res in got.items():
         sel = sensor == sid
         ok = sel & ~gated
-        assert res.plots == sel.sum() and res.gated == (sel & gated).sum()
+        assert res.plots == sel.sum() and res.wild == (sel & gated).sum()
         np.testing.assert_allclose(res.bias_sigma(), (dr[ok].mean(), dr[ok].std(),
                                                       da[ok].mean(), da[ok].std()), rtol=1e-9)
         mean, sigma = res.first.mean_sigma()

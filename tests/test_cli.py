@@ -520,6 +520,15 @@ def test_reports_on_the_ground_are_left_out_and_keep_the_radar_assessment_clean(
     assert marked["R1"]["range_residual_sigma_m"] < 1.0, marked["R1"]
     assert marked["ADSB"]["position_residual_rms_m"] < 1.0, marked["ADSB"]
     assert unmarked["R1"]["range_residual_sigma_m"] > 30.0, unmarked["R1"]
+    # sensors.png pools the plots sensors.json does (it took the gated ones alone: 0 wild and
+    # a 97.5-m sigma in the figure where the table said 27 wild and 79.1 m)
+    from solver.assessment import sensor_residuals
+
+    r1 = next(x for x in sensor_residuals(tmp_path / "unmarked") if x.sensor == "R1")
+    assert unmarked["R1"]["plots_wild"] == r1.wild > 0
+    mean, sigma, _, _ = r1.bias_sigma()
+    assert mean == pytest.approx(unmarked["R1"]["range_residual_mean_m"], abs=1e-6)
+    assert sigma == pytest.approx(unmarked["R1"]["range_residual_sigma_m"], abs=1e-6)
     assert "on_ground" in capsys.readouterr().out
 
 
