@@ -755,15 +755,24 @@ def test_a_damaged_stretch_is_read_in_time_linear_in_its_length():
     parse, so the resynchronisation parsed each candidate's whole block (a fuzz helper: 17 s at
     12.4 KB, minutes at 20 KB). Now each candidate's first record only, the declared block
     only once its header and successor check out, and a unit's parsing is limited to 8 times
-    its bytes (the rest counted as unrecognised): 0.04 s measured (100 KB: 20 s, 400 KB: 74 s,
-    linear); bounded here at 10 s."""
+    its bytes and to a record per 4 bytes (the rest counted as unrecognised): 0.02 s measured
+    (100 KB: 3.9 s, 400 KB: 14 s, linear; under the byte limit alone 16.6 s and 74 s: 123,000
+    records of 2-3 bytes parsed for 100 KB); bounded here at 10 s, and the records parsed for
+    100 KB counted."""
     import time
+
+    from solver.io.asterix import DEFAULT_EDITIONS, MIN_RECORD_BYTES, _Decoder
 
     start = time.perf_counter()
     rec = read_recording(b"\x30" * 20_000, parse_sensors(SENSOR_FILE))
     assert time.perf_counter() - start < 10.0
     assert len(rec.rows) == 0 and rec.problems.counts.get("truncated_block", 0) > 0
     assert rec.problems.counts.get("unrecognised_bytes", 0) == 1  # the work limit, said
+    decoder = _Decoder(parse_sensors(SENSOR_FILE), DEFAULT_EDITIONS)
+    decoder.feed(b"\x30" * 100_000, 0)
+    # the limit is checked between blocks: one 12,336-byte block of 2-3-byte records beyond it
+    assert decoder._parsed_records <= 100_000 // MIN_RECORD_BYTES + 12_336 // 2
+    assert decoder.problems.counts["unrecognised_bytes"] == 1
 
 
 def test_a_time_of_day_beyond_a_day_is_left_out_and_counted():

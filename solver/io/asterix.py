@@ -113,6 +113,12 @@ MAX_PARSE_FACTOR = 8
 """At most this many times a unit's bytes (64 KiB at least) are parsed while reading it: a
 long damaged stretch (100 KB of bytes that all look like block headers took minutes) ends the
 unit's reading, the rest counted as ``unrecognised_bytes``; sound data are parsed once."""
+MIN_RECORD_BYTES = 4
+"""At most a record per this many bytes is parsed while reading a unit (64 KiB at least), the
+other half of the work limit: libasterix's cost goes by records (about 0.1 ms each), and bytes
+that parse as records of 2-3 bytes over and over (100 KB of 0x30: 123,000 records within 8 times
+its bytes, 16.6 s) stayed under the byte limit. Sound recordings hold a record per 7 bytes (a
+CAT034 north marker) to 30 (CAT048 with Mode S), each parsed once."""
 MAX_CHECKED_RECORD_BYTES = 1024
 """Bytes given to that check beyond its budget (a record longer than this fails it)."""
 CHUNK_BYTES = 1 << 20
@@ -395,6 +401,7 @@ class _Decoder:
         self._memo: dict[tuple, Any] = {}
         self._resync_memo: tuple[Any, int, int | None] | None = None
         self._parsed = 0  # bytes handed to libasterix, for the work limit of feed()
+        self._parsed_records = 0  # records libasterix parsed (or failed on), the same
         self._lsbs: dict[type, float | None] = {}
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
@@ -422,6 +429,7 @@ class _Decoder:
             if budget is not None and at - start >= budget:
                 break
             r = spec.cv_uap.cv_record.parse(ParsingMode.StrictParsing, bits)
+            self._parsed_records += 1
             if isinstance(r, ValueError):
                 return out, (at, str(r))
             out.append((r[0], at))
@@ -462,11 +470,14 @@ class _Decoder:
         pos, end = 0, len(data)
         problems = self.problems
         limit = self._parsed + MAX_PARSE_FACTOR * max(end, 1 << 16)
+        record_limit = self._parsed_records + max(end, 1 << 16) // MIN_RECORD_BYTES
         while pos < end:
-            if self._parsed > limit:  # a long damaged stretch: linear work, the rest counted
+            if self._parsed > limit or self._parsed_records > record_limit:
+                # a long damaged stretch: linear work, the rest counted
                 problems.add("unrecognised_bytes", f"byte {base + pos}", f"{end - pos} bytes "
                              "not read: the damage before them took the reader's work limit "
-                             f"({MAX_PARSE_FACTOR} times the bytes read)")
+                             f"({MAX_PARSE_FACTOR} times the bytes read, or a record per "
+                             f"{MIN_RECORD_BYTES} bytes)")
                 return
             if end - pos < 3:
                 problems.add("truncated_block", f"byte {base + pos}", f"{end - pos} byte(s) "
