@@ -835,8 +835,7 @@ _COLUMNS = ("time_of_day_s", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon
 ON_GROUND_STAT = frozenset({1, 3})
 """CAT048 I230 STAT values of an aircraft on the ground (its Mode S flight status)."""
 
-ON_GROUND_NOTE = (" (outside the flight model: a parked aircraft's SSR plots were fitted "
-                  "at bounds.v's lowest speed, 150-300 m off)")
+ON_GROUND_NOTE = " (ground movements are not reconstructed: the aircraft model is that of flight)"
 
 _INVALID = object()
 """A memoised reading that is not validated or garbled."""

@@ -750,8 +750,8 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
     ground = np.flatnonzero(on_ground_column(table, names, report) & ~bad)
     for i in ground.tolist():
         problems.add("on_ground", where(i), "report of an aircraft on the ground "
-                     "(`on_ground`): left out (the aircraft model and its bounds are those of "
-                     "flight)", key="table", dropped=1)
+                     "(`on_ground`): left out (ground movements are not reconstructed: the "
+                     "aircraft model is that of flight)", key="table", dropped=1)
     bad[ground] = True
 
     altitude = cols["altitude_m"]
