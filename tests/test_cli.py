@@ -532,6 +532,50 @@ def test_reports_on_the_ground_are_left_out_and_keep_the_radar_assessment_clean(
     assert "on_ground" in capsys.readouterr().out
 
 
+def test_another_aircraft_under_a_reused_track_number_stays_out_of_the_statistics(
+        tmp_path, capsys, scheduler):
+    """R1's track 12 is Mode S aircraft 4CA2D1 (its ADS-B throughout) until R1 loses it at
+    250 s; from 310 s R1 gives track 12 to an aircraft squawking 7000 without Mode S, 60 km
+    away (a tester's recording; noise-free plots here). The track lends its address to those
+    plots, which are out of reach of the aircraft's others: given no weight, said so, and now
+    left out of R1's statistics (its range bias read -47 km, sigma 45 km)."""
+    from solver.frames import LocalFrame, slant_and_azimuth
+
+    site, frame = (46.0, 14.0, 300.0), LocalFrame(46.0, 14.0)
+
+    def at(t, x0, z0, h, vx, vz):
+        lat, lon = frame.to_geodetic(x0 + vx * t, z0 + vz * t)
+        return lat, lon, np.full(t.shape, h)
+
+    own = (-30e3, -20e3, 9000.0, 150.0, 180.0)
+    other = (30e3, 10e3, 5000.0, -100.0, -100.0)
+    t1, t2, ta = np.arange(0.3, 250.0, 4.8), np.arange(310.3, 600.0, 4.8), np.arange(0.0, 600.0)
+    rows = []
+    for t, flight, code, address in ((t1, own, "", "4CA2D1"), (t2, other, "7000", "")):
+        r, az, _ = slant_and_azimuth(site, *at(t, *flight))
+        rows += [[f"{ti:.3f}", "R1", f"{ri:.2f}", f"{np.rad2deg(ai):.6f}", "", "", address,
+                  code, "12"] for ti, ri, ai in zip(t, r, az, strict=True)]
+    lat, lon, _ = at(ta, *own)
+    rows += [[f"{ti:.3f}", "ADSB", "", "", f"{la:.8f}", f"{lo:.8f}", "4CA2D1", "", ""]
+             for ti, la, lo in zip(ta, lat, lon, strict=True)]
+    rows.sort(key=lambda row: float(row[0]))
+    path, sensors = tmp_path / "plots.csv", tmp_path / "sensors.json"
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([["t", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
+                                  "mode_s", "mode_3a", "track_number"], *rows])
+    sensors.write_text(json.dumps(SENSOR_FILE))
+    assert main([str(path), "--sensors", str(sensors), "--out", str(tmp_path / "out"),
+                 "--scheduler", scheduler, "--no-progress"]) == 0
+    r1 = {x["sensor"]: x for x in json.loads(
+        (tmp_path / "out" / "sensors.json").read_text())}["R1"]
+    assert r1["plots"] == t1.size + t2.size and r1["plots_wild"] == t2.size
+    assert abs(r1["range_residual_mean_m"]) < 5.0 and r1["range_residual_sigma_m"] < 5.0, r1
+    with open(tmp_path / "out" / "warnings.csv", newline="") as f:
+        warned = [w["warning"] for w in csv.DictReader(f)]
+    assert any(f"{t2.size} plot(s) out of reach" in w and "another aircraft" in w
+               for w in warned), warned
+
+
 def test_known_offsets_reach_the_tracks_a_radar_sees_alone(tmp_path, capsys, scheduler):
     """R1 reports ranges 150 m long and azimuths 0.2 deg clockwise. A run with its
     ``estimate_bias`` finds them on the aircraft ADS-B also sees, but the aircraft R1 sees

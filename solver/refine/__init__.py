@@ -273,8 +273,9 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         diag.warnings.append(
             f"{impossible.size} plot(s) out of reach at bounds.v of the track's other plots "
             f"(off their longest chain in time, each in reach of the one before: a wild range "
-            f"or azimuth) were given no weight: plots "
-            f"{listed(impossible)}")
+            f"or azimuth, or another aircraft's plots under the same key, e.g. a radar track "
+            f"number or Mode 3/A code used again) were given no weight and are left out of the "
+            f"sensors' statistics: plots {listed(impossible)}")
     if overhead.size:
         diag.warnings.append(
             f"{overhead.size} plot(s) without altitude whose slant range cannot place them at "
@@ -316,7 +317,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     bias_cov = cov_nodes[-1][nb:, nb:]
     rec = Reconstruction(segs, at_plots_own, samples, diag, no_weight=rejected)
     if table.frame is not None or len(table.sensors) > 1:
-        rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors)
+        rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors,
+                                       impossible)
         rec.sensors = sensor_reports(table, rec.residuals, biases, bias_cov, bias_sensors)
     if variant.altitude:
         w = np.gradient(t_nodes) if n > 1 else np.ones(1)

@@ -50,11 +50,12 @@ def wild_plots(quad_at_plots: FloatArray, t_nodes: FloatArray, sol: np.ndarray, 
     text = f"{far.size} of {n} plots are more than {st.outlier_gate:g} sigma from the track"
     if far.size and max(at_bounds(t_nodes, sol, bounds, "v")) >= SPEED_MISFIT_SHARE:
         diag.warnings.append(f"{text}, whose speed sits at a bound of bounds.v: the bounds, not "
-                             "wild plots, keep them far; none was given zero weight")
+                             "wild plots, keep them far; none of them was given zero weight for it")
         return np.array([], dtype=int)
     if far.size > st.outlier_max_share * n:
         diag.warnings.append(f"{text}: too many to be wild plots (do the bounds and the "
-                             "sensors' sigmas fit this aircraft?); none was given zero weight")
+                             "sensors' sigmas fit this aircraft?); none of them was given zero "
+                             "weight for it")
         return np.array([], dtype=int)
     return far
 
