@@ -606,7 +606,8 @@ class JobRunner:
         began = time.monotonic()
         try:
             recording = next((d / "inputs").glob("recording.*"))
-            loaded = load(recording, d / "inputs" / "sensors.json")
+            loaded = load(recording, d / "inputs" / "sensors.json",
+                          max_speed=self.options(job.id).config().bounds.v[1])
             if redone:
                 loaded.problems.add("software_changed", "job", f"resumed by other software "
                                     f"(version {software()['version']}, solver sources "

@@ -81,6 +81,7 @@ from .io.problems import Problems
 from .io.sensors_file import SensorSet, load_sensors
 from .io.split import (
     DISORDER_S,
+    MAX_SPEED_MS,
     AircraftTrack,
     recording_frame,
     split_aircraft,
@@ -229,9 +230,10 @@ class Loaded:
     times_of_day: bool = False  # t counts from a UTC midnight (counts_from_midnight)
 
 
-def load(recording: Path, sensors_path: Path) -> Loaded:
+def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS) -> Loaded:
     """Read the sensor file and the whole recording (by suffix: a table, else ASTERIX/pcap)
-    into memory; :func:`stream` reads it in parts instead."""
+    into memory; :func:`stream` reads it in parts instead. ``max_speed``: the run's fastest
+    ground speed (m/s), by which a key's plots are told apart into aircraft."""
     sensors = load_sensors(sensors_path)
     periods: dict[str, float] = {}
     if recording.suffix.lower() in TABLE_SUFFIXES:
@@ -242,7 +244,8 @@ def load(recording: Path, sensors_path: Path) -> Loaded:
         periods = {sid: st.rotation_period_s for sid, st in rec.service.items()
                    if st.rotation_period_s}
     frame = recording_frame(sensors, rows)
-    tracks = split_aircraft(rows, sensors, reference=frame, problems=problems)
+    tracks = split_aircraft(rows, sensors, reference=frame, problems=problems,
+                            max_speed=max_speed)
     return Loaded(sensors, rows, problems, tracks, periods, counts_from_midnight(rows))
 
 
@@ -274,7 +277,7 @@ class Streamed:
 
 
 def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_TRACKS,
-           executor: Any = None) -> Streamed:
+           executor: Any = None, max_speed: float = MAX_SPEED_MS) -> Streamed:
     """The sensor file read and the recording opened for :func:`solver.io.split.split_stream`
     (by suffix: a table read in batches, else ASTERIX/pcap decoded in units): memory holds
     the aircraft in the air, not the recording's rows. A thread reads, decodes and splits up
@@ -302,8 +305,8 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
                 out.mode_c_offsets.append(track.pressure_offset_m)
             yield track
 
-    out.tracks = _read_ahead(noted(split_stream(rows(), sensors, problems=out.problems)),
-                             read_ahead)
+    out.tracks = _read_ahead(noted(split_stream(rows(), sensors, problems=out.problems,
+                                                max_speed=max_speed)), read_ahead)
     return out
 
 
@@ -704,7 +707,8 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
         workers = max(len(client.scheduler_info()["workers"]), 1)
         on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)
         loaded = stream(Path(args.recording), Path(args.sensors),
-                        executor=client if on_cluster else None)
+                        executor=client if on_cluster else None,
+                        max_speed=settings.config().bounds.v[1])
         chosen = Selection(getattr(args, "aircraft", None))
         loaded.tracks = chosen.filter(loaded.tracks)
         summary, first_result_s = _reconstruct(args, settings, out, loaded, client, started)
@@ -1143,12 +1147,12 @@ def plot(args: argparse.Namespace) -> list[Path]:
         raise InputError(("aircraft",), "name at least one aircraft, or --map")
     written: list[Path] = []
     wanted = {_normal_key(k) for k in args.aircraft}  # a Mode S address in either case
-    loaded = stream(Path(args.recording), Path(args.sensors))  # its plane: after the first part
+    run = stored_settings(out) or RunSettings()
+    bounds = run.bounds if args.bounds is None else parse_bounds(args.bounds)
+    # its plane: after the first part; its aircraft told apart as the run's
+    loaded = stream(Path(args.recording), Path(args.sensors), max_speed=bounds.v[1])
     if wanted:
-        run = stored_settings(out) or RunSettings()
-        config = RunSettings(args.method or run.method,
-                             run.bounds if args.bounds is None else parse_bounds(args.bounds),
-                             **_windows(args, run)).config()
+        config = RunSettings(args.method or run.method, bounds, **_windows(args, run)).config()
         for track in loaded.tracks:
             if track.key not in wanted:
                 continue

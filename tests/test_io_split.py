@@ -22,7 +22,7 @@ from solver.sensors import PositionSensor, RadarSensor
 
 
 def radar_rows(t, sensor="R1", mode_s=-1, track_number=-1, mode_3a=-1, aircraft="",
-               range_m=60_000.0, altitude_m=np.nan) -> PlotRows:
+               range_m=60_000.0, altitude_m=np.nan, azimuth_deg=45.0) -> PlotRows:
     t = np.asarray(t, dtype=float)
     n = t.size
 
@@ -31,7 +31,7 @@ def radar_rows(t, sensor="R1", mode_s=-1, track_number=-1, mode_3a=-1, aircraft=
 
     return PlotRows.from_columns(
         n, t=t, sensor=col(sensor, object), range_m=col(range_m, float) + 100.0 * t,
-        azimuth_deg=np.full(n, 45.0), altitude_m=col(altitude_m, float),
+        azimuth_deg=col(azimuth_deg, float), altitude_m=col(altitude_m, float),
         mode_s=col(mode_s, np.int64), track_number=col(track_number, np.int64),
         mode_3a=col(mode_3a, np.int64), aircraft=col(aircraft, object))
 
@@ -327,3 +327,63 @@ def test_streamed_tracks_share_one_plane_set_by_the_first_position():
     tracks = list(split_stream([noise, a, b], adsb_only, gap_s=30.0, disorder_s=5.0))
     assert sorted(tr.key for tr in tracks) == ["00000A", "00000B"]
     assert {tr.table.frame for tr in tracks} == {LocalFrame(46.3, 14.4)}
+
+
+def test_another_aircraft_under_a_key_is_told_apart():
+    """A key's plots out of reach of each other at the fastest speed are aircraft apart (a
+    tester's recordings: both came out as one track, 12-116 km RMS off): two aircraft
+    squawking 7000 on one radar (no track number; their plots interleaved scan by scan, at
+    azimuths 45 and 120 deg); R1's track 30 used again 60 s after its first aircraft's last
+    plot by another 80 km away; R1's track 12 of Mode S aircraft 4CA2D1 going on to an
+    aircraft without Mode S 60 km away (its address lent to those plots). The others are
+    ``KEY~2`` (the larger piece, or the one with the address, keeps the key), reported; the
+    same streamed."""
+    scans = np.arange(0.0, 400.0, 4.8)
+    rows = concat([
+        radar_rows(scans, mode_3a=0o7000), radar_rows(scans + 1.0, mode_3a=0o7000,
+                                                       azimuth_deg=120.0),
+        radar_rows(scans[scans < 200], track_number=30, range_m=150_000.0, azimuth_deg=300.0),
+        radar_rows(scans[(scans > 260) & (scans < 380)], track_number=30, range_m=70_000.0,
+                   azimuth_deg=300.0),
+        radar_rows(scans[scans < 250] + 2.0, mode_s=0x4CA2D1, track_number=12,
+                   azimuth_deg=200.0),
+        adsb_rows(np.arange(0.0, 400.0, 2.0), 0x4CA2D1),
+        radar_rows(scans[scans > 310] + 2.0, track_number=12, mode_3a=0o7000,
+                   range_m=120_000.0, azimuth_deg=200.0)])
+    tracks, problems = split(rows)
+    assert sorted(tracks) == ["4CA2D1", "4CA2D1~2", "R1:mode3a:7000", "R1:mode3a:7000~2",
+                              "R1:track:30", "R1:track:30~2"]
+    for key in ("R1:mode3a:7000", "R1:mode3a:7000~2"):
+        az = np.rad2deg(tracks[key].table.azimuth_rad)
+        assert np.ptp(az) < 1e-9 and len(tracks[key].table) == scans.size
+    assert np.rad2deg(tracks["R1:mode3a:7000"].table.azimuth_rad[0]) == pytest.approx(45.0)
+    later = tracks["R1:track:30~2"].table  # the smaller piece (25 plots against 42)
+    assert len(tracks["R1:track:30"].table) == np.sum(scans < 200) and later.t.min() > 260
+    own = tracks["4CA2D1"]
+    assert (rows.mode_s[own.rows] == 0x4CA2D1).all()  # every plot with the address
+    lent = tracks["4CA2D1~2"]
+    assert len(lent.table) == np.sum(scans > 310) and (rows.mode_s[lent.rows] < 0).all()
+    assert problems.counts["aircraft_apart"] == 3
+    (entry,) = [e for e in problems.of_kind("aircraft_apart") if "4CA2D1" in e.where]
+    assert "another aircraft under the same key" in entry.message and "4CA2D1~2" in entry.message
+    streamed = {tr.key: tr for tr in split_stream(
+        [rows.take(np.arange(k, min(k + 37, len(rows)))) for k in range(0, len(rows), 37)],
+        SENSORS)}
+    assert sorted(streamed) == sorted(tracks)
+    for key, tr in tracks.items():
+        np.testing.assert_array_equal(streamed[key].rows, tr.rows)
+
+
+def test_a_few_wild_plots_stay_with_their_aircraft():
+    """Fewer than 10 plots out of reach (a radar's wild plots) are no other aircraft: they stay
+    in the track (the reconstruction gives them no weight), and a key whose plots all carry
+    the address is not looked at."""
+    scans = np.arange(0.0, 300.0, 4.8)
+    wild = np.isin(np.arange(scans.size), [5, 17, 18, 40])
+    far = np.where(wild, 200_000.0, 60_000.0)
+    rows = concat([radar_rows(scans, track_number=5, range_m=far - 100.0 * scans),
+                   radar_rows(scans + 1.0, mode_s=0xABCDEF, range_m=far - 100.0 * scans,
+                              azimuth_deg=90.0)])
+    tracks, problems = split(rows)
+    assert sorted(tracks) == ["ABCDEF", "R1:track:5"] and "aircraft_apart" not in problems.counts
+    assert all(len(tr.table) == scans.size for tr in tracks.values())

@@ -78,3 +78,26 @@ def test_the_sliding_windows_give_wild_plots_no_weight():
     assert rms(rec) < 1.1 * rms(clean), (rms(rec), rms(clean))
     off = replace(config, refine=replace(config.refine, outlier_gate=None))
     assert rms(reconstruct(Plots.from_arrays(p.t, r, a), radar, off)) > 1.5 * rms(rec)
+
+
+def test_misfit_stretches_are_the_plots_near_far_ones_at_a_bound():
+    """Plots within 60 s of a plot more than the gate from the track where u or v sits at a
+    bound (the bounds bend the track off there) are no reference for the sensors; far plots
+    with the controls free (a wild plot, a sensor's offset) and near ones at a bound are
+    not."""
+    from solver.inputs import Bounds
+    from solver.refine.gate import MISFIT_MARGIN_S, misfit_stretches
+
+    bounds = Bounds()
+    t = np.arange(0.0, 1000.0, 10.0)
+    sol = np.zeros((t.size, 6))
+    sol[:, 3] = 200.0  # v free
+    sol[40:45, 4] = bounds.u[1]  # u at its bound over nodes 40-44
+    sol[80, 3] = bounds.v[0]  # v at its bound at node 80
+    quad = np.ones(t.size)
+    quad[[42, 60, 81]] = 100.0  # far (10 sigma): at u's bound, free, next to v's bound
+    quad[43] = 1.0  # near, at the bound
+    got = misfit_stretches(quad, t, sol, bounds, 5.0, np.arange(t.size))
+    near = (np.abs(t - t[42]) <= MISFIT_MARGIN_S) | (np.abs(t - t[81]) <= MISFIT_MARGIN_S)
+    np.testing.assert_array_equal(got, np.flatnonzero(near))
+    assert misfit_stretches(quad, t, sol, bounds, None, np.arange(t.size)).size == 0

@@ -13,7 +13,9 @@ carry one single Mode S address lends it to its plots without one, so a track wi
 intermittent address stays one aircraft. Every key is split where the aircraft is not seen
 for more than ``gap_s`` (default 300 s: track numbers and codes are reused, an address may fly
 twice in a recording, a reconstruction across a long gap would be a guess); later pieces get
-``#2``, ``#3`` ... Rows without any key are reported (``no_aircraft_key``).
+``#2``, ``#3`` ... Rows without any key are reported (``no_aircraft_key``). A key with plots
+without an address is then told apart into aircraft by reach (:func:`_apart`): another
+aircraft under it is ``KEY~2``, ``KEY~3`` ... (``aircraft_apart``).
 
 :func:`split_stream` does the same on a recording that arrives in pieces and yields each
 aircraft once no later plot can change it (the same tracks, tested on random recordings):
@@ -40,9 +42,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..frames import LocalFrame
-from ..inputs import InputError, format_loc
+from ..inputs import Bounds, InputError, format_loc
 from ..plots import PlotTable
-from ..sensors import RadarSensor
+from ..sensors import ALTITUDE_RANGE_M, RadarSensor
 from .altitudes import MAX_OFFSET_M, geometric_altitudes
 from .problems import Problems
 from .sensors_file import SensorSet, take_off_offsets
@@ -53,6 +55,9 @@ DISORDER_S = 60.0
 """How far (s) a row of a recording read in parts may come after a later-timed one
 (:func:`split_stream`)."""
 MIN_PLOTS = 3
+MAX_SPEED_MS = Bounds().v[1]
+"""The fastest ground speed (m/s) by which a key's plots are told apart into aircraft (the
+aircraft model's default bound; the command line and jobs pass their run's)."""
 _MAX_ROW_RETRIES = 50
 
 
@@ -174,19 +179,22 @@ def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float,
 
 def split_aircraft(rows: PlotRows, sensors: SensorSet, *, reference: LocalFrame | None = None,
                    min_plots: int = MIN_PLOTS, gap_s: float = GAP_S,
-                   problems: Problems | None = None) -> Iterator[AircraftTrack]:
+                   problems: Problems | None = None, max_speed: float = MAX_SPEED_MS
+                   ) -> Iterator[AircraftTrack]:
     """Yield one :class:`AircraftTrack` per aircraft (in order of first plot), recording every
     row left out in ``problems`` (see the module docstring). ``reference``: the plane (default
     :func:`recording_frame`). ``AircraftTrack.rows`` index ``rows``."""
     frame = reference if reference is not None else recording_frame(sensors, rows)
     yield from split_stream([rows], sensors, reference=frame, min_plots=min_plots,
-                            gap_s=gap_s, disorder_s=np.inf, problems=problems)
+                            gap_s=gap_s, disorder_s=np.inf, problems=problems,
+                            max_speed=max_speed)
 
 
 def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                  reference: LocalFrame | None = None, min_plots: int = MIN_PLOTS,
                  gap_s: float = GAP_S, disorder_s: float = DISORDER_S,
-                 problems: Problems | None = None) -> Iterator[AircraftTrack]:
+                 problems: Problems | None = None, max_speed: float = MAX_SPEED_MS
+                 ) -> Iterator[AircraftTrack]:
     """:func:`split_aircraft` over a recording that arrives in pieces (in recording order):
     an aircraft is yielded as soon as no later plot can change it: the recording has moved
     ``gap_s + disorder_s`` past its last plot (a later plot of its key starts a new piece), no
@@ -251,8 +259,9 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
             pieces_done[b] = pieces_done.get(b, 0) + 1
             track = _build(key, members, buffer, sensors, sensor_idx, frame, min_plots,
                            problems)
-            if track is not None:
-                yield replace(track, rows=numbers[track.rows])
+            for part in _apart(track, buffer, sensors, sensor_idx, frame, min_plots, gap_s,
+                               max_speed, problems):
+                yield replace(part, rows=numbers[part.rows])
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
         buffer = buffer.take(~taken)
         numbers = numbers[~taken]
@@ -410,6 +419,64 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
     problems.add("bad_track", f"aircraft {key}", f"more than {_MAX_ROW_RETRIES} bad plots: "
                  "left out", dropped=int(m.size))
     return None
+
+
+MIN_APART_PLOTS = 10
+"""Plots of a key out of reach of its aircraft make another aircraft from this many on (fewer
+stay with it: wild plots, which the reconstruction gives no weight)."""
+
+
+def _apart(track: AircraftTrack | None, rows: PlotRows, sensors: SensorSet,
+           sensor_idx: np.ndarray, frame: LocalFrame | None, min_plots: int, gap_s: float,
+           max_speed: float, problems: Problems) -> list[AircraftTrack]:
+    """The track, or the aircraft its key holds told apart
+    (:func:`solver.refine.gate.aircraft_apart`): a radar's track number or a Mode 3/A code
+    used again for another aircraft, or a Mode S address a radar track lent to plots that are
+    another's (a tester's recording: its track number went on to a 7000-squawking aircraft 60
+    km away, whose plots came out in the Mode S aircraft's track). Plots that carry a Mode S
+    address and keys the user gave stay together; only keys with plots without an address are
+    looked at. The others are named ``KEY~2``, ``KEY~3`` ... by their first plot, and
+    reported (``aircraft_apart``)."""
+    if track is None:
+        return []
+    m = track.rows
+    own = rows.mode_s[m] >= 0
+    if own.all() or (rows.aircraft[m].astype(str) != "").any() or m.size < 2 * MIN_APART_PLOTS:
+        return [track]
+    from ..refine.gate import aircraft_apart
+
+    table = track.table
+    fx = table.fixes()
+    lo = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[0]))
+    hi = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[1]))
+    spread = np.where(fx.altitude_free, np.hypot(*(hi - lo).T), 0.0)
+    sigma = np.maximum(fx.ellipses.A, fx.ellipses.B)
+    label = aircraft_apart(table.t, table.sensor, fx.centre_at(fx.h_mid), sigma, spread,
+                           max_speed * (float(np.max(frame.scale(*fx.centre_at(fx.h_mid).T)))
+                                        if frame is not None else 1.0), gap_s)
+    sizes = np.bincount(label)
+    anchored = np.unique(label[own])
+    main = int(anchored[np.argmax(sizes[anchored])]) if anchored.size else int(np.argmax(sizes))
+    for k in range(sizes.size):
+        if k in anchored or sizes[k] < MIN_APART_PLOTS:
+            label[label == k] = main
+    others = [k for k in dict.fromkeys(label.tolist()) if k != main]  # by first plot
+    if not others:
+        return [track]
+    out = []
+    for n, k in enumerate([main, *others], 1):
+        name = track.key if k == main else f"{track.key}~{n}"
+        sel = label == k
+        if k != main:
+            problems.add("aircraft_apart", f"aircraft {track.key}", f"{int(sel.sum())} plots "
+                         f"from t = {table.t[sel].min():.1f} s out of reach of the aircraft's "
+                         "others: another aircraft under the same key (a radar track number or "
+                         "Mode 3/A code used again, an address lent by a radar track): "
+                         f"reconstructed apart as {name}")
+        part = _build(name, m[sel], rows, sensors, sensor_idx, frame, min_plots, problems)
+        if part is not None:
+            out.append(part)
+    return out
 
 
 __all__ = ["AircraftTrack", "aircraft_keys", "recording_frame", "split_aircraft", "split_stream"]

@@ -28,7 +28,8 @@ column              meaning
 ``mode_3a``         optional: Mode 3/A code, 4 octal digits (``7000``)
 ``track_number``    optional: the sensor's track number (integer >= 0)
 ``aircraft``        optional: an aircraft key the user already has (overrides the others; not
-                    ending in ``#<number>``, the name of a key's piece after a time gap)
+                    ending in ``#<number>`` or ``~<number>``, the names of a key's piece
+                    after a time gap and of another aircraft found under a key)
 ``on_ground``       optional: ``true``/``false`` (or ``1``/``0``; Parquet: boolean or
                     integer), the report says the aircraft is on the ground (ADS-B's GBS, Mode
                     S's flight status): such a row is left out, counted as ``on_ground`` (the
@@ -72,6 +73,8 @@ FL_M = 30.48  # one flight level (100 ft) in metres
 NO_INT = -1  # missing mode_s / mode_3a / track_number
 PIECE_NAME = re.compile(r"#\d+$")
 """How an aircraft key's later pieces are named (``KEY#2``; :mod:`solver.io.split`)."""
+APART_NAME = re.compile(r"~\d+$")
+"""How another aircraft found under a key is named (``KEY~2``; :mod:`solver.io.split`)."""
 
 FLOAT_COLUMNS = ("range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m", "flight_level")
 INT_COLUMNS = ("mode_s", "mode_3a", "track_number")
@@ -742,10 +745,12 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
     aircraft = np.array(["" if a is None else a for a in strings("aircraft")], dtype=object)
     # `KEY#2` names a key's piece after a gap (solver.io.split): a user's key of that form was
     # merged with another aircraft's piece, or made a traceback (a fuzz helper)
-    piece_like = np.flatnonzero([bool(PIECE_NAME.search(a)) for a in aircraft])
+    piece_like = np.flatnonzero([bool(PIECE_NAME.search(a) or APART_NAME.search(a))
+                                 for a in aircraft])
     if piece_like.size:
-        report(piece_like, "aircraft", "ends in #<number>, the name of a key's piece after a "
-               "time gap: rename the key")
+        report(piece_like, "aircraft", "ends in #<number> or ~<number>, the names of a key's "
+               "piece after a time gap and of another aircraft found under a key: rename the "
+               "key")
 
     ground = np.flatnonzero(on_ground_column(table, names, report) & ~bad)
     for i in ground.tolist():

@@ -43,6 +43,7 @@ from .blocks import (
 from .covariance import node_covariance, state_size
 from .gate import (
     RESCALE_ROUNDS,
+    misfit_stretches,
     overstated_sigmas,
     report_bounds,
     report_scales,
@@ -317,8 +318,12 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     bias_cov = cov_nodes[-1][nb:, nb:]
     rec = Reconstruction(segs, at_plots_own, samples, diag, no_weight=rejected)
     if table.frame is not None or len(table.sensors) > 1:
+        # no reference for the sensors: plots out of reach, stretches the bounds bend off
+        quad_final = data.quad(sol, biases, variant.altitude)[plot_node]
+        misfit = misfit_stretches(np.where(data.weight[plot_node] > 0, quad_final, 0.0),
+                                  table.t, sol, bounds, st.outlier_gate, plot_node)
         rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors,
-                                       impossible)
+                                       np.union1d(impossible, misfit).astype(int))
         rec.sensors = sensor_reports(table, rec.residuals, biases, bias_cov, bias_sensors)
     if variant.altitude:
         w = np.gradient(t_nodes) if n > 1 else np.ones(1)

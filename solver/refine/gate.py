@@ -8,6 +8,9 @@ or the sigmas, not a few wild plots, are what does not fit, and a warning says s
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 
 from ..config import RefineSettings
@@ -33,12 +36,8 @@ def wild_plots(quad_at_plots: FloatArray, t_nodes: FloatArray, sol: np.ndarray, 
     far = np.flatnonzero(quad_at_plots > st.outlier_gate**2)
     n = quad_at_plots.size
     if far.size and plot_node is not None:
-        lo, hi = bounds.u
-        tol = 1e-4 * (hi - lo)
-        u = sol[:, COLUMN["u"]]
-        held = (u <= lo + tol) | (u >= hi - tol)  # node k's u holds over [t_k, t_k+1]
         node = plot_node[far]
-        turning = held[node] | held[np.maximum(node - 1, 0)]
+        turning = held_at_bound(sol, bounds, "u", node)
         if turning.any():
             t = t_nodes[node[turning]]
             diag.warnings.append(
@@ -98,6 +97,43 @@ def report_scales(weight_scale: FloatArray, table: object, diag: Diagnostics) ->
             f"allow: weighted as if its sigmas were {1 / np.sqrt(scale):.3g} of the declared")
 
 
+def held_at_bound(sol: np.ndarray, bounds: Bounds, name: str, node: np.ndarray) -> np.ndarray:
+    """Whether ``name`` (``v``, ``u``, ``w``) sits at a bound (within 1e-4 of the bound range)
+    on either side of each of the nodes ``node`` (node k's control holds over [t_k, t_k+1])."""
+    lo, hi = getattr(bounds, name)
+    tol = 1e-4 * (hi - lo)
+    val = sol[:, COLUMN[name]]
+    held = (val <= lo + tol) | (val >= hi - tol)
+    return held[node] | held[np.maximum(node - 1, 0)]
+
+
+MISFIT_MARGIN_S = 60.0
+"""Plots within this time of a :func:`misfit_plots` plot are no reference for the sensors'
+statistics either (the track is bent off around it)."""
+
+
+def misfit_stretches(quad_at_plots: FloatArray, t: FloatArray, sol: np.ndarray,
+                     bounds: Bounds, gate: float | None, plot_node: np.ndarray) -> np.ndarray:
+    """Plots (indexes) where the track cannot follow its plots: within
+    :data:`MISFIT_MARGIN_S` of a plot more than ``gate`` sigma from it where the lateral
+    acceleration or the speed sits at a bound. The track there is the bounds', not the
+    aircraft's: a 300-m/s jet turning at 2.5 g under the default u bound left its track 1.3
+    km off and spread a second radar's range residuals to 228-277 m (its sigma 40 m, a
+    tester's recording); such stretches are left out of the sensors' statistics."""
+    if gate is None or not t.size:
+        return np.zeros(0, dtype=int)
+    far = np.flatnonzero(quad_at_plots > gate**2)
+    node = plot_node[far]
+    bad = far[held_at_bound(sol, bounds, "u", node) | held_at_bound(sol, bounds, "v", node)]
+    if not bad.size:
+        return np.zeros(0, dtype=int)
+    tb = np.sort(t[bad])
+    k = np.searchsorted(tb, t)
+    near = np.minimum(np.abs(t - tb[np.clip(k - 1, 0, tb.size - 1)]),
+                      np.abs(t - tb[np.clip(k, 0, tb.size - 1)]))
+    return np.flatnonzero(near <= MISFIT_MARGIN_S)
+
+
 def at_bounds(t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds, name: str
               ) -> tuple[float, float]:
     """Shares of the track's time with ``name`` (``v``, ``u`` or ``w``) at its lower and at its
@@ -133,6 +169,54 @@ UNREACHABLE_SLACK_M = 2_000.0
 its neighbours (:func:`unreachable_plots`): the wild plots it is for are tens of km off."""
 
 
+def _reach_m(dt: Any, sigmas: Any, spreads: Any, v_max: float) -> Any:
+    """How far apart two plots ``dt`` s apart may lie and be of one aircraft under ``v_max``:
+    ``v_max |dt| + 10 (sigma_i + sigma_j) + spread_i + spread_j + UNREACHABLE_SLACK_M``."""
+    return v_max * abs(dt) + 10 * sigmas + spreads + UNREACHABLE_SLACK_M
+
+
+MAX_OPEN_PIECES = 32
+""":func:`aircraft_apart` follows at most this many pieces at a time (a key's scattered wild
+plots would each start one: quadratic); a plot within reach of none beyond joins the first."""
+
+
+def aircraft_apart(t: FloatArray, sensor: np.ndarray, centre: FloatArray, sigma: FloatArray,
+                   spread: FloatArray, v_max: float, gap_s: float = np.inf) -> np.ndarray:
+    """Plots of one key told apart into aircraft: a piece label per plot (in the order
+    given). In time order each plot joins the piece it is within reach of (as
+    :func:`unreachable_plots` judges reach) that lies nearest for the time between them, judged
+    by the piece's last plot of the same sensor (another sensor's plots may be offset from
+    it), or its last plot when the piece has none of that sensor; a plot within reach of no
+    piece starts one (pieces whose last plot is more than ``gap_s`` back are not followed, nor
+    more than :data:`MAX_OPEN_PIECES`). Pieces are numbered by their first plot."""
+    order = np.argsort(t, kind="stable")
+    label = np.zeros(t.size, dtype=int)
+    tt, sg, sp = t.tolist(), sigma.tolist(), spread.tolist()
+    cx, cz, sensors = centre[:, 0].tolist(), centre[:, 1].tolist(), sensor.tolist()
+    ends: list[dict[object, int]] = []  # per piece: sensor -> its last plot; None -> any
+    pieces = 0
+    for i in order.tolist():
+        best, best_ratio = -1, np.inf
+        ends = [e for e in ends if tt[i] - tt[e[None]] <= gap_s]
+        for e in ends:
+            j = e.get(sensors[i], e[None])
+            far = math.hypot(cx[i] - cx[j], cz[i] - cz[j])
+            reach = _reach_m(tt[i] - tt[j], sg[i] + sg[j], sp[i] + sp[j], v_max)
+            if far <= reach and far / reach < best_ratio:
+                best, best_ratio = label[e[None]], far / reach
+                chosen = e
+        if best < 0 and len(ends) >= MAX_OPEN_PIECES:
+            chosen = ends[0]
+            best = label[chosen[None]]
+        if best < 0:
+            best, chosen = pieces, {}
+            pieces += 1
+            ends.append(chosen)
+        chosen[sensors[i]] = chosen[None] = i
+        label[i] = best
+    return label
+
+
 CHAIN_SKIP = 8
 """The longest run of plots the chain of :func:`unreachable_plots` may step over."""
 
@@ -158,8 +242,8 @@ def unreachable_plots(t: FloatArray, centre: FloatArray, sigma: FloatArray, spre
     near = np.zeros((CHAIN_SKIP + 1, n), dtype=bool)  # near[d, i]: i within reach of i - d
     for d in range(1, min(CHAIN_SKIP, n - 1) + 1):
         i, j = np.arange(d, n), np.arange(n - d)
-        near[d, i] = np.hypot(*(cs[i] - cs[j]).T) <= (
-            v_max * (ts[i] - ts[j]) + 10 * (ss[i] + ss[j]) + ps[i] + ps[j] + UNREACHABLE_SLACK_M)
+        near[d, i] = np.hypot(*(cs[i] - cs[j]).T) <= _reach_m(
+            ts[i] - ts[j], ss[i] + ss[j], ps[i] + ps[j], v_max)
     if near[1, 1:].all():  # every plot in reach of the one before: the whole is the chain
         return np.zeros(0, dtype=int)
     length = np.ones(n, dtype=int)  # the longest chain ending at each plot

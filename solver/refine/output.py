@@ -93,13 +93,14 @@ MIN_SPEED_FOR_TRACK_AXES = 1.0
 
 def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
                    biases: np.ndarray, bias_sensors: list[int],
-                   unreachable: np.ndarray | None = None) -> PlotResiduals:
+                   no_reference: np.ndarray | None = None) -> PlotResiduals:
     """Every plot against the track, measured minus predicted from the track after its
     sensor's estimated offsets (wild plots too, flagged): range and azimuth for radar plots,
     horizontal distance for position plots (NaN where a kind does not apply, or without a
-    frame for position plots); ``unreachable``: the plots (indexes) out of reach of the
-    track's others (:func:`solver.refine.gate.unreachable_plots`), for
-    :func:`statistics_wild`."""
+    frame for position plots); ``no_reference``: the plots (indexes) where the track is no
+    reference for the sensors (out of reach of the track's others,
+    :func:`solver.refine.gate.unreachable_plots`; where the bounds bend it off,
+    :func:`solver.refine.gate.misfit_stretches`), for :func:`statistics_wild`."""
     n = len(table)
     out = PlotResiduals(np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan),
                         np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan))
@@ -130,7 +131,7 @@ def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
             assert out.along_m is not None and out.cross_m is not None
             out.along_m[rows] = dx * ux + dz * uz
             out.cross_m[rows] = dz * ux - dx * uz
-    out.wild = statistics_wild(table, out, unreachable)
+    out.wild = statistics_wild(table, out, no_reference)
     return out
 
 
@@ -154,18 +155,18 @@ def wild_residuals(res: FloatArray, sigma: float) -> np.ndarray:
 
 
 def statistics_wild(table: PlotTable, residuals: PlotResiduals,
-                    unreachable: np.ndarray | None = None) -> np.ndarray:
-    """The plots the sensors' statistics leave out: those out of reach of the track's others
-    (``unreachable``, indexes: no plot of this aircraft, e.g. another's under a reused track
-    number, whose residuals of tens of km made a radar's range bias -47 km in a tester's
-    recording), and of the rest a radar's (with :data:`WILD_MIN_PLOTS` in the track) beyond
-    :func:`wild_residuals` in range or azimuth, other sensors' the gated ones.
-    ``tracks.parquet`` keeps it (``wild``), so that ``sensors.png`` pools the plots that
-    ``sensors.json`` does (it took the gated ones alone: 0 wild and a 97.5-m range sigma in the
-    figure where the table said 27 wild and 79.1 m)."""
+                    no_reference: np.ndarray | None = None) -> np.ndarray:
+    """The plots the sensors' statistics leave out: those where the track is no reference
+    (``no_reference``, indexes: out of reach of the track's others, no plot of this aircraft,
+    e.g. another's under one key, whose residuals of tens of km made a radar's range bias -47
+    km in a tester's recording; stretches the bounds bend the track off), and of the rest a
+    radar's (with :data:`WILD_MIN_PLOTS` in the track) beyond :func:`wild_residuals` in range
+    or azimuth, other sensors' the gated ones. ``tracks.parquet`` keeps it (``wild``), so that
+    ``sensors.png`` pools the plots that ``sensors.json`` does (it took the gated ones alone:
+    0 wild and a 97.5-m range sigma in the figure where the table said 27 wild and 79.1 m)."""
     far = np.zeros(len(table), dtype=bool)
-    if unreachable is not None:
-        far[np.asarray(unreachable, dtype=int)] = True
+    if no_reference is not None:
+        far[np.asarray(no_reference, dtype=int)] = True
     wild = residuals.gated | far
     for k, sensor in enumerate(table.sensors):
         rows = np.flatnonzero((table.sensor == k) & ~far)
