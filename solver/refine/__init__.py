@@ -85,6 +85,29 @@ def time_reference(sensors: Sequence[Sensor], bias_sensors: list[int]) -> np.nda
     return g
 
 
+BULK_SHARE = 0.2
+"""A sensor with this share of its plots in a track given no weight is named as likely offset
+(:func:`_by_sensor`)."""
+
+
+def _by_sensor(table: PlotTable, rejected: np.ndarray) -> str:
+    """With several sensors, how many plots of each were given no weight, and a hint when one
+    lost a share of its plots in bulk: with ADS-B 0.8 s late the fused track sat 180-212 m
+    behind and 44 % and 51 % of two radars' plots were given no weight, the warning naming
+    none (a tester's recording); a sensor's offset, not wild plots, does that."""
+    if len(table.sensors) < 2:
+        return ""
+    lost = np.bincount(table.sensor[rejected], minlength=len(table.sensors))
+    total = np.bincount(table.sensor, minlength=len(table.sensors))
+    parts = [f"{s.id} {lost[k]} of {total[k]}" for k, s in enumerate(table.sensors) if lost[k]]
+    bulk = [s.id for k, s in enumerate(table.sensors)
+            if total[k] and lost[k] >= BULK_SHARE * total[k]]
+    hint = (f"; so many of {', '.join(bulk)} suggest an offset between the sensors (a range, "
+            "azimuth or time offset, e.g. a late ADS-B: estimate_bias or the known offsets), "
+            "not wild plots") if bulk else ""
+    return f" ({', '.join(parts)}{hint})"
+
+
 def unreachable_in(table: PlotTable, data: NodeData, plot_node: np.ndarray, bounds: Bounds,
                  bias_sensors: list[int] | None = None) -> np.ndarray:
     """:func:`solver.refine.gate.unreachable_plots` of the table's plots: their centres (at the
@@ -287,7 +310,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     if rejected.size:
         diag.warnings.append(
             f"{rejected.size} plot(s) more than {st.outlier_gate:g} sigma from the track were "
-            f"given no weight: plots {listed(rejected)}")
+            f"given no weight{_by_sensor(table, rejected)}: plots {listed(rejected)}")
     rejected = np.union1d(np.union1d(rejected, impossible), overhead).astype(int)
     diag.extra["rejected_plots"] = int(rejected.size)
     diag.solver_failures += failures
