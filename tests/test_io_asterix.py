@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from solver.frames import LocalFrame, slant_and_azimuth
 from solver.inputs import InputError
-from solver.io.asterix import decode_blocks, read_recording
+from solver.io.asterix import decode_blocks, encode_rows, read_recording
 from solver.io.problems import Problems
 from solver.io.sensors_file import parse_sensors
 from solver.io.split import split_aircraft
@@ -466,32 +466,31 @@ def _i040_021(gbs: int = 0, rab: int = 0) -> tuple:
             (("DCR", 0), ("GBS", gbs), ("SIM", 0), ("TST", 0), ("SAA", 0), ("CL", 0), None))
 
 
-def test_reports_of_aircraft_on_the_ground_are_counted_and_left_out():
-    """CAT048 I230 STAT 1 and 3 (on the ground) and CAT021 I040 GBS are left out as
-    ``on_ground``; STAT 0, 2 (airborne) and 5 (SPI, either) and GBS 0 are kept; CAT021 RAB (a
-    field monitor) is ``not_aircraft``."""
+def test_what_reports_say_of_the_aircraft_on_the_ground_is_read():
+    """CAT048 I230 STAT 1 and 3 say on the ground, 0 and 2 airborne, 5 (SPI, either) nothing,
+    as a record without I230; CAT021 I040 GBS 1 on the ground, 0 airborne, an I040 without
+    its extension nothing. Rows keep it (``on_ground``: the split ends the track there,
+    :mod:`solver.io.split`); CAT021 RAB (a field monitor) is ``not_aircraft``. Encoded back,
+    the same."""
     radar = [C048.cv_record.create({
         "010": (("SAC", CODES["R1"][0]), ("SIC", CODES["R1"][1])), "140": (100.0 + k, "s"),
         "040": (("RHO", (30.0, "NM")), ("THETA", (10.0, "°"))), "220": 0xABCDEF,
-        "230": _i230(stat)}) for k, stat in enumerate((0, 1, 2, 3, 5, 1))]
+        **({} if stat is None else {"230": _i230(stat)})})
+        for k, stat in enumerate((0, 1, 2, 3, 5, None))]
     adsb = [C021.cv_record.create({
         "010": (("SAC", CODES["ADSB"][0]), ("SIC", CODES["ADSB"][1])), "071": (200.0 + k, "s"),
-        "040": _i040_021(gbs, rab), "131": (("LAT", (46.0, "°")), ("LON", (14.0, "°"))),
-        "080": 0xABCDEF}) for k, (gbs, rab) in enumerate(((0, 0), (1, 0), (1, 0), (0, 1)))]
+        "040": _i040_021(gbs, rab) if gbs is not None else (
+            (("ATP", 1), ("ARC", 1), ("RC", 0), ("RAB", 0), None),),
+        "131": (("LAT", (46.0, "°")), ("LON", (14.0, "°"))), "080": 0xABCDEF})
+        for k, (gbs, rab) in enumerate(((0, 0), (1, 0), (None, 0), (0, 1)))]
     data = (C048.create(radar).unparse().to_bytes()
             + C021.create(adsb).unparse().to_bytes())
     rec = decode_blocks(data, SENSORS)
-    np.testing.assert_allclose(rec.rows.time_of_day_s, [100.0, 102.0, 104.0, 200.0])
-    assert rec.problems.counts == {"on_ground": 5, "not_aircraft": 1}
-    assert rec.problems.dropped == {"on_ground": 5, "not_aircraft": 1}
-    stat, gbs = rec.problems.of_kind("on_ground")
-    assert stat.where == f"byte {3 + len(radar[0].unparse().to_bytes())}"  # the second record
-    assert stat.count == 3 and "STAT=1" in stat.message
-    assert "on the ground" in stat.message and "left out" in stat.message
-    assert gbs.count == 2 and "flagged GBS" in gbs.message and "CAT021" in gbs.message
-    (rab,) = rec.problems.of_kind("not_aircraft")
-    assert "flagged RAB" in rab.message
-    assert rec.records == len(rec.rows) + sum(rec.problems.dropped.values())
+    assert rec.rows.ground.tolist() == [0, 1, 0, 1, -1, -1, 0, 1, -1]
+    assert rec.problems.counts == {"not_aircraft": 1}
+    assert "flagged RAB" in rec.problems.of_kind("not_aircraft")[0].message
+    back = decode_blocks(encode_rows(rec.rows, SENSORS), SENSORS).rows
+    assert back.ground.tolist() == rec.rows.ground.tolist()
 
 
 def test_radar_code_sending_adsb_is_reported():

@@ -387,3 +387,31 @@ def test_a_few_wild_plots_stay_with_their_aircraft():
     tracks, problems = split(rows)
     assert sorted(tracks) == ["ABCDEF", "R1:track:5"] and "aircraft_apart" not in problems.counts
     assert all(len(tr.table) == scans.size for tr in tracks.values())
+
+
+def test_a_landing_ends_the_track_and_a_take_off_starts_another():
+    """An aircraft lands at 200 s, taxis, takes off at 400 s (within the 300-s gap split):
+    its ADS-B says on the ground (GBS) from 200 to 400 s, its radar says nothing. The reports
+    on the ground, the radar's between them too, are left out and counted (``on_ground``);
+    the flight before and the one after are two tracks (one track flew an invented 12-km loop
+    through the ground time in a tester's recording); the same streamed."""
+    scans, ticks = np.arange(0.0, 600.0, 4.8), np.arange(0.0, 600.0, 1.0)
+    radar = radar_rows(scans, mode_s=0x4CA2D1)
+    adsb = adsb_rows(ticks, 0x4CA2D1)
+    adsb = dataclasses.replace(adsb, on_ground=np.where((ticks >= 200) & (ticks < 400), 1, 0
+                                                        ).astype(np.int8))
+    both = PlotRows.concat([radar, adsb])
+    rows = concat([both.take(np.argsort(both.t, kind="stable"))])  # in time, as recorded
+    tracks, problems = split(rows)
+    assert sorted(tracks) == ["4CA2D1", "4CA2D1#3"]
+    first, second = tracks["4CA2D1"].table, tracks["4CA2D1#3"].table
+    assert first.t.max() < 200.0 and second.t.min() >= 400.0
+    ground = np.sum((ticks >= 200) & (ticks < 400)) + np.sum((scans > 199) & (scans < 400))
+    assert problems.counts == {"on_ground": ground} and problems.dropped["on_ground"] == ground
+    assert len(first) + len(second) + ground == len(rows)
+    streamed = {tr.key: tr for tr in split_stream(
+        [rows.take(np.arange(k, min(k + 50, len(rows)))) for k in range(0, len(rows), 50)],
+        SENSORS)}
+    assert sorted(streamed) == sorted(tracks)
+    for key, tr in tracks.items():
+        np.testing.assert_array_equal(streamed[key].rows, tr.rows)

@@ -349,29 +349,30 @@ def test_a_bad_value_after_a_quoted_newline_or_a_blank_line_names_its_line(tmp_p
         assert [o for p in parts for o in p.origin.tolist()] == rows.origin.tolist()
 
 
-def test_reports_on_the_ground_are_counted_and_left_out(tmp_path):
-    """``on_ground`` true (``true``, ``1``, any case) leaves the row out as ``on_ground`` with its
-    row and line; false, ``0`` and empty keep it; another word is a bad value of its row."""
+def test_on_ground_is_read_and_written(tmp_path):
+    """``on_ground``: ``true``, ``1`` (any case) on the ground, ``false``, ``0`` airborne,
+    empty not said; another word is a bad value of its row. Parquet: a boolean column with
+    nulls, or integers (2 is no boolean). Written back (CSV, Parquet), the same."""
     text = ("t,sensor,range_m,azimuth_deg,on_ground\n"
             "1,R1,1000,10,false\n2,R1,1000,10,TRUE\n3,R1,1000,10,\n4,R1,1000,10,1\n"
             "5,R1,1000,10,0\n6,R1,1000,10,maybe\n7,R1,1000,10, True \n")
     rows, problems = read_csv(text.encode(), problems=Problems())
-    assert rows.t.tolist() == [1.0, 3.0, 5.0]
-    assert problems.counts == {"on_ground": 3, "bad_value": 1}
-    assert problems.dropped == {"on_ground": 3, "bad_value": 1}
-    (ground,) = problems.of_kind("on_ground")
-    assert ground.where == "row 2 (line 3)" and ground.count == 3
+    assert rows.t.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 7.0]
+    assert rows.ground.tolist() == [0, 1, -1, 1, 0, 1]
+    assert problems.counts == {"bad_value": 1}
     (bad,) = problems.of_kind("bad_value")
     assert bad.where == "row 6 (line 7)" and "on_ground" in bad.message and "maybe" in bad.message
-    # Parquet: a boolean column with nulls, and integers (2 is no boolean)
+    for suffix in (".csv", ".parquet"):
+        write_table(rows, tmp_path / f"back{suffix}")
+        back, problems = read_table(tmp_path / f"back{suffix}")
+        assert back.ground.tolist() == rows.ground.tolist() and not problems
     table = pa.table({"t": [1.0, 2.0, 3.0], "sensor": ["R1"] * 3, "range_m": [1e3] * 3,
                       "azimuth_deg": [10.0] * 3})
     path = tmp_path / "plots.parquet"
     pq.write_table(table.append_column("on_ground", pa.array([True, None, False])), path)
     rows, problems = read_table(path)
-    assert rows.t.tolist() == [2.0, 3.0] and problems.counts == {"on_ground": 1}
-    assert problems.of_kind("on_ground")[0].where == "row 1"
+    assert rows.ground.tolist() == [1, -1, 0] and not problems
     pq.write_table(table.append_column("on_ground", pa.array([0, 1, 2])), path)
     rows, problems = read_table(path)
-    assert rows.t.tolist() == [1.0] and problems.counts == {"on_ground": 1, "bad_value": 1}
+    assert rows.ground.tolist() == [0, 1] and problems.counts == {"bad_value": 1}
     assert problems.of_kind("bad_value")[0].where == "row 3"

@@ -22,14 +22,14 @@ Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=``
   V and G bits say validated and not garbled), I220 Mode S address, I070 Mode 3/A (validated,
   not garbled), I161 track number. Reports flagged simulated or test (I020 SIM, TST) or from a
   fixed transponder (RAB) are not aircraft: counted as ``not_aircraft`` and left out. Reports
-  whose I230 flight status (STAT 1 or 3, the aircraft's Mode S downlink) says on the ground are
-  counted as ``on_ground`` and left out: the aircraft model and its bounds are those of flight.
+  whose I230 flight status (STAT 1 or 3, the aircraft's Mode S downlink) says on the ground get
+  ``on_ground`` (the split ends the aircraft's track there and leaves them out, counted).
 - CAT021 ADS-B: I010 SAC/SIC (ground station) -> sensor, time of applicability for position
   I071 (else time of message reception I073), position I131 (high resolution) or I130,
   geometric height I140 (ft -> m) for ``altitude_m``, else the flight level I145 as the
   pressure altitude (I145 always gives ``flight_level``),
   target address I080, Mode 3/A I070, track number I161. I040 SIM/TST/RAB flagged reports
-  are left out (``not_aircraft``), reports with I040 GBS (ground bit set) too (``on_ground``).
+  are left out (``not_aircraft``); I040 GBS (ground bit set) gives ``on_ground``.
 - CAT034 service messages: per sensor the count of messages, north markers and sector
   crossings and the antenna rotation period I041 (:class:`ServiceStats`).
 
@@ -602,10 +602,10 @@ class _Decoder:
                           "left out", f"{sac}/{sic}/{cat}", 1)
         return sensor.id, None
 
-    def _flagged(self, item: Any, names: tuple[str, ...], sensor: str, at: int, cat: int,
-                 kind: str = "not_aircraft") -> bool:
+    def _flagged(self, item: Any, names: tuple[str, ...], sensor: str, at: int, cat: int
+                 ) -> bool:
         """Whether one of the subitems ``names`` of ``item`` is set; such a report is left
-        out, counted as a ``kind`` problem."""
+        out, counted as ``not_aircraft``."""
         if item is None:
             return False
         memo_key = ("flags", cat, names, item.unparse().to_bytes())
@@ -620,28 +620,21 @@ class _Decoder:
             self._memo[memo_key] = name
         if name is None:
             return False
-        self._left_out(kind, f"CAT{cat:03d} report of {sensor!r} flagged {name}", sensor,
-                       name, at)
+        self.problems.add("not_aircraft", f"byte {at}", f"CAT{cat:03d} report of "
+                          f"{sensor!r} flagged {name}: left out",
+                          key=f"{sensor}/{name}", dropped=1)
         return True
 
-    def _on_ground_230(self, item: Any, sensor: str, at: int) -> bool:
-        """Whether a CAT048 report's I230 flight status (STAT, the aircraft's own Mode S
-        downlink) says on the ground: 1 or 3 (no alert / alert, no SPI, on the ground)."""
+    def _on_ground(self, item: Any, what: str, read: Any) -> int:
+        """What ``item`` says of the aircraft (``read(item)``: 1 on the ground, 0 airborne, -1
+        not said), read once per raw value; -1 without it."""
         if item is None:
-            return False
-        memo_key = ("230", item.as_uint())
-        stat = self._memo.get(memo_key)
-        if stat is None:
-            stat = self._memo[memo_key] = int(item.variation.get_item("STAT").as_uint())
-        if stat not in ON_GROUND_STAT:
-            return False
-        self._left_out("on_ground", f"CAT048 report of {sensor!r} with I230 STAT={stat} "
-                       "(aircraft on the ground)", sensor, "STAT", at)
-        return True
-
-    def _left_out(self, kind: str, what: str, sensor: str, name: str, at: int) -> None:
-        self.problems.add(kind, f"byte {at}", f"{what}: left out" + (
-            ON_GROUND_NOTE if kind == "on_ground" else ""), key=f"{sensor}/{name}", dropped=1)
+            return -1
+        memo_key = (what, item.unparse().to_bytes())  # extended items have no as_uint
+        ground = self._memo.get(memo_key)
+        if ground is None:
+            ground = self._memo[memo_key] = int(read(item))
+        return ground
 
     def _missing(self, cat: int, item: str, sensor: str, at: int) -> None:
         self.problems.add("missing_item", f"byte {at}", f"CAT{cat:03d} report of {sensor!r} "
@@ -715,8 +708,6 @@ class _Decoder:
         get = rec.get_item
         if self._flagged(get("020"), ("SIM", "TST", "RAB"), sensor, at, 48):
             return None
-        if self._on_ground_230(get("230"), sensor, at):
-            return None
         i140, i040 = get("140"), get("040")
         if i140 is None:
             return self._missing(48, "140", sensor, at)
@@ -745,9 +736,11 @@ class _Decoder:
                 fl = np.nan
         i220 = get("220")
         trn = self._track_number(get("161"), "161/48", "TRN")
+        ground = self._on_ground(get("230"), "230", lambda i: STAT_GROUND.get(
+            i.variation.get_item("STAT").as_uint(), -1))
         return (tod, sensor, rho * NM_M, theta, np.nan, np.nan,
                 fl * FL_M, fl, NO_INT if i220 is None else int(i220.as_uint()),
-                self._code(get("070"), "MODE3A", sensor, at, 48), trn, at)
+                self._code(get("070"), "MODE3A", sensor, at, 48), trn, at, ground)
 
     def _cat021(self, rec: Any, at: int) -> tuple | None:
         sensor = self._sensor(rec, 21, at, PositionSensor)
@@ -756,8 +749,6 @@ class _Decoder:
         get = rec.get_item
         i040 = get("040")
         if self._flagged(i040, ("SIM", "TST", "RAB"), sensor, at, 21):
-            return None
-        if self._flagged(i040, ("GBS",), sensor, at, 21, kind="on_ground"):
             return None
         time = get("071") or get("073")
         if time is None:
@@ -779,9 +770,10 @@ class _Decoder:
             alt = self._memo_quantity("140/21", i140, "ft") * FT_M
         i080 = get("080")
         trn = self._track_number(get("161"), "161/21", "TRNUM")
+        ground = self._on_ground(i040, "040/21", _gbs)
         return (tod, sensor, np.nan, np.nan, lat, lon, alt, fl,
                 NO_INT if i080 is None else int(i080.as_uint()),
-                self._code(get("070"), "MODE3A", sensor, at, 21), trn, at)
+                self._code(get("070"), "MODE3A", sensor, at, 21), trn, at, ground)
 
     def _time_of_day(self, item: Any, cat: int, sensor: str, at: int) -> float | None:
         """The record's time of day (s), or None with a problem when it is not within a day
@@ -821,7 +813,8 @@ class _Decoder:
             **{k: np.array(c[k], dtype=float) for k in (
                 "range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m", "flight_level")},
             **{k: np.array(c[k], dtype=np.int64) for k in (
-                "mode_s", "mode_3a", "track_number", "origin")})
+                "mode_s", "mode_3a", "track_number", "origin")},
+            on_ground=np.array(c["on_ground"], dtype=np.int8))
         return Recording(rows, self.problems, self.service, self.blocks, self.records, size)
 
 
@@ -829,16 +822,22 @@ _HANDLERS = {48: _Decoder._cat048, 21: _Decoder._cat021, 34: _Decoder._cat034}
 """The record reader of each decoded category."""
 
 _COLUMNS = ("time_of_day_s", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg",
-            "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number", "origin")
+            "altitude_m", "flight_level", "mode_s", "mode_3a", "track_number", "origin",
+            "on_ground")
 """The order of a decoded row's values."""
 
-ON_GROUND_STAT = frozenset({1, 3})
-"""CAT048 I230 STAT values of an aircraft on the ground (its Mode S flight status)."""
-
-ON_GROUND_NOTE = " (ground movements are not reconstructed: the aircraft model is that of flight)"
+STAT_GROUND = {0: 0, 1: 1, 2: 0, 3: 1}
+"""CAT048 I230 STAT (the aircraft's Mode S flight status) -> on the ground (1) or airborne (0);
+the other values (4, 5: either; 6, 7: unknown) say neither."""
 
 _INVALID = object()
 """A memoised reading that is not validated or garbled."""
+
+
+def _gbs(i040: Any) -> int:
+    """CAT021 I040's ground bit (in its first extension): 1 set, 0 clear, -1 not sent."""
+    sub = i040.variation.get_item("GBS")
+    return -1 if sub is None else int(sub.as_uint())
 
 
 def _names(variation: Any) -> set[str]:
@@ -856,9 +855,10 @@ def _names(variation: Any) -> set[str]:
 
 def encode_rows(rows: PlotRows, sensors: SensorSet, *, max_block_records: int = 16) -> bytes:
     """Plot rows -> a raw ASTERIX recording (libasterix encodes): radar rows as CAT048
-    (I010, I140, I040, I090 from ``flight_level``, I220, I070, I161), position rows as CAT021
-    2.7 (I010, I071, I131, I145 from ``flight_level``, I140 from an ``altitude_m`` that is not
-    the flight level's pressure altitude, I080, I070, I161); consecutive rows of one sensor
+    (I010, I140, I040, I090 from ``flight_level``, I220, I070, I161, I230 from ``on_ground``),
+    position rows as CAT021 2.7 (I010, I071, I131, I145 from ``flight_level``, I140 from an
+    ``altitude_m`` that is not the flight level's pressure altitude, I080, I070, I161, I040
+    from ``on_ground``); consecutive rows of one sensor
     share a data block of at most ``max_block_records`` records. The time of day is
     ``time_of_day_s``, else ``t`` modulo a day. For test and benchmark recordings;
     :func:`read_recording` reads them back to the encoding resolution. Raises ``ValueError``
@@ -902,6 +902,9 @@ def encode_rows(rows: PlotRows, sensors: SensorSet, *, max_block_records: int = 
                 items["070"] = (0, 0, 0, 0, ("MODE3A", int(rows.mode_3a[i])))
             if rows.track_number[i] >= 0:
                 items["161"] = (0, ("TRN", int(rows.track_number[i])))
+            if rows.ground[i] >= 0:  # the Mode S flight status: on the ground or airborne
+                items["230"] = (("COM", 1), ("STAT", int(rows.ground[i])), ("SI", 0), 0,
+                                ("MSSC", 1), ("ARC", 1), ("AIC", 1), ("B1A", 0), ("B1B", 0))
             record = c048.cv_record.create(items)
         else:
             items["071"] = (tod, "s")
@@ -917,6 +920,10 @@ def encode_rows(rows: PlotRows, sensors: SensorSet, *, max_block_records: int = 
                 items["070"] = (0, ("MODE3A", int(rows.mode_3a[i])))
             if rows.track_number[i] >= 0:
                 items["161"] = (0, ("TRNUM", int(rows.track_number[i])))
+            if rows.ground[i] >= 0:  # the ground bit, in I040's first extension
+                items["040"] = ((("ATP", 1), ("ARC", 1), ("RC", 0), ("RAB", 0), None),
+                                (("DCR", 0), ("GBS", int(rows.ground[i])), ("SIM", 0),
+                                 ("TST", 0), ("SAA", 0), ("CL", 0), None))
             record = c021.cv_record.create(items)
         key = (sid, 48 if radar else 21)
         if key != block_key or len(block) >= max_block_records:

@@ -13,7 +13,9 @@ carry one single Mode S address lends it to its plots without one, so a track wi
 intermittent address stays one aircraft. Every key is split where the aircraft is not seen
 for more than ``gap_s`` (default 300 s: track numbers and codes are reused, an address may fly
 twice in a recording, a reconstruction across a long gap would be a guess); later pieces get
-``#2``, ``#3`` ... Rows without any key are reported (``no_aircraft_key``). A key with plots
+``#2``, ``#3`` ..., and where the aircraft lands or takes off (its reports' ``on_ground``,
+:func:`_on_ground`: the reports on the ground are left out, counted as ``on_ground``). Rows
+without any key are reported (``no_aircraft_key``). A key with plots
 without an address is then told apart into aircraft by reach (:func:`_apart`): another
 aircraft under it is ``KEY~2``, ``KEY~3`` ... (``aircraft_apart``).
 
@@ -38,6 +40,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -97,7 +100,8 @@ def aircraft_keys(rows: PlotRows, gap_s: float = GAP_S,
     """The aircraft key of every row (``""``: none), see the module docstring.
     ``pieces_done``: per base key, how many of its pieces were already split off (streaming:
     the next piece is numbered after them)."""
-    return _segments(_unsplit_keys(rows, gap_s), rows.t, gap_s, pieces_done)
+    return _segments(_unsplit_keys(rows, gap_s), rows.t, gap_s, pieces_done,
+                     rows.ground)[0]
 
 
 TrackMemory = dict[str, list[tuple[float, int]]]
@@ -140,10 +144,11 @@ def _unsplit_keys(rows: PlotRows, gap_s: float, memory: TrackMemory | None = Non
 
 
 def _base_and_piece(rows: PlotRows, gap_s: float, pieces_done: dict[str, int],
-                    memory: TrackMemory) -> tuple[np.ndarray, np.ndarray]:
-    """(key before the gap split, key with its piece number) of every row."""
+                    memory: TrackMemory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(key before the gap split, key with its piece number, on the ground) of every row."""
     base = _unsplit_keys(rows, gap_s, memory)
-    return base, _segments(base, rows.t, gap_s, pieces_done).astype(str)
+    keys, ground = _segments(base, rows.t, gap_s, pieces_done, rows.ground)
+    return base, keys.astype(str), ground
 
 
 def _groups(keys: np.ndarray) -> Iterator[tuple[str, np.ndarray]]:
@@ -160,20 +165,49 @@ def _groups(keys: np.ndarray) -> Iterator[tuple[str, np.ndarray]]:
 
 
 def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float,
-              pieces_done: dict[str, int] | None = None) -> np.ndarray:
+              pieces_done: dict[str, int] | None = None, said: np.ndarray | None = None
+              ) -> Any:
     """``keys`` with ``#2``, ``#3`` ... appended after each time gap of more than ``gap_s``
-    (numbered after ``pieces_done[key]`` pieces split off before)."""
+    (numbered after ``pieces_done[key]`` pieces split off before). With ``said`` (each row's
+    ``on_ground``: 1, 0 or -1 not said), also where the aircraft lands or takes off, and
+    ``(keys, ground)``: whether each row is of the aircraft on the ground
+    (:func:`_on_ground`)."""
     out = keys.astype(object).copy()
+    ground = np.zeros(keys.size, dtype=bool)
     done = pieces_done or {}
     for k, members in _groups(keys):
         tm = t[members]
         order = np.argsort(tm, kind="stable")
-        piece = np.concatenate([[0], np.cumsum(np.diff(tm[order]) > gap_s)]) + done.get(k, 0)
+        gap = np.diff(tm[order]) > gap_s
+        if said is not None:
+            on = _on_ground(said[members[order]], gap)
+            ground[members[order]] = on
+            gap = gap | (on[1:] != on[:-1])
+        piece = np.concatenate([[0], np.cumsum(gap)]) + done.get(k, 0)
         if piece[-1] == 0:
             continue
         labels = np.array([k if p == 0 else f"{k}#{p + 1}" for p in piece.tolist()],
                           dtype=object)
         out[members[order]] = labels
+    return out if said is None else (out, ground)
+
+
+def _on_ground(said: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """Whether the aircraft is on the ground at each of its rows (time order; ``said``: what
+    each row says, 1 on the ground, 0 airborne, -1 nothing; ``gap``: a time gap after each row
+    but the last): as the last row that says before it, else the first after it, within its
+    piece between gaps; airborne where none says. A radar plot between ADS-B reports on the
+    ground is of the aircraft on the ground (the radar's plots then were kept, 150 m RMS off
+    in a tester's recording)."""
+    out = np.zeros(said.size, dtype=bool)
+    starts = np.concatenate([[0], np.flatnonzero(gap) + 1, [said.size]])
+    for a, b in itertools.pairwise(starts.tolist()):
+        s = said[a:b]
+        known = np.flatnonzero(s >= 0)
+        if not known.size:
+            continue
+        last = np.maximum.accumulate(np.where(s >= 0, np.arange(s.size), -1))
+        out[a:b] = s[np.where(last >= 0, last, known[0])] == 1
     return out
 
 
@@ -231,7 +265,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
             horizon = np.inf
         if buffer is None or not len(buffer):
             continue
-        base, keys = _base_and_piece(buffer, gap_s, pieces_done, memory)
+        base, keys, ground = _base_and_piece(buffer, gap_s, pieces_done, memory)
         sensor_idx = np.array([index[s] for s in buffer.sensor.tolist()], dtype=int)
         # a plot without Mode S of a sensor track that may still get plots may still be lent
         # an address (or lose it): no aircraft within gap_s of such a plot is final yet
@@ -257,8 +291,15 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
             taken[members] = True
             b = str(base[members[0]])
             pieces_done[b] = pieces_done.get(b, 0) + 1
+            if ground[members].any():  # the aircraft on the ground: no flight to fit
+                for i in members[ground[members]].tolist():
+                    problems.add("on_ground", buffer.where(i), f"aircraft {key}: report of "
+                                 "the aircraft on the ground (or between such reports): left "
+                                 "out, ground movements are not reconstructed (the aircraft "
+                                 "model is that of flight)", key=key, dropped=1)
+                members = members[~ground[members]]
             track = _build(key, members, buffer, sensors, sensor_idx, frame, min_plots,
-                           problems)
+                           problems) if members.size else None
             for part in _apart(track, buffer, sensors, sensor_idx, frame, min_plots, gap_s,
                                max_speed, problems):
                 yield replace(part, rows=numbers[part.rows])

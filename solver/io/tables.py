@@ -32,8 +32,9 @@ column              meaning
                     after a time gap and of another aircraft found under a key)
 ``on_ground``       optional: ``true``/``false`` (or ``1``/``0``; Parquet: boolean or
                     integer), the report says the aircraft is on the ground (ADS-B's GBS, Mode
-                    S's flight status): such a row is left out, counted as ``on_ground`` (the
-                    aircraft model is that of flight); empty: airborne
+                    S's flight status): such a row ends the aircraft's track and is left out,
+                    counted as ``on_ground`` (the aircraft model is that of flight;
+                    :mod:`solver.io.split`); empty: airborne
 ==================  =======================================================================
 
 Empty cells (CSV) and nulls (Parquet) are missing values; in Parquet, ``mode_s`` and
@@ -107,6 +108,7 @@ class PlotRows:
     track_number: np.ndarray  # int64
     aircraft: np.ndarray  # str objects
     origin: np.ndarray  # int64
+    on_ground: np.ndarray | None = None  # int8: 1 on the ground, 0 airborne, -1 not said
     origin_unit: str = "row"
 
     @classmethod
@@ -117,7 +119,9 @@ class PlotRows:
             if f.name == "origin_unit":
                 continue
             v = cols.pop(f.name, None)
-            if f.name in INT_COLUMNS or f.name == "origin":
+            if f.name == "on_ground":
+                arr = np.full(n, -1, np.int8) if v is None else np.asarray(v, dtype=np.int8)
+            elif f.name in INT_COLUMNS or f.name == "origin":
                 arr = (np.full(n, NO_INT, np.int64) if v is None
                        else np.asarray(v, dtype=np.int64))
                 if f.name == "origin" and v is None:
@@ -136,6 +140,10 @@ class PlotRows:
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+    def __post_init__(self) -> None:
+        if self.on_ground is None:  # built field by field (replace): not said
+            object.__setattr__(self, "on_ground", np.full(self.t.shape[0], -1, np.int8))
 
     def take(self, idx: np.ndarray) -> PlotRows:
         """The rows ``idx`` (indexes or a boolean mask)."""
@@ -184,7 +192,15 @@ class PlotRows:
                                     for v in self.mode_3a.tolist()], pa.string())
         cols["track_number"] = ints(self.track_number)
         cols["aircraft"] = pa.array([a or None for a in self.aircraft.tolist()], pa.string())
+        if (self.ground >= 0).any():
+            cols["on_ground"] = pa.array(self.ground == 1, pa.bool_(), mask=self.ground < 0)
         return pa.table(cols)
+
+    @property
+    def ground(self) -> np.ndarray:
+        """``on_ground`` (int8: 1 on the ground, 0 airborne, -1 not said)."""
+        assert self.on_ground is not None  # set by __post_init__
+        return self.on_ground
 
 
 # ---------------------------------------------------------------------------- time of day
@@ -752,12 +768,7 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
                "piece after a time gap and of another aircraft found under a key: rename the "
                "key")
 
-    ground = np.flatnonzero(on_ground_column(table, names, report) & ~bad)
-    for i in ground.tolist():
-        problems.add("on_ground", where(i), "report of an aircraft on the ground "
-                     "(`on_ground`): left out (ground movements are not reconstructed: the "
-                     "aircraft model is that of flight)", key="table", dropped=1)
-    bad[ground] = True
+    ground = on_ground_column(table, names, report)  # left out by the split, counted
 
     altitude = cols["altitude_m"]
     fl = cols["flight_level"]
@@ -770,7 +781,7 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
         sensor=np.array(["" if s is None else s for s in sensor], dtype=object),
         range_m=cols["range_m"], azimuth_deg=cols["azimuth_deg"], lat_deg=cols["lat_deg"],
         lon_deg=cols["lon_deg"], altitude_m=altitude, flight_level=fl, aircraft=aircraft,
-        origin=row_of.copy(), **ints)
+        origin=row_of.copy(), on_ground=ground, **ints)
     return rows.take(keep), problems
 
 
@@ -780,22 +791,25 @@ GROUND_WORDS = {"true": True, "1": True, "false": False, "0": False}
 
 def on_ground_column(table: pa.Table, names: list[str],
                      report: Callable[[np.ndarray, str, str], None]) -> np.ndarray:
-    """The rows whose ``on_ground`` is true (none without the column); a value that is no
-    boolean is reported as a bad value of its row."""
+    """Each row's ``on_ground`` (int8: 1 true, 0 false, -1 empty or without the column); a
+    value that is no boolean is reported as a bad value of its row."""
     n = table.num_rows
+    out = np.full(n, -1, dtype=np.int8)
     if "on_ground" not in names:
-        return np.zeros(n, dtype=bool)
+        return out
     col = table.column("on_ground")
     if pa.types.is_boolean(col.type) or pa.types.is_integer(col.type):
-        values = np.asarray(pc.fill_null(pc.cast(col, pa.int64()), 0).to_numpy(
+        values = np.asarray(pc.fill_null(pc.cast(col, pa.int64()), -1).to_numpy(
             zero_copy_only=False))
-        odd = np.flatnonzero((values != 0) & (values != 1))
+        odd = np.flatnonzero((values != 0) & (values != 1) & (values != -1)
+                             | (values == -1) & ~np.asarray(col.is_null().to_numpy(
+                                 zero_copy_only=False)))
         if odd.size:
             report(odd, "on_ground", "must be true or false (1 or 0)")
-        return values == 1
+        out[:] = np.where((values == 0) | (values == 1), values, -1)
+        return out
     if not (pa.types.is_string(col.type) or pa.types.is_large_string(col.type)):
         raise InputError(("on_ground",), f"has type {col.type}, expected true/false")
-    out = np.zeros(n, dtype=bool)
     for i, v in enumerate(col.to_pylist()):
         word = None if v is None else v.strip().lower()
         if not word:
