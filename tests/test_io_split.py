@@ -247,12 +247,15 @@ def random_rows(plots) -> PlotRows:
         lon_deg=np.where(radar_like, np.nan, 14.4))
 
 
-def test_streaming_split_gives_the_same_tracks():
+@pytest.mark.parametrize("ground", [False, True])
+def test_streaming_split_gives_the_same_tracks(ground):
     """split_stream over random recordings in chunks, arriving out of time order by less than
     disorder_s (5 s), gives the tracks, keys (gap pieces numbered alike), rows and problems of
     split_aircraft on the whole, while closing tracks on the way (gap_s 8 s). Random cases of
-    Mode S addresses lent by sensor tracks, conflicting addresses, gaps and duplicates."""
+    Mode S addresses lent by sensor tracks, conflicting addresses, gaps and duplicates; with
+    ``ground``, reports saying on the ground, airborne or nothing at random."""
     rng = np.random.default_rng(0)  # a seed whose cases include out-of-order pieces
+    says = np.random.default_rng(1)
     closed_early = 0
     for _ in range(150):
         n = int(rng.integers(5, 120))
@@ -260,6 +263,9 @@ def test_streaming_split_gives_the_same_tracks():
                              str(rng.choice(["R1", "R2", "ADSB", "NOPE"])),
                              int(rng.choice([-1, 0xA, 0xB])), int(rng.choice([-1, 1, 2])),
                              bool(rng.random() < 0.9)) for _ in range(n)])
+        if ground:
+            rows = dataclasses.replace(rows, on_ground=says.choice([-1, -1, 0, 1], n).astype(
+                np.int8))
         rows = rows.take(np.argsort(rows.t + rng.uniform(0.0, 5.0, n), kind="stable"))
         size = int(rng.integers(1, 12))
         chunks = [rows.take(np.arange(a, min(a + size, n))) for a in range(0, n, size)]
