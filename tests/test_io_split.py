@@ -335,6 +335,16 @@ def test_streamed_tracks_share_one_plane_set_by_the_first_position():
     assert {tr.table.frame for tr in tracks} == {LocalFrame(46.3, 14.4)}
 
 
+def assert_streamed_alike(rows: PlotRows, tracks: dict, size: int) -> None:
+    """split_stream over ``rows`` in chunks of ``size`` gives the tracks of the whole."""
+    streamed = {tr.key: tr for tr in split_stream(
+        [rows.take(np.arange(k, min(k + size, len(rows)))) for k in range(0, len(rows), size)],
+        SENSORS)}
+    assert sorted(streamed) == sorted(tracks)
+    for key, tr in tracks.items():
+        np.testing.assert_array_equal(streamed[key].rows, tr.rows)
+
+
 def test_another_aircraft_under_a_key_is_told_apart():
     """A key's plots out of reach of each other at the fastest speed are aircraft apart (a
     tester's recordings: both came out as one track, 12-116 km RMS off): two aircraft
@@ -372,12 +382,7 @@ def test_another_aircraft_under_a_key_is_told_apart():
     assert problems.counts["aircraft_apart"] == 3
     (entry,) = [e for e in problems.of_kind("aircraft_apart") if "4CA2D1" in e.where]
     assert "another aircraft under the same key" in entry.message and "4CA2D1~2" in entry.message
-    streamed = {tr.key: tr for tr in split_stream(
-        [rows.take(np.arange(k, min(k + 37, len(rows)))) for k in range(0, len(rows), 37)],
-        SENSORS)}
-    assert sorted(streamed) == sorted(tracks)
-    for key, tr in tracks.items():
-        np.testing.assert_array_equal(streamed[key].rows, tr.rows)
+    assert_streamed_alike(rows, tracks, 37)
 
 
 def test_a_few_wild_plots_stay_with_their_aircraft():
@@ -415,9 +420,4 @@ def test_a_landing_ends_the_track_and_a_take_off_starts_another():
     ground = np.sum((ticks >= 200) & (ticks < 400)) + np.sum((scans > 199) & (scans < 400))
     assert problems.counts == {"on_ground": ground} and problems.dropped["on_ground"] == ground
     assert len(first) + len(second) + ground == len(rows)
-    streamed = {tr.key: tr for tr in split_stream(
-        [rows.take(np.arange(k, min(k + 50, len(rows)))) for k in range(0, len(rows), 50)],
-        SENSORS)}
-    assert sorted(streamed) == sorted(tracks)
-    for key, tr in tracks.items():
-        np.testing.assert_array_equal(streamed[key].rows, tr.rows)
+    assert_streamed_alike(rows, tracks, 50)
