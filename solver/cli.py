@@ -73,11 +73,12 @@ from .batch import (
 )
 from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .frames import LocalFrame
-from .inputs import Bounds, FloatArray, InputError
+from .inputs import Bounds, InputError
 from .io.altitudes import offsets_summary
 from .io.asterix import iter_recording, looks_like_recording, read_recording
 from .io.asterix import time_disorder_s as asterix_time_disorder_s
 from .io.problems import Problems
+from .io.scans import scan_step
 from .io.sensors_file import SensorSet, load_sensors
 from .io.split import (
     DISORDER_S,
@@ -192,23 +193,6 @@ def _sensor_spans(table: PlotTable) -> dict[str, dict[str, float]]:
                      "holes": int(hole.sum()), "hole_s": float(dt[hole].sum()),
                      "median_step_s": step}
     return out
-
-
-def scan_step(dt: FloatArray) -> float:
-    """A sensor's scan period from one track's intervals between its plots, which are whole
-    numbers of scans when plots are missed: the intervals over the number of scans each
-    spans, counted in the 10th percentile's, in the median. The median interval itself grew
-    with the missed scans (half of them missed: 5 s for 4, the detection rate 0.62 for 0.5;
-    60 %: 8 s, 0.82 for 0.41)."""
-    dt = np.asarray(dt, float)
-    dt = dt[dt > 0]
-    if dt.size:  # two plots of one scan (a split plot) are no interval between scans
-        dt = dt[dt > 0.2 * np.median(dt)]
-    if dt.size < 5:
-        return float(np.median(dt)) if dt.size else 0.0
-    base = float(np.percentile(dt, 10))
-    scans = np.maximum(np.round(dt / base), 1.0)
-    return float(np.median(dt / scans))
 
 
 def _safe(key: str) -> str:

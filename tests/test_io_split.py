@@ -421,3 +421,18 @@ def test_a_landing_ends_the_track_and_a_take_off_starts_another():
     assert problems.counts == {"on_ground": ground} and problems.dropped["on_ground"] == ground
     assert len(first) + len(second) + ground == len(rows)
     assert_streamed_alike(rows, tracks, 50)
+
+
+def test_a_radars_reflections_are_no_other_aircraft():
+    """A Mode A/C aircraft's track with a radar's reflections in it (one plot in six, 20 km
+    further along the ray, moving with it): the reflections are out of reach of the aircraft
+    and of each other's reach, 20 of them, but seen on a sixth of the scans, no aircraft: they
+    stay in the track (the reconstruction gives them no weight); as ghost aircraft they came
+    out 13 km off in a tester's recording."""
+    scans = np.arange(0.0, 600.0, 4.8)
+    ghost = np.arange(scans.size) % 6 == 3
+    rows = concat([radar_rows(scans, track_number=31, range_m=np.where(ghost, 80_000.0,
+                                                                       60_000.0))])
+    tracks, problems = split(rows)
+    assert list(tracks) == ["R1:track:31"] and len(tracks["R1:track:31"].table) == scans.size
+    assert "aircraft_apart" not in problems.counts
