@@ -185,7 +185,10 @@ def _sensor_spans(table: PlotTable) -> dict[str, dict[str, float]]:
             misses = np.maximum(steps - 1.0, 0.0)
             for _ in range(2):  # the rate without the holes found, then the holes again
                 scans = float(steps[~hole].sum()) + np.count_nonzero(hole) + 1.0
-                rate = min(max(t.size / scans, 1e-3), 1.0 - 1e-9)
+                # scans with a plot: a split plot (a second in one scan) is no detection more
+                # (counted as one, 40 % split plots at 0.6 read holes in 205 of 300 tracks)
+                seen = np.count_nonzero(steps[~hole] > 0) + np.count_nonzero(hole) + 1.0
+                rate = min(max(seen / scans, 1e-3), 1.0 - 1e-9)
                 longest = max(MIN_HOLE_MISSES,
                               math.log(HOLE_CHANCE / scans) / math.log(1.0 - rate))
                 hole = misses > longest
@@ -196,6 +199,9 @@ def _sensor_spans(table: PlotTable) -> dict[str, dict[str, float]]:
 
 
 def _safe(key: str) -> str:
+    """A file name for a track's key: a gap piece's ``#n`` and another aircraft's ``~n``
+    apart (both became ``_n``: one figure over the other, a reviewer's)."""
+    key = key.replace("#", "-gap").replace("~", "-apart")
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", key)[:120]
 
 
@@ -725,7 +731,7 @@ class Selection:
 
 
 def _normal_key(key: str) -> str:
-    return key.upper() if re.fullmatch(r"[0-9a-fA-F]{6}(#\d+)?", key) else key
+    return key.upper() if re.fullmatch(r"[0-9a-fA-F]{6}([#~]\d+)*", key) else key
 
 
 def _settings(args: argparse.Namespace) -> RunSettings:

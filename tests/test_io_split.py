@@ -436,3 +436,23 @@ def test_a_radars_reflections_are_no_other_aircraft():
     tracks, problems = split(rows)
     assert list(tracks) == ["R1:track:31"] and len(tracks["R1:track:31"].table) == scans.size
     assert "aircraft_apart" not in problems.counts
+
+
+def test_a_key_told_apart_says_its_aircrafts_problems_once():
+    """A key parted is built again per aircraft: what its building said of the whole key (an
+    implausible geometric height: 2,380 m from the flight level) was counted once per part
+    (a reviewer's)."""
+    scans = np.arange(0.0, 400.0, 4.8)
+    t = np.arange(0.0, 400.0, 2.0)
+    adsb = PlotRows.from_columns(t.size, t=t, sensor=np.full(t.size, "ADSB", dtype=object),
+                                 lat_deg=46.3 + 1e-3 * t, lon_deg=np.full(t.size, 14.4),
+                                 mode_s=np.full(t.size, 0x4CA2D1),
+                                 altitude_m=np.full(t.size, 10_000.0),
+                                 flight_level=np.full(t.size, 250.0))
+    rows = concat([adsb, radar_rows(scans[scans < 250] + 2.0, mode_s=0x4CA2D1, track_number=12,
+                                    azimuth_deg=200.0, altitude_m=250 * 30.48),
+                   radar_rows(scans[scans > 310] + 2.0, track_number=12, range_m=120_000.0,
+                              azimuth_deg=200.0)])
+    tracks, problems = split(rows)
+    assert sorted(tracks) == ["4CA2D1", "4CA2D1~2"]
+    assert problems.counts["implausible_altitude"] == 1

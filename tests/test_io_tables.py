@@ -376,3 +376,10 @@ def test_on_ground_is_read_and_written(tmp_path):
     rows, problems = read_table(path)
     assert rows.ground.tolist() == [0, 1] and problems.counts == {"bad_value": 1}
     assert problems.of_kind("bad_value")[0].where == "row 3"
+    # as pandas writes a column of None, and one of 0.0 / 1.0 with NaN (a reviewer's: the
+    # whole table refused)
+    for column, said in ((pa.nulls(3), [-1, -1, -1]), (pa.array([1.0, np.nan, 0.0]),
+                                                       [1, -1, 0])):
+        pq.write_table(table.append_column("on_ground", column), path)
+        rows, problems = read_table(path)
+        assert rows.ground.tolist() == said and not problems

@@ -81,6 +81,14 @@ class Problems:
         for k, n in other.dropped.items():
             self.dropped[k] = self.dropped.get(k, 0) + n
 
+    def without(self, kind: str) -> Problems:
+        """These problems but those of ``kind``."""
+        out = Problems()
+        out.extend(Problems([e for e in self.entries if e.kind != kind],
+                            {k: n for k, n in self.counts.items() if k != kind},
+                            {k: n for k, n in self.dropped.items() if k != kind}))
+        return out
+
     def drain(self) -> Problems:
         """The problems recorded so far, moved to a new collection (this one starts empty)."""
         out = Problems(self.entries, self.counts, self.dropped, self._keyed, self._per_kind)

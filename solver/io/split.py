@@ -535,7 +535,11 @@ def _apart(track: AircraftTrack | None, rows: PlotRows, sensors: SensorSet,
                          "others: another aircraft under the same key (a radar track number or "
                          "Mode 3/A code used again, an address lent by a radar track): "
                          f"reconstructed apart as {name}")
-        part = _build(name, m[sel], rows, sensors, sensor_idx, frame, min_plots, problems)
+        # the key's plots were built once already: what that said (an implausible altitude)
+        # is said once, a part's other problems are its own
+        said = Problems()
+        part = _build(name, m[sel], rows, sensors, sensor_idx, frame, min_plots, said)
+        problems.extend(said.without("implausible_altitude"))
         if part is not None:
             out.append(part)
     return out

@@ -798,12 +798,16 @@ def on_ground_column(table: pa.Table, names: list[str],
     if "on_ground" not in names:
         return out
     col = table.column("on_ground")
-    if pa.types.is_boolean(col.type) or pa.types.is_integer(col.type):
-        values = np.asarray(pc.fill_null(pc.cast(col, pa.int64()), -1).to_numpy(
-            zero_copy_only=False))
-        odd = np.flatnonzero((values != 0) & (values != 1) & (values != -1)
-                             | (values == -1) & ~np.asarray(col.is_null().to_numpy(
-                                 zero_copy_only=False)))
+    if pa.types.is_null(col.type):  # every cell empty (pandas' column of None)
+        return out
+    if (pa.types.is_boolean(col.type) or pa.types.is_integer(col.type)
+            or pa.types.is_floating(col.type)):  # floats: pandas' column with NaN
+        values = np.asarray(pc.cast(col, pa.float64()).to_numpy(zero_copy_only=False),
+                            dtype=float)
+        values = np.where(np.asarray(col.is_null().to_numpy(zero_copy_only=False)), np.nan,
+                          values)
+        odd = np.flatnonzero(np.isfinite(values) & (values != 0) & (values != 1)
+                             | np.isinf(values))
         if odd.size:
             report(odd, "on_ground", "must be true or false (1 or 0)")
         out[:] = np.where((values == 0) | (values == 1), values, -1)
