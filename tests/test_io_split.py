@@ -456,3 +456,34 @@ def test_a_key_told_apart_says_its_aircrafts_problems_once():
     tracks, problems = split(rows)
     assert sorted(tracks) == ["4CA2D1", "4CA2D1~2"]
     assert problems.counts["implausible_altitude"] == 1
+
+
+@pytest.mark.parametrize("angle", [90.0, 30.0])
+def test_two_aircraft_crossing_under_one_code_keep_their_plots(angle):
+    """Two aircraft squawking 7000 on one radar (no track number; 150 m/s, noise 40 m and 0.05
+    deg) cross 60 km out: each comes out with its own plots. Judged by each piece's last plot
+    alone they swapped halves at 90 deg (a reviewer's); by its course over the last 30 s,
+    none (at 10 deg they may still swap: a tracker's ambiguity)."""
+    from solver.frames import slant_and_azimuth
+
+    rng = np.random.default_rng(4)
+    site, frame = (46.0, 14.0, 300.0), LocalFrame(46.0, 14.0)
+
+    def radar(t, x, z):
+        lat, lon = frame.to_geodetic(x, z)
+        r, az, _ = slant_and_azimuth(site, lat, lon, np.full(t.size, 3000.0))
+        return radar_rows(t, mode_3a=0o7000, range_m=r + rng.normal(0, 40, t.size) - 100.0 * t,
+                          azimuth_deg=np.rad2deg(az) + rng.normal(0, 0.05, t.size),
+                          altitude_m=3000.0)
+
+    t = np.arange(0.0, 600.0, 4.8)
+    a = np.deg2rad(angle)
+    one = radar(t, np.full(t.size, 60e3), 150.0 * (t - 300.0))
+    other = radar(t + 0.3, 60e3 + 150.0 * (t + 0.3 - 300.0) * np.sin(a),
+                  150.0 * (t + 0.3 - 300.0) * np.cos(a))
+    rows = concat([one, other])
+    tracks, _ = split(rows)
+    assert sorted(tracks) == ["R1:mode3a:7000", "R1:mode3a:7000~2"]
+    for tr in tracks.values():
+        mine = tr.rows < t.size  # the first aircraft's rows come first
+        assert mine.all() or not mine.any(), (angle, mine.sum(), (~mine).sum())

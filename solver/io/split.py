@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from ..frames import LocalFrame
-from ..inputs import Bounds, InputError, format_loc
+from ..inputs import Bounds, FloatArray, InputError, format_loc
 from ..plots import PlotTable
 from ..sensors import ALTITUDE_RANGE_M, RadarSensor
 from .altitudes import MAX_OFFSET_M, geometric_altitudes
@@ -483,6 +483,54 @@ def _sparse(table: PlotTable, label: np.ndarray, k: int, main: int) -> bool:
     return t.size < MIN_APART_DENSITY * ((t[-1] - t[0]) / period + 1.0)
 
 
+EARTH_RADIUS_M = 6_371_000.0
+
+
+def _ground(slant: FloatArray, dh: Any) -> FloatArray:
+    """Flat ground distance of a slant range ``dh`` above or below the radar."""
+    return np.sqrt(np.maximum(slant**2 - dh**2, 0.0))
+
+
+def _jumps(table: PlotTable, max_speed: float) -> bool:
+    """Whether some sensor's plot lies out of reach of its plot before (as
+    :func:`solver.refine.gate.aircraft_apart` judges reach), each sensor's plots placed on a
+    flat plane of its own (a radar's about its site, at the middle of the heights they may
+    take; a position sensor's by latitude and longitude): vectorised, no geodesy, so the split
+    of a recording without addresses costs little where no key holds two aircraft (the plane
+    fixes and the loop tripled the split's time for a recording with an address on a third of
+    the plots, a reviewer's). A sensor whose plots all are one aircraft's cannot part them."""
+    from ..refine.gate import _reach_m
+
+    lo, hi = ALTITUDE_RANGE_M
+    for k, s in enumerate(table.sensors):
+        rows = np.flatnonzero(table.sensor == k)
+        if rows.size < 2:
+            continue
+        if isinstance(s, RadarSensor):
+            r, az = table.range_m[rows], table.azimuth_rad[rows]
+            site_h = s.site.height_m if s.site is not None else 0.0
+            alt = table.altitude_m[rows]
+
+            known = np.isfinite(alt)
+            d = np.where(known, _ground(r, np.where(known, alt, 0.0) - site_h),
+                         _ground(r, (lo + hi) / 2 - site_h))
+            spread = np.where(known, 0.0, np.abs(_ground(r, lo - site_h)
+                                                 - _ground(r, hi - site_h)))
+            x, z = d * np.cos(az), d * np.sin(az)
+            sigma = np.maximum(s.sigma_r, d * s.sigma_psi)
+        else:
+            lat, lon = table.lat_deg[rows], table.lon_deg[rows]
+            x = np.deg2rad(lat - lat[0]) * EARTH_RADIUS_M
+            z = np.deg2rad(lon - lon[0]) * EARTH_RADIUS_M * np.cos(np.deg2rad(lat[0]))
+            spread = np.zeros(rows.size)
+            sigma = np.full(rows.size, float(getattr(s, "position_sigma_m", 0.0)))
+        far = np.hypot(np.diff(x), np.diff(z)) > _reach_m(
+            np.diff(table.t[rows]), sigma[1:] + sigma[:-1], spread[1:] + spread[:-1], max_speed)
+        if far.any():
+            return True
+    return False
+
+
 MIN_APART_PLOTS = 10
 """Plots of a key out of reach of its aircraft make another aircraft from this many on (fewer
 stay with it: wild plots, which the reconstruction gives no weight)."""
@@ -505,9 +553,11 @@ def _apart(track: AircraftTrack | None, rows: PlotRows, sensors: SensorSet,
     own = rows.mode_s[m] >= 0
     if own.all() or (rows.aircraft[m].astype(str) != "").any() or m.size < 2 * MIN_APART_PLOTS:
         return [track]
+    table = track.table
+    if not _jumps(table, max_speed):  # one aircraft as its sensors see it: nothing to part
+        return [track]
     from ..refine.gate import aircraft_apart
 
-    table = track.table
     fx = table.fixes()
     lo = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[0]))
     hi = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[1]))
