@@ -126,7 +126,7 @@ def _unsplit_keys(rows: PlotRows, gap_s: float, memory: TrackMemory | None = Non
         keys = np.concatenate([tn_key, np.array([g[0] for g in ghosts], dtype=str)])
         times = np.concatenate([rows.t[idx], np.array([g[1] for g in ghosts], dtype=float)])
         addr = np.concatenate([mode_s[idx], np.array([g[2] for g in ghosts], dtype=np.int64)])
-        for _, members in _groups(_segments(keys, times, gap_s).astype(str)):
+        for _, members in _groups(_segments(keys, times, gap_s)[0].astype(str)):
             addresses = np.unique(addr[members][addr[members] >= 0])
             if addresses.size == 1:
                 own = idx[members[members < idx.size]]
@@ -167,12 +167,12 @@ def _groups(keys: np.ndarray) -> Iterator[tuple[str, np.ndarray]]:
 
 def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float,
               pieces_done: dict[str, int] | None = None, said: np.ndarray | None = None
-              ) -> Any:
+              ) -> tuple[np.ndarray, np.ndarray]:
     """``keys`` with ``#2``, ``#3`` ... appended after each time gap of more than ``gap_s``
-    (numbered after ``pieces_done[key]`` pieces split off before). With ``said`` (each row's
-    ``on_ground``: 1, 0 or -1 not said), also where the aircraft lands or takes off, and
-    ``(keys, ground)``: whether each row is of the aircraft on the ground
-    (:func:`_on_ground`)."""
+    (numbered after ``pieces_done[key]`` pieces split off before) and, with ``said`` (each
+    row's ``on_ground``: 1, 0 or -1 not said), where the aircraft lands or takes off; and
+    whether each row is of the aircraft on the ground (:func:`_on_ground`; none without
+    ``said``)."""
     out = keys.astype(object).copy()
     ground = np.zeros(keys.size, dtype=bool)
     done = pieces_done or {}
@@ -190,7 +190,7 @@ def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float,
         labels = np.array([k if p == 0 else f"{k}#{p + 1}" for p in piece.tolist()],
                           dtype=object)
         out[members[order]] = labels
-    return out if said is None else (out, ground)
+    return out, ground
 
 
 def _on_ground(said: np.ndarray, gap: np.ndarray) -> np.ndarray:
@@ -338,7 +338,7 @@ def _undecided(rows: PlotRows, memory: TrackMemory, gap_s: float, horizon: float
     ghosts = [(k, t) for k in set(tn_key.tolist()) for t, _ in memory.get(k, [])]
     keys = np.concatenate([tn_key, np.array([g[0] for g in ghosts], dtype=str)])
     times = np.concatenate([rows.t[tn], np.array([g[1] for g in ghosts], dtype=float)])
-    for _, members in _groups(_segments(keys, times, gap_s).astype(str)):
+    for _, members in _groups(_segments(keys, times, gap_s)[0].astype(str)):
         if float(np.max(times[members])) >= horizon:
             out[tn[members[members < tn.size]]] = True
     return out & np.isin(np.arange(len(rows)), idx)
