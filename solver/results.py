@@ -158,6 +158,15 @@ class SensorReport:
     along_track_residual_sigma_m: float | None = None
     cross_track_residual_mean_m: float | None = None
     cross_track_residual_sigma_m: float | None = None
+    range_dof: float | None = None
+    azimuth_dof: float | None = None
+    position_dof: float | None = None
+    """Degrees of freedom of the residuals above, ``sum (1 - h_i)`` over the plots the
+    statistics take, ``h_i`` the share of plot ``i``'s error the track absorbs (its leverage:
+    the plot's weight times the track's variance there, along the ray, across it, or half of
+    both for a position plot; :func:`solver.refine.output.leverages`): a track fitted to its
+    plots leaves residuals smaller than their errors, and ``sum r^2 / dof`` estimates the
+    sensor's sigma (None without the track's covariance)."""
 
 
 @dataclass
@@ -177,6 +186,8 @@ class PlotResiduals:
     along_m: FloatArray | None = None
     cross_m: FloatArray | None = None
     wild: np.ndarray | None = None
+    leverage: FloatArray | None = None  # (n, 2): along and across the ray (a position plot:
+    # half the total each), see SensorReport.range_dof
 
 
 @dataclass

@@ -60,7 +60,7 @@ from .nodes import (
     smoother_guess,
     with_altitude,
 )
-from .output import plot_residuals, segments, sensor_reports, series
+from .output import leverages, plot_residuals, segments, sensor_reports, series
 
 TIME_GAUGE_INFO = 1e6  # 1/s^2: the reference's time offsets held at zero to a millisecond
 
@@ -345,8 +345,10 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         quad_final = data.quad(sol, biases, variant.altitude)[plot_node]
         misfit = misfit_stretches(np.where(data.weight[plot_node] > 0, quad_final, 0.0),
                                   table.t, sol, bounds, st.outlier_gate, plot_node)
+        lever = None if at_plots_own.cov is None else leverages(
+            data.weighed_info()[plot_node], data.ray[plot_node], at_plots_own.cov)
         rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors,
-                                       np.union1d(impossible, misfit).astype(int))
+                                       np.union1d(impossible, misfit).astype(int), lever)
         rec.sensors = sensor_reports(table, rec.residuals, biases, bias_cov, bias_sensors)
     if variant.altitude:
         w = np.gradient(t_nodes) if n > 1 else np.ones(1)

@@ -91,9 +91,32 @@ MIN_SPEED_FOR_TRACK_AXES = 1.0
 """m/s: below it a state has no direction to split a position residual along (NaN there)."""
 
 
+def leverages(info: FloatArray, ray: FloatArray, cov: FloatArray) -> FloatArray:
+    """``(n, 2)`` share of each plot's error the track absorbs along its ray and across it:
+    ``lambda_u u^T P u`` and ``lambda_w w^T P w`` with ``P`` the track's position covariance at
+    the plot, ``u`` the ray's direction (``w`` across it) and ``lambda`` the plot's weight
+    (``info``: the entries ``(a, b, c)`` of its 2x2 weight) along each; a plot without a ray
+    (a position plot, a circle) gets half its total ``tr(M P)`` each."""
+    a, b, c = info.T
+    length = np.hypot(*ray.T)
+    has = length > 0
+    ux = np.where(has, ray[:, 0] / np.where(has, length, 1.0), 1.0)
+    uz = np.where(has, ray[:, 1] / np.where(has, length, 1.0), 0.0)
+    pxx, pxz, pzz = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+
+    def along(vx: FloatArray, vz: FloatArray) -> FloatArray:
+        return (a * vx * vx + 2 * b * vx * vz + c * vz * vz) * (
+            pxx * vx * vx + 2 * pxz * vx * vz + pzz * vz * vz)
+
+    h = np.column_stack([along(ux, uz), along(-uz, ux)])
+    total = a * pxx + 2 * b * pxz + c * pzz
+    return np.where(has[:, None], h, total[:, None] / 2)
+
+
 def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
                    biases: np.ndarray, bias_sensors: list[int],
-                   no_reference: np.ndarray | None = None) -> PlotResiduals:
+                   no_reference: np.ndarray | None = None,
+                   leverage: FloatArray | None = None) -> PlotResiduals:
     """Every plot against the track, measured minus predicted from the track after its
     sensor's estimated offsets (wild plots too, flagged): range and azimuth for radar plots,
     horizontal distance for position plots (NaN where a kind does not apply, or without a
@@ -132,6 +155,7 @@ def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
             out.along_m[rows] = dx * ux + dz * uz
             out.cross_m[rows] = dz * ux - dx * uz
     out.wild = statistics_wild(table, out, no_reference)
+    out.leverage = leverage
     return out
 
 
@@ -192,6 +216,12 @@ def sensor_reports(table: PlotTable, residuals: PlotResiduals, biases: np.ndarra
                            plots_gated=int(residuals.gated[rows].sum()),
                            plots_wild=int(wild.sum()))
         keep = rows[~wild]
+        if residuals.leverage is not None and keep.size:
+            free = 1.0 - np.clip(residuals.leverage[keep], 0.0, 1.0)
+            if isinstance(sensor, RadarSensor):
+                rep.range_dof, rep.azimuth_dof = (float(v) for v in free.sum(axis=0))
+            else:
+                rep.position_dof = float(free.mean(axis=1).sum())
         if isinstance(sensor, RadarSensor):
             if k in bias_sensors:
                 j = bias_sensors.index(k)
