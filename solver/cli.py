@@ -985,16 +985,20 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
             for key, texts in list(state["warnings"].items())[:5]:
                 print(f"  {key}: {texts[0][:200]}", file=file)
     # residuals after the estimated offsets (those on the lines below)
+    # and the sensors' sigmas estimated from them (sigma_estimates)
     print(f"{'sensor':<12}{'plots':>8}{'det.':>7}{'wild':>6}{'range res.':>12}{'sigma':>8}"
-          f"{'az res.':>10}{'sigma':>8}", file=file)
+          f"{'az res.':>10}{'sigma':>8}{'est. sigma r / az / pos':>26}", file=file)
     for r in p["sensors"]:
         def f(v: Any, fmt: str) -> str:
             return format(v, fmt) if v is not None else "-"
+        estimated = (f"{f(r.get('range_sigma_estimate_m'), '.1f')} / "
+                     f"{f(r.get('azimuth_sigma_estimate_deg'), '.3f')} / "
+                     f"{f(r.get('position_sigma_estimate_m'), '.1f')}")
         print(f"{r['sensor']:<12}{r['plots']:>8}{f(r['detection_rate'], '.2f'):>7}"
               f"{r['plots_wild']:>6}{f(r['range_residual_mean_m'], '.1f'):>12}"
               f"{f(r['range_residual_sigma_m'], '.1f'):>8}"
               f"{f(r['azimuth_residual_mean_deg'], '.3f'):>10}"
-              f"{f(r['azimuth_residual_sigma_deg'], '.3f'):>8}", file=file)
+              f"{f(r['azimuth_residual_sigma_deg'], '.3f'):>8}{estimated:>26}", file=file)
     for r in p["sensors"]:
         if r.get("range_bias_m") is not None:
             print(f"{r['sensor']}: estimated offsets range {r['range_bias_m']:+.1f} m, azimuth "
