@@ -487,3 +487,43 @@ def test_two_aircraft_crossing_under_one_code_keep_their_plots(angle):
     for tr in tracks.values():
         mine = tr.rows < t.size  # the first aircraft's rows come first
         assert mine.all() or not mine.any(), (angle, mine.sum(), (~mine).sum())
+
+
+def _said(t: np.ndarray, ground: np.ndarray) -> np.ndarray:
+    return np.where(ground, 1, 0).astype(np.int8)
+
+
+@pytest.mark.parametrize("case", ["unsaid_after_take_off", "surface_adsb_then_radar",
+                                  "sensors_disagree", "one_spurious_bit"])
+def test_what_the_reports_say_of_the_ground_is_voted(case):
+    """A reviewer's cases, each one flight: ADS-B saying ground for 200 s and then nothing
+    (CAT021 encoders leave the ground bit out in the air: the whole flight was left out);
+    ADS-B saying ground for 200 s and stopping, a radar without flight status seeing the
+    aircraft on (all 450 plots left out); a radar's status saying ground at every plot
+    against 1-Hz ADS-B saying airborne (250 pieces); one ground bit mid-flight (two tracks).
+    The reports within 15 s of a row vote (3 saying ground at least, more than say airborne);
+    the same streamed."""
+    ticks, scans = np.arange(0.0, 1200.0, 1.0), np.arange(0.5, 1200.0, 4.8)
+    adsb = adsb_rows(ticks, 0x4CA2D1)
+    radar = radar_rows(scans, mode_s=0x4CA2D1)
+    n_ground = 0
+    if case == "unsaid_after_take_off":
+        said = np.where(ticks < 200, 1, -1).astype(np.int8)
+        # on the ground while 3 ground reports lie within 15 s: to 212 s
+        parts, n_ground = [dataclasses.replace(adsb, on_ground=said)], 213
+    elif case == "surface_adsb_then_radar":
+        adsb = adsb.take(ticks < 200)
+        parts = [dataclasses.replace(adsb, on_ground=np.ones(len(adsb), np.int8)), radar]
+        n_ground = len(adsb) + int(np.sum(scans <= 212.0))
+    elif case == "sensors_disagree":
+        parts = [dataclasses.replace(adsb, on_ground=np.zeros(len(adsb), np.int8)),
+                 dataclasses.replace(radar, on_ground=np.ones(len(radar), np.int8))]
+    else:
+        parts = [dataclasses.replace(adsb, on_ground=_said(ticks, ticks == 600))]
+    both = PlotRows.concat(parts)
+    rows = concat([both.take(np.argsort(both.t, kind="stable"))])
+    tracks, problems = split(rows)
+    assert list(tracks) == ["4CA2D1#2" if n_ground else "4CA2D1"], (case, list(tracks))
+    assert problems.counts.get("on_ground", 0) == n_ground
+    assert len(next(iter(tracks.values())).table) == len(rows) - n_ground
+    assert_streamed_alike(rows, tracks, 50)

@@ -181,7 +181,8 @@ def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float,
         order = np.argsort(tm, kind="stable")
         gap = np.diff(tm[order]) > gap_s
         if said is not None:
-            on = _on_ground(said[members[order]], gap)
+            # the vote within gap_s: a streamed piece is out once gap_s past its last plot
+            on = _on_ground(said[members[order]], tm[order], gap, min(GROUND_VOTE_S, gap_s))
             ground[members[order]] = on
             gap = gap | (on[1:] != on[:-1])
         piece = np.concatenate([[0], np.cumsum(gap)]) + done.get(k, 0)
@@ -193,22 +194,51 @@ def _segments(keys: np.ndarray, t: np.ndarray, gap_s: float,
     return out, ground
 
 
-def _on_ground(said: np.ndarray, gap: np.ndarray) -> np.ndarray:
+GROUND_VOTE_S = 15.0
+"""A row is of the aircraft on the ground when the reports within this time of it say so: at
+least :data:`MIN_GROUND_REPORTS` of them, more than say airborne."""
+MIN_GROUND_REPORTS = 3
+"""Fewer reports saying on the ground are no time on the ground (one spurious ground bit cut a
+flight in two, a reviewer's)."""
+
+
+def _gap_piece_ends(base: np.ndarray, t: np.ndarray, gap_s: float) -> np.ndarray:
+    """Each row's last time of its key's piece between time gaps."""
+    gap_keys = _segments(base, t, gap_s)[0]
+    out = np.array(t, dtype=float)
+    for _, members in _groups(gap_keys.astype(str)):
+        out[members] = t[members].max()
+    return out
+
+
+def _on_ground(said: np.ndarray, t: np.ndarray, gap: np.ndarray, vote_s: float = GROUND_VOTE_S
+               ) -> np.ndarray:
     """Whether the aircraft is on the ground at each of its rows (time order; ``said``: what
     each row says, 1 on the ground, 0 airborne, -1 nothing; ``gap``: a time gap after each row
-    but the last): as the last row that says before it, else the first after it, within its
-    piece between gaps; airborne where none says. A radar plot between ADS-B reports on the
-    ground is of the aircraft on the ground (the radar's plots then were kept, 150 m RMS off
-    in a tester's recording)."""
+    but the last): within each piece between gaps, the reports within ``vote_s`` of the row
+    that say on the ground are :data:`MIN_GROUND_REPORTS` or more and outnumber those that
+    say airborne. So a radar plot between ADS-B ground reports is on the ground (kept, it was
+    150 m RMS off in a tester's recording); rows that say nothing more than ``vote_s`` after
+    the last ground report are airborne (CAT021 encoders leave I040's extension, and its
+    ground bit, out in the air: carried on, the ground state took a whole flight after its
+    take-off, a reviewer's); sensors that disagree (a radar's flight status saying ground
+    against 1-Hz ADS-B saying airborne: 250 pieces) and a lone ground bit cut nothing. Each
+    row's state depends on rows within ``vote_s`` of it only, so a streamed split is the
+    whole's for ``vote_s`` up to ``gap_s``."""
     out = np.zeros(said.size, dtype=bool)
     starts = np.concatenate([[0], np.flatnonzero(gap) + 1, [said.size]])
     for a, b in itertools.pairwise(starts.tolist()):
-        s = said[a:b]
+        s, tp = said[a:b], t[a:b]
         known = np.flatnonzero(s >= 0)
         if not known.size:
             continue
-        last = np.maximum.accumulate(np.where(s >= 0, np.arange(s.size), -1))
-        out[a:b] = s[np.where(last >= 0, last, known[0])] == 1
+        tk = tp[known]
+        ground = np.concatenate([[0], np.cumsum(s[known] == 1)])
+        airborne = np.concatenate([[0], np.cumsum(s[known] == 0)])
+        lo = np.searchsorted(tk, tp - vote_s, side="left")
+        hi = np.searchsorted(tk, tp + vote_s, side="right")
+        g, f = ground[hi] - ground[lo], airborne[hi] - airborne[lo]
+        out[a:b] = (g >= MIN_GROUND_REPORTS) & (g > f)
     return out
 
 
@@ -272,9 +302,11 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
         # an address (or lose it): no aircraft within gap_s of such a plot is final yet
         pending = np.sort(buffer.t[_undecided(buffer, memory, gap_s, horizon)])
         pieces: dict[str, list[tuple[float, bool, str, np.ndarray]]] = {}
+        # the pieces a landing or take-off cuts come out with their whole piece between time
+        # gaps: their rows' ground states are voted over its rows (_on_ground)
+        spans = _gap_piece_ends(base, buffer.t, gap_s)
         for key, members in _groups(keys):
-            first, last = (float(x) for x in (np.min(buffer.t[members]),
-                                              np.max(buffer.t[members])))
+            first, last = float(np.min(buffer.t[members])), float(spans[members].max())
             near = np.searchsorted(pending, first - gap_s, side="left") < np.searchsorted(
                 pending, last + gap_s, side="right")
             pieces.setdefault(str(base[members[0]]), []).append(
@@ -484,6 +516,10 @@ def _sparse(table: PlotTable, label: np.ndarray, k: int, main: int) -> bool:
 
 
 EARTH_RADIUS_M = 6_371_000.0
+JUMP_MARGIN = 0.8
+""":func:`_jumps` takes a pair out of reach from this share of the reach on: its flat planes
+are no stricter than the partition's (a reviewer's pair at 0.968 of the reach was parted by
+the partition and not looked at)."""
 
 
 def _ground(slant: FloatArray, dh: Any) -> FloatArray:
@@ -524,7 +560,7 @@ def _jumps(table: PlotTable, max_speed: float) -> bool:
             z = np.deg2rad(lon - lon[0]) * EARTH_RADIUS_M * np.cos(np.deg2rad(lat[0]))
             spread = np.zeros(rows.size)
             sigma = np.full(rows.size, float(getattr(s, "position_sigma_m", 0.0)))
-        far = np.hypot(np.diff(x), np.diff(z)) > _reach_m(
+        far = np.hypot(np.diff(x), np.diff(z)) > JUMP_MARGIN * _reach_m(
             np.diff(table.t[rows]), sigma[1:] + sigma[:-1], spread[1:] + spread[:-1], max_speed)
         if far.any():
             return True
