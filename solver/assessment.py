@@ -15,6 +15,7 @@ draw: an even sample of the run, the same on a rerun).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -188,4 +189,16 @@ def write_sensors_figure(out: Path, order: Sequence[str] = ()) -> Path | None:
     sensors = sensor_residuals(out, order)
     if not sensors:
         return None
-    return save(residuals_figure(sensors), out / "sensors.png")
+    return save(residuals_figure(sensors, _estimated(out / "sensors.json")),
+                out / "sensors.png")
+
+
+def _estimated(path: Path) -> dict[str, dict]:
+    """The run's ``sensors.json`` rows by sensor id (for their estimated sigmas); none where
+    it is not written yet or unreadable (the figure then shows the residuals alone)."""
+    try:
+        rows = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return {r["sensor"]: r for r in rows if isinstance(r, dict) and "sensor" in r} if isinstance(
+        rows, list) else {}

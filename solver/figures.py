@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import io
 import textwrap
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -186,12 +186,14 @@ def recording_map(tracks: Sequence[tuple[str, FloatArray, FloatArray]],
     return fig
 
 
-def residuals_figure(sensors: Sequence[SensorResiduals]) -> Figure:
+def residuals_figure(sensors: Sequence[SensorResiduals],
+                     estimated: Mapping[str, Mapping[str, Any]] | None = None) -> Figure:
     """One row per sensor: a radar's range residual (m) over the slant range and azimuth
     residual (deg) over the azimuth; a position sensor's along- and across-track residuals (m)
     over the ground speed. In each panel a sample of the plots (wild ones as red crosses),
     the binned mean (line) and mean +- sigma (band); the axes span the mean +- 5 sigma of the
-    plots kept."""
+    plots kept. ``estimated``: per sensor id its ``sensors.json`` row, whose sigmas estimated
+    from the residuals' degrees of freedom a radar's titles give beside the residuals' own."""
     from .assessment import AZIMUTH_BIN_DEG, RANGE_BIN_M, SPEED_BIN_MS
 
     fig, axes = plt.subplots(len(sensors), 2, figsize=(12, 3.2 * len(sensors) + 0.6), dpi=DPI,
@@ -209,8 +211,11 @@ def residuals_figure(sensors: Sequence[SensorResiduals]) -> Figure:
                        "along-track residual", "m", (m0, sd0), 1, "mean"),
                       (1, 3, res.second, SPEED_BIN_MS, 1.0, "ground speed (m/s)",
                        "cross-track residual", "m", (m1, sd1), 1, "mean"))
-        for ax, panel in zip(row, panels, strict=True):
-            _residual_panel(ax, smp, res.sensor, *panel)
+        row_est = (estimated or {}).get(res.sensor, {})
+        sigmas = ((row_est.get("range_sigma_estimate_m"), row_est.get("azimuth_sigma_estimate_deg"))
+                  if res.kind == "radar" else (None, None))
+        for ax, panel, est in zip(row, panels, sigmas, strict=True):
+            _residual_panel(ax, smp, res.sensor, *panel, estimate=est)
         if res.kind == "radar":
             row[1].set_xlim(0.0, 360.0)
         row[0].annotate(f"{res.plots} plots, {res.wild} wild", (0.01, 0.97),
@@ -219,15 +224,17 @@ def residuals_figure(sensors: Sequence[SensorResiduals]) -> Figure:
     fig.suptitle(textwrap.fill(
         "Plots against the reconstruction (measured minus reconstructed; after the offsets of "
         "sensors with estimate_bias, and without it an offset shows only in part, the track "
-        "drawn towards the plots; along-track: ahead positive, a late report lies behind)",
-        120), fontsize=10)
+        "drawn towards the plots; along-track: ahead positive, a late report lies behind; "
+        "bands: binned mean +- sigma; estimated: the sensor's sigma from the residuals' degrees "
+        "of freedom)", 120), fontsize=10)
     fig.tight_layout()
     return fig
 
 
 def _residual_panel(ax: Axes, smp: np.ndarray, sensor: str, col: int, res: int, binned: Any,
                     width: float, scale: float, xlabel: str, name: str, unit: str,
-                    stats: tuple[float, float], digits: int, word: str) -> None:
+                    stats: tuple[float, float], digits: int, word: str,
+                    estimate: float | None = None) -> None:
     """One panel of :func:`residuals_figure`: sample column ``res`` over column ``col``."""
     wild = smp[:, 4] > 0
     ax.plot(smp[~wild, col] * scale, smp[~wild, res], ".", ms=1.5, color="0.75", alpha=0.5,
@@ -249,8 +256,9 @@ def _residual_panel(ax: Axes, smp: np.ndarray, sensor: str, col: int, res: int, 
         ax.set_xlim(0.0, float(ok.max()) * scale * 1.05)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(f"{name} ({unit})")
-    ax.set_title(f"{sensor}: {word} {m:+.{digits}f} {unit}, sigma {sd:.{digits}f} {unit} "
-                 "(band: binned mean +- sigma)", fontsize=9)
+    also = "" if estimate is None else f", estimated {estimate:.{digits}f} {unit}"
+    ax.set_title(f"{sensor}: {word} {m:+.{digits}f} {unit}, sigma {sd:.{digits}f} {unit}{also}",
+                 fontsize=9)
     ax.grid(True, lw=0.3)
 
 

@@ -107,3 +107,16 @@ def test_no_residual_no_figure(tmp_path):
     nan = np.full(3, np.nan)
     _part(parts / "part-000001.parquet", ["ADSB"] * 3, nan, nan, nan, nan, np.zeros(3, bool))
     assert sensor_residuals(tmp_path) == [] and write_sensors_figure(tmp_path) is None
+
+
+def test_the_figure_takes_the_estimated_sigmas_from_the_runs_sensors_json(tmp_path):
+    """sensors.png's radar titles give the sigmas sensors.json estimated (read by sensor id);
+    a missing or unreadable sensors.json leaves the figure the residuals alone."""
+    from solver.assessment import _estimated
+
+    path = tmp_path / "sensors.json"
+    assert _estimated(path) == {}
+    path.write_text('[{"sensor": "R1", "range_sigma_estimate_m": 60.4}, {"x": 1}]')
+    assert _estimated(path) == {"R1": {"sensor": "R1", "range_sigma_estimate_m": 60.4}}
+    path.write_text("{not json")
+    assert _estimated(path) == {}
