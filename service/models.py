@@ -453,6 +453,16 @@ class SensorOut(_Out):
                                                      "azimuth residuals (deg).")
     position_residual_rms_m: float | None = Field(
         description="Horizontal RMS of the plots against the track (m); position sensors.")
+    range_sigma_estimate_m: float | None = Field(
+        None, description="The radar's range sigma estimated from its residuals and their "
+        "degrees of freedom (each plot's share of its error the track absorbs, from the "
+        "track's covariance: the residuals' own sigma reads low where the track follows the "
+        "plots, about 10 % for a radar alone); null without the track's covariance (sliding).")
+    azimuth_sigma_estimate_deg: float | None = Field(None, description="The same in azimuth "
+                                                     "(deg).")
+    position_sigma_estimate_m: float | None = Field(None, description="A position sensor's "
+                                                    "sigma per horizontal axis, estimated "
+                                                    "alike (m).")
     along_track_residual_mean_m: float | None = Field(
         None, description="Mean of the position plots' residuals along the track (m; ahead "
         "positive: a sensor reporting late by d s shows about -speed * d, less what its own "

@@ -90,6 +90,7 @@ from .io.split import (
 )
 from .io.tables import PlotRows, counts_from_midnight, iter_table, read_table, time_disorder_s
 from .plots import PlotTable
+from .refine.output import sigma_estimates
 from .results import Reconstruction
 from .run_settings import RunSettings, keep_inputs, parse_bounds
 from .run_settings import keep as keep_settings
@@ -410,27 +411,6 @@ def _read_ahead(items: Iterator[Any], size: int) -> Iterator[Any]:
 # ----------------------------------------------------------------------------- outputs
 
 
-def sigma_estimates(e: dict[str, float]) -> dict[str, float]:
-    """A sensor's measurement sigmas from its residuals and their degrees of freedom
-    (:attr:`solver.results.SensorReport.range_dof`): ``sqrt((sum r^2 - n mean^2) / (dof -
-    1))`` in range and azimuth, ``sqrt(sum |d|^2 / (2 dof))`` per axis of a position sensor.
-    The residuals' own sigma reads low where the track follows the plots: a lone SSR's 60 m and
-    0.06 deg read 53.8 m and 0.0541 deg, estimated 59.9 m and 0.0602 deg (4 tracks; with 1-Hz
-    ADS-B beside it 59.3 and 59.5 m; the ADS-B's 15 m per axis 14.2 and 15.1 m)."""
-    out: dict[str, float] = {}
-    n = e["n"]
-    if n and e["range"] > 1:
-        r_mean, a_mean = e["r1"] / n, e["a1"] / n
-        out["range_sigma_estimate_m"] = float(np.sqrt(max(e["r2"] - n * r_mean**2, 0.0)
-                                                      / (e["range"] - 1)))
-    if n and e["azimuth"] > 1:
-        out["azimuth_sigma_estimate_deg"] = float(np.rad2deg(np.sqrt(
-            max(e["a2"] - n * a_mean**2, 0.0) / (e["azimuth"] - 1))))
-    if e["position"] > 0:
-        out["position_sigma_estimate_m"] = float(np.sqrt(e["p2"] / (2 * e["position"])))
-    return out
-
-
 class SensorStats:
     """Per-sensor statistics pooled over tracks (plot-weighted means and variances), in
     accumulators of a fixed size whatever the number of tracks: sums, and for the medians
@@ -529,7 +509,12 @@ class SensorStats:
                     np.sqrt(max(a["a2"] / n - a_mean**2, 0.0))))
             if not radar and n:
                 row["position_residual_rms_m"] = float(np.sqrt(a["p2"] / n))
-            row.update(sigma_estimates(a["dof"]))
+            est = sigma_estimates(a["dof"])
+            row["range_sigma_estimate_m"] = est.get("range_sigma_estimate_m")
+            row["position_sigma_estimate_m"] = est.get("position_sigma_estimate_m")
+            if est.get("azimuth_sigma_estimate_rad") is not None:
+                row["azimuth_sigma_estimate_deg"] = float(np.rad2deg(
+                    est["azimuth_sigma_estimate_rad"]))
             for name in ("along", "cross"):
                 count, total, squares = a[name]
                 if count:

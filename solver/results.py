@@ -161,12 +161,16 @@ class SensorReport:
     range_dof: float | None = None
     azimuth_dof: float | None = None
     position_dof: float | None = None
+    range_sigma_estimate_m: float | None = None
+    azimuth_sigma_estimate_rad: float | None = None
+    position_sigma_estimate_m: float | None = None
     """Degrees of freedom of the residuals above, ``sum (1 - h_i)`` over the plots the
     statistics take, ``h_i`` the share of plot ``i``'s error the track absorbs (its leverage:
     the plot's weight times the track's variance there, along the ray, across it, or half of
     both for a position plot; :func:`solver.refine.output.leverages`): a track fitted to its
     plots leaves residuals smaller than their errors, and ``sum r^2 / dof`` estimates the
-    sensor's sigma (None without the track's covariance)."""
+    sensor's sigma (None without the track's covariance): ``*_sigma_estimate_*``
+    (:func:`solver.refine.output.sigma_estimates`)."""
 
 
 @dataclass

@@ -91,6 +91,10 @@ def test_two_radars_and_adsb_answer_on_the_earth(client):
     assert ljlj["range_bias_m"] is None
     assert 20 < ljlj["range_residual_rms_m"] < 100
     assert 0.03 < ljlj["azimuth_residual_rms_deg"] < 0.2
+    # each sensor's sigma estimated from its residuals' degrees of freedom, beside them
+    assert ljlj["range_sigma_estimate_m"] > ljlj["range_residual_sigma_m"]
+    assert ljlj["azimuth_sigma_estimate_deg"] > ljlj["azimuth_residual_sigma_deg"]
+    assert out["sensors"][2]["position_sigma_estimate_m"] > 0
     assert out["trajectory"]["altitude_m"] == pytest.approx(10_000, abs=200)
     # each plot against its state: the statistics are these residuals' over the kept plots
     for sensor, stats in zip(("LJLJ", "SSR2", "ADSB"), out["sensors"], strict=True):
