@@ -604,10 +604,11 @@ class JobRunner:
         redone = self._same_software(job.id, out)
         LOGGER.info("job started", extra={"fields": {"job": job.id, "run": job.runs}})
         began = time.monotonic()
+        settings = self.options(job.id)
         try:
             recording = next((d / "inputs").glob("recording.*"))
             loaded = load(recording, d / "inputs" / "sensors.json",
-                          max_speed=self.options(job.id).config().bounds.v[1])
+                          max_speed=settings.config().bounds.v[1])
             if redone:
                 loaded.problems.add("software_changed", "job", f"resumed by other software "
                                     f"(version {software()['version']}, solver sources "
@@ -647,7 +648,6 @@ class JobRunner:
             return
         if self._stop_requested(job.id):
             return
-        settings = self.options(job.id)
         config = settings.config()
         stats_path = out / "sensor_stats.jsonl"
         stats_lock = threading.Lock()

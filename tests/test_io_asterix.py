@@ -486,11 +486,11 @@ def test_what_reports_say_of_the_aircraft_on_the_ground_is_read():
     data = (C048.create(radar).unparse().to_bytes()
             + C021.create(adsb).unparse().to_bytes())
     rec = decode_blocks(data, SENSORS)
-    assert rec.rows.ground.tolist() == [0, 1, 0, 1, -1, -1, 0, 1, -1]
+    assert rec.rows.on_ground.tolist() == [0, 1, 0, 1, -1, -1, 0, 1, -1]
     assert rec.problems.counts == {"not_aircraft": 1}
     assert "flagged RAB" in rec.problems.of_kind("not_aircraft")[0].message
     back = decode_blocks(encode_rows(rec.rows, SENSORS), SENSORS).rows
-    assert back.ground.tolist() == rec.rows.ground.tolist()
+    assert back.on_ground.tolist() == rec.rows.on_ground.tolist()
 
 
 def test_radar_code_sending_adsb_is_reported():

@@ -358,23 +358,23 @@ def test_on_ground_is_read_and_written(tmp_path):
             "5,R1,1000,10,0\n6,R1,1000,10,maybe\n7,R1,1000,10, True \n")
     rows, problems = read_csv(text.encode(), problems=Problems())
     assert rows.t.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 7.0]
-    assert rows.ground.tolist() == [0, 1, -1, 1, 0, 1]
+    assert rows.on_ground.tolist() == [0, 1, -1, 1, 0, 1]
     assert problems.counts == {"bad_value": 1}
     (bad,) = problems.of_kind("bad_value")
     assert bad.where == "row 6 (line 7)" and "on_ground" in bad.message and "maybe" in bad.message
     for suffix in (".csv", ".parquet"):
         write_table(rows, tmp_path / f"back{suffix}")
         back, problems = read_table(tmp_path / f"back{suffix}")
-        assert back.ground.tolist() == rows.ground.tolist() and not problems
+        assert back.on_ground.tolist() == rows.on_ground.tolist() and not problems
     table = pa.table({"t": [1.0, 2.0, 3.0], "sensor": ["R1"] * 3, "range_m": [1e3] * 3,
                       "azimuth_deg": [10.0] * 3})
     path = tmp_path / "plots.parquet"
     pq.write_table(table.append_column("on_ground", pa.array([True, None, False])), path)
     rows, problems = read_table(path)
-    assert rows.ground.tolist() == [1, -1, 0] and not problems
+    assert rows.on_ground.tolist() == [1, -1, 0] and not problems
     pq.write_table(table.append_column("on_ground", pa.array([0, 1, 2])), path)
     rows, problems = read_table(path)
-    assert rows.ground.tolist() == [0, 1] and problems.counts == {"bad_value": 1}
+    assert rows.on_ground.tolist() == [0, 1] and problems.counts == {"bad_value": 1}
     assert problems.of_kind("bad_value")[0].where == "row 3"
     # as pandas writes a column of None, and one of 0.0 / 1.0 with NaN (a reviewer's: the
     # whole table refused)
@@ -382,4 +382,4 @@ def test_on_ground_is_read_and_written(tmp_path):
                                                        [1, -1, 0])):
         pq.write_table(table.append_column("on_ground", column), path)
         rows, problems = read_table(path)
-        assert rows.ground.tolist() == said and not problems
+        assert rows.on_ground.tolist() == said and not problems

@@ -902,8 +902,8 @@ def encode_rows(rows: PlotRows, sensors: SensorSet, *, max_block_records: int = 
                 items["070"] = (0, 0, 0, 0, ("MODE3A", int(rows.mode_3a[i])))
             if rows.track_number[i] >= 0:
                 items["161"] = (0, ("TRN", int(rows.track_number[i])))
-            if rows.ground[i] >= 0:  # the Mode S flight status: on the ground or airborne
-                items["230"] = (("COM", 1), ("STAT", int(rows.ground[i])), ("SI", 0), 0,
+            if rows.on_ground[i] >= 0:  # the Mode S flight status: on the ground or airborne
+                items["230"] = (("COM", 1), ("STAT", int(rows.on_ground[i])), ("SI", 0), 0,
                                 ("MSSC", 1), ("ARC", 1), ("AIC", 1), ("B1A", 0), ("B1B", 0))
             record = c048.cv_record.create(items)
         else:
@@ -920,9 +920,9 @@ def encode_rows(rows: PlotRows, sensors: SensorSet, *, max_block_records: int = 
                 items["070"] = (0, ("MODE3A", int(rows.mode_3a[i])))
             if rows.track_number[i] >= 0:
                 items["161"] = (0, ("TRNUM", int(rows.track_number[i])))
-            if rows.ground[i] >= 0:  # the ground bit, in I040's first extension
+            if rows.on_ground[i] >= 0:  # the ground bit, in I040's first extension
                 items["040"] = ((("ATP", 1), ("ARC", 1), ("RC", 0), ("RAB", 0), None),
-                                (("DCR", 0), ("GBS", int(rows.ground[i])), ("SIM", 0),
+                                (("DCR", 0), ("GBS", int(rows.on_ground[i])), ("SIM", 0),
                                  ("TST", 0), ("SAA", 0), ("CL", 0), None))
             record = c021.cv_record.create(items)
         key = (sid, 48 if radar else 21)

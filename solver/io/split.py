@@ -102,7 +102,7 @@ def aircraft_keys(rows: PlotRows, gap_s: float = GAP_S,
     ``pieces_done``: per base key, how many of its pieces were already split off (streaming:
     the next piece is numbered after them)."""
     return _segments(_unsplit_keys(rows, gap_s), rows.t, gap_s, pieces_done,
-                     rows.ground)[0]
+                     rows.on_ground)[0]
 
 
 TrackMemory = dict[str, list[tuple[float, int]]]
@@ -148,7 +148,7 @@ def _base_and_piece(rows: PlotRows, gap_s: float, pieces_done: dict[str, int],
                     memory: TrackMemory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(key before the gap split, key with its piece number, on the ground) of every row."""
     base = _unsplit_keys(rows, gap_s, memory)
-    keys, ground = _segments(base, rows.t, gap_s, pieces_done, rows.ground)
+    keys, ground = _segments(base, rows.t, gap_s, pieces_done, rows.on_ground)
     return base, keys.astype(str), ground
 
 
@@ -535,7 +535,7 @@ def _jumps(table: PlotTable, max_speed: float) -> bool:
     of a recording without addresses costs little where no key holds two aircraft (the plane
     fixes and the loop tripled the split's time for a recording with an address on a third of
     the plots, a reviewer's). A sensor whose plots all are one aircraft's cannot part them."""
-    from ..refine.gate import _reach_m
+    from ..refine.gate import reach_m
 
     lo, hi = ALTITUDE_RANGE_M
     for k, s in enumerate(table.sensors):
@@ -560,7 +560,7 @@ def _jumps(table: PlotTable, max_speed: float) -> bool:
             z = np.deg2rad(lon - lon[0]) * EARTH_RADIUS_M * np.cos(np.deg2rad(lat[0]))
             spread = np.zeros(rows.size)
             sigma = np.full(rows.size, float(getattr(s, "position_sigma_m", 0.0)))
-        far = np.hypot(np.diff(x), np.diff(z)) > JUMP_MARGIN * _reach_m(
+        far = np.hypot(np.diff(x), np.diff(z)) > JUMP_MARGIN * reach_m(
             np.diff(table.t[rows]), sigma[1:] + sigma[:-1], spread[1:] + spread[:-1], max_speed)
         if far.any():
             return True
@@ -599,9 +599,10 @@ def _apart(track: AircraftTrack | None, rows: PlotRows, sensors: SensorSet,
     hi = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[1]))
     spread = np.where(fx.altitude_free, np.hypot(*(hi - lo).T), 0.0)
     sigma = np.maximum(fx.ellipses.A, fx.ellipses.B)
-    label = aircraft_apart(table.t, table.sensor, fx.centre_at(fx.h_mid), sigma, spread,
-                           max_speed * (float(np.max(frame.scale(*fx.centre_at(fx.h_mid).T)))
-                                        if frame is not None else 1.0), gap_s)
+    centre = fx.centre_at(fx.h_mid)
+    scale = float(np.max(frame.scale(*centre.T))) if frame is not None else 1.0
+    label = aircraft_apart(table.t, table.sensor, centre, sigma, spread, max_speed * scale,
+                           gap_s)
     sizes = np.bincount(label)
     anchored = np.unique(label[own])
     main = int(anchored[np.argmax(sizes[anchored])]) if anchored.size else int(np.argmax(sizes))

@@ -31,10 +31,11 @@ column              meaning
                     ending in ``#<number>`` or ``~<number>``, the names of a key's piece
                     after a time gap and of another aircraft found under a key)
 ``on_ground``       optional: ``true``/``false`` (or ``1``/``0``; Parquet: boolean or
-                    integer), the report says the aircraft is on the ground (ADS-B's GBS, Mode
-                    S's flight status): such a row ends the aircraft's track and is left out,
-                    counted as ``on_ground`` (the aircraft model is that of flight;
-                    :mod:`solver.io.split`); empty: airborne
+                    integer), the report says the aircraft is on the ground or airborne
+                    (ADS-B's GBS, Mode S's flight status); empty: not said. Rows voted on the
+                    ground are left out, counted as ``on_ground``, and a landing ends the
+                    aircraft's track (the aircraft model is that of flight;
+                    :mod:`solver.io.split`)
 ==================  =======================================================================
 
 Empty cells (CSV) and nulls (Parquet) are missing values; in Parquet, ``mode_s`` and
@@ -108,7 +109,7 @@ class PlotRows:
     track_number: np.ndarray  # int64
     aircraft: np.ndarray  # str objects
     origin: np.ndarray  # int64
-    on_ground: np.ndarray | None = None  # int8: 1 on the ground, 0 airborne, -1 not said
+    on_ground: np.ndarray  # int8: 1 on the ground, 0 airborne, -1 not said
     origin_unit: str = "row"
 
     @classmethod
@@ -140,10 +141,6 @@ class PlotRows:
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
-
-    def __post_init__(self) -> None:
-        if self.on_ground is None:  # built field by field (replace): not said
-            object.__setattr__(self, "on_ground", np.full(self.t.shape[0], -1, np.int8))
 
     def take(self, idx: np.ndarray) -> PlotRows:
         """The rows ``idx`` (indexes or a boolean mask)."""
@@ -192,15 +189,11 @@ class PlotRows:
                                     for v in self.mode_3a.tolist()], pa.string())
         cols["track_number"] = ints(self.track_number)
         cols["aircraft"] = pa.array([a or None for a in self.aircraft.tolist()], pa.string())
-        if (self.ground >= 0).any():
-            cols["on_ground"] = pa.array(self.ground == 1, pa.bool_(), mask=self.ground < 0)
+        if (self.on_ground >= 0).any():
+            cols["on_ground"] = pa.array(self.on_ground == 1, pa.bool_(),
+                                         mask=self.on_ground < 0)
         return pa.table(cols)
 
-    @property
-    def ground(self) -> np.ndarray:
-        """``on_ground`` (int8: 1 on the ground, 0 airborne, -1 not said)."""
-        assert self.on_ground is not None  # set by __post_init__
-        return self.on_ground
 
 
 # ---------------------------------------------------------------------------- time of day
@@ -786,7 +779,7 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
 
 
 GROUND_WORDS = {"true": True, "1": True, "false": False, "0": False}
-"""The values of a text ``on_ground`` cell (case-insensitive; empty: airborne)."""
+"""The values of a text ``on_ground`` cell (case-insensitive; empty: not said)."""
 
 
 def on_ground_column(table: pa.Table, names: list[str],

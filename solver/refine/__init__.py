@@ -335,15 +335,15 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
                                   config.sample_step_s), variant)
     check_deadline(deadline)
     # a plot given no weight adds nothing, also where its residual is infinite (0 * inf)
-    crit = np.where(data.weight > 0, data.weight * data.quad(sol, biases, variant.altitude), 0.0)
+    quad_end = data.quad(sol, biases, variant.altitude)
+    crit = np.where(data.weight > 0, data.weight * quad_end, 0.0)
     diag.criterion_values = [float(crit.sum())]
     nb = state_size(variant) - BIAS_TERMS * variant.biases
     bias_cov = cov_nodes[-1][nb:, nb:]
     rec = Reconstruction(segs, at_plots_own, samples, diag, no_weight=rejected)
     if table.frame is not None or len(table.sensors) > 1:
         # no reference for the sensors: plots out of reach, stretches the bounds bend off
-        quad_final = data.quad(sol, biases, variant.altitude)[plot_node]
-        misfit = misfit_stretches(np.where(data.weight[plot_node] > 0, quad_final, 0.0),
+        misfit = misfit_stretches(np.where(data.weight > 0, quad_end, 0.0)[plot_node],
                                   table.t, sol, bounds, st.outlier_gate, plot_node)
         lever = None if at_plots_own.cov is None else leverages(
             data.weighed_info()[plot_node], data.ray[plot_node], at_plots_own.cov)

@@ -108,8 +108,8 @@ def held_at_bound(sol: np.ndarray, bounds: Bounds, name: str, node: np.ndarray) 
 
 
 MISFIT_MARGIN_S = 60.0
-"""Plots within this time of a :func:`misfit_plots` plot are no reference for the sensors'
-statistics either (the track is bent off around it)."""
+"""Plots within this time of a far plot at a bound (:func:`misfit_stretches`) are no reference
+for the sensors' statistics either (the track is bent off around it)."""
 
 
 def misfit_stretches(quad_at_plots: FloatArray, t: FloatArray, sol: np.ndarray,
@@ -169,7 +169,7 @@ UNREACHABLE_SLACK_M = 2_000.0
 its neighbours (:func:`unreachable_plots`): the wild plots it is for are tens of km off."""
 
 
-def _reach_m(dt: Any, sigmas: Any, spreads: Any, v_max: float) -> Any:
+def reach_m(dt: Any, sigmas: Any, spreads: Any, v_max: float) -> Any:
     """How far apart two plots ``dt`` s apart may lie and be of one aircraft under ``v_max``:
     ``v_max |dt| + 10 (sigma_i + sigma_j) + spread_i + spread_j + UNREACHABLE_SLACK_M``."""
     return v_max * abs(dt) + 10 * sigmas + spreads + UNREACHABLE_SLACK_M
@@ -186,9 +186,10 @@ def aircraft_apart(t: FloatArray, sensor: np.ndarray, centre: FloatArray, sigma:
     given). In time order each plot joins, of the pieces it is within reach of (as
     :func:`unreachable_plots` judges reach, from the piece's last plot of the same sensor:
     another sensor's plots may be offset from it; or its last plot when the piece has none of
-    that sensor), the one whose course it lies nearest: the piece's last two plots of that
-    sensor carried on to the plot's time (two aircraft crossing at 90 deg swapped halves when
-    judged by the last plot alone, a reviewer's); a plot within reach of no piece starts one
+    that sensor), the one whose course it lies nearest: the piece's plots of that sensor over
+    the last :data:`COURSE_S` carried on to the plot's time, up to :data:`PREDICTION_S` (two
+    aircraft crossing at 90 deg swapped halves when judged by the last plot alone, a
+    reviewer's); a plot within reach of no piece starts one
     (pieces whose last plot is more than ``gap_s`` back are not followed, nor more than
     :data:`MAX_OPEN_PIECES`). Pieces are numbered by their first plot."""
     order = np.argsort(t, kind="stable")
@@ -206,7 +207,7 @@ def aircraft_apart(t: FloatArray, sensor: np.ndarray, centre: FloatArray, sigma:
             recent = e.get(sensors[i], e[None])
             j, k = recent[-1], recent[0]
             dt = tt[i] - tt[j]
-            reach = _reach_m(dt, sg[i] + sg[j], sp[i] + sp[j], v_max)
+            reach = reach_m(dt, sg[i] + sg[j], sp[i] + sp[j], v_max)
             if math.hypot(cx[i] - cx[j], cz[i] - cz[j]) > reach:
                 continue
             px, pz = cx[j], cz[j]
@@ -261,7 +262,7 @@ def unreachable_plots(t: FloatArray, centre: FloatArray, sigma: FloatArray, spre
     near = np.zeros((CHAIN_SKIP + 1, n), dtype=bool)  # near[d, i]: i within reach of i - d
     for d in range(1, min(CHAIN_SKIP, n - 1) + 1):
         i, j = np.arange(d, n), np.arange(n - d)
-        near[d, i] = np.hypot(*(cs[i] - cs[j]).T) <= _reach_m(
+        near[d, i] = np.hypot(*(cs[i] - cs[j]).T) <= reach_m(
             ts[i] - ts[j], ss[i] + ss[j], ps[i] + ps[j], v_max)
     if near[1, 1:].all():  # every plot in reach of the one before: the whole is the chain
         return np.zeros(0, dtype=int)
