@@ -42,7 +42,10 @@ in the file and the rest is still read: a truncated block (its declared length r
 end of the file or past the start of the next valid block: the reader resynchronises on the
 next block whose header, records and successor all check out), an unparsable record (the rest
 of its block is skipped), unrecognised bytes between blocks, a category that is not decoded
-(CAT062 ...), an unknown SAC/SIC, a record without position or time. ASTERIX data carry no
+(CAT062 ...), an unknown SAC/SIC, a record without position or time. The work spent on
+damage is limited (:data:`WASTE_FACTOR`): past it, the rest of the unit is read by block headers
+alone (``damaged_stretch``), so good data after a long damaged stretch are still read, in time
+linear in the bytes. ASTERIX data carry no
 edition: data of another edition (e.g. CAT021 0.26, whose UAP differs from 2.x) show as
 ``bad_record`` / ``missing_item`` problems; pass ``editions=`` to match them.
 
@@ -109,16 +112,26 @@ class Recording:
 RESYNC_CHECK_BYTES = 1
 """Resynchronising after damage, a candidate block's records must parse up to this many bytes
 (1: its first record; with a plausible header and successor)."""
-MAX_PARSE_FACTOR = 8
-"""At most this many times a unit's bytes (64 KiB at least) are parsed while reading it: a
-long damaged stretch (100 KB of bytes that all look like block headers took minutes) ends the
-unit's reading, the rest counted as ``unrecognised_bytes``; sound data are parsed once."""
+WASTE_FACTOR = 2
+"""Work the reader may spend on damage before it reads on by block headers alone: parsing that
+finds no block (resynchronisation checks, blocks whose records fail) of at most this many times
+the unit's bytes (64 KiB at least) and a record per :data:`WASTE_RECORD_BYTES` of them. Beyond
+it the rest of the unit is still read, linearly: a candidate block needs a header and a
+successor that check out, and one whose records fail is skipped to its declared end (which may
+hide good data up to that length). Before, reaching a limit ended the unit's reading: 200 KB of
+random bytes before 300 KB of sound data lost all 14,146 of its rows."""
+WASTE_RECORD_BYTES = 64
+"""See :data:`WASTE_FACTOR` (libasterix's cost goes by records, about 0.1 ms each)."""
 MIN_RECORD_BYTES = 4
-"""At most a record per this many bytes is parsed while reading a unit (64 KiB at least), the
-other half of the work limit: libasterix's cost goes by records (about 0.1 ms each), and bytes
-that parse as records of 2-3 bytes over and over (100 KB of 0x30: 123,000 records within 8 times
-its bytes, 16.6 s) stayed under the byte limit. Sound recordings hold a record per 7 bytes (a
-CAT034 north marker) to 30 (CAT048 with Mode S), each parsed once."""
+"""A block whose records average fewer bytes than this (beyond :data:`DENSE_SLACK` records) is
+no data: sound recordings hold a record per 7 bytes (a CAT034 north marker) to 30 (CAT048
+with Mode S). Bytes that parse as records of 2-3 bytes over and over (0x30: every offset a
+12,336-byte CAT048 block) were read as sound blocks: 1 MiB of them took 42 s."""
+DENSE_SLACK = 8
+NO_DATA_SKIP = 256
+"""Past the work limit, bytes skipped after records that are no data before looking for the
+next block header (1 MiB of 0x30: 2.5 s; looking on from the record, 29 s): good data right
+after such damage lose at most this many bytes."""
 MAX_CHECKED_RECORD_BYTES = 1024
 """Bytes given to that check beyond its budget (a record longer than this fails it)."""
 CHUNK_BYTES = 1 << 20
@@ -400,8 +413,10 @@ class _Decoder:
         self.rows: list[tuple] = []  # one tuple per row, in the order of _COLUMNS
         self._memo: dict[tuple, Any] = {}
         self._resync_memo: tuple[Any, int, int | None] | None = None
-        self._parsed = 0  # bytes handed to libasterix, for the work limit of feed()
-        self._parsed_records = 0  # records libasterix parsed (or failed on), the same
+        self._fed = 0  # bytes fed so far, for the work limit of feed()
+        self._wasted = 0  # bytes parsed for no block (checks, failed blocks): the limit's
+        self._wasted_records = 0  # records parsed (or failed on) for no block, the same
+        self._headers_only = False  # past the limit: resynchronising by block headers alone
         self._lsbs: dict[type, float | None] = {}
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
@@ -410,9 +425,13 @@ class _Decoder:
     # ------------------------------------------------------------------ block walking
 
     def _parse(self, cat: int, data: bytes, start: int, stop: int, budget: int | None = None
-               ) -> tuple[list[tuple[Any, int]], tuple[int, str] | None]:
+               ) -> tuple[list[tuple[Any, int]], tuple[int, str, bool] | None]:
         """Records of ``data[start:stop]`` with their byte offsets, and where and why parsing
-        stopped early (None: every byte was read, or ``budget`` bytes of records were)."""
+        stopped early, and whether for records that are no data (None: every byte was read, or
+        ``budget`` bytes of records were). No data: records averaging fewer than
+        :data:`MIN_RECORD_BYTES` bytes (not returned) and, past the work limit, a record
+        without I010 (the data source every category decoded here requires). A check
+        (``budget``) and a parse that stops early count as waste."""
         spec = self.editions.get(cat)
         if spec is None:
             return [], None
@@ -421,20 +440,31 @@ class _Decoder:
         # The records' bits over a copy of this block's bytes only: libasterix's Bits copies
         # its buffer from the read position to the buffer's end for every integer it reads,
         # so over the whole unit (1 MiB) the cost per record grew with the unit's size.
-        self._parsed += stop - start
         bits = Bits.from_bytes(data[start:stop])
         out: list[tuple[Any, int]] = []
+        err: tuple[int, str, bool] | None = None
+        source = self._headers_only and budget is None
+        at = start
         while len(bits):
             at = start + bits.bit_offset1 // 8
             if budget is not None and at - start >= budget:
                 break
+            if len(out) > (at - start) // MIN_RECORD_BYTES + DENSE_SLACK:
+                err, out = (at, f"{len(out)} records in {at - start} bytes: no data", True), []
+                break
             r = spec.cv_uap.cv_record.parse(ParsingMode.StrictParsing, bits)
-            self._parsed_records += 1
             if isinstance(r, ValueError):
-                return out, (at, str(r))
+                err = (at, str(r), False)
+                break
+            if source and r[0].get_item("010") is None:
+                err = (at, "a record without I010 (data source): no data", True)
+                break
             out.append((r[0], at))
             bits = r[1]
-        return out, None
+        if budget is not None or err is not None:
+            self._wasted += (at if err is not None else stop) - start
+            self._wasted_records += len(out) + 1
+        return out, err
 
     def _valid_start(self, data: bytes, q: int) -> bool:
         """Whether a block that checks out starts at ``q``: a decoded category, a length of at
@@ -453,32 +483,61 @@ class _Decoder:
         # parse: minutes); the block found is then read whole, its damage reported
         return self._parse(data[q], data, q + 3, nxt, RESYNC_CHECK_BYTES)[1] is None
 
+    def _header_start(self, data: bytes, q: int) -> bool:
+        """Whether a block could start at ``q`` by its header alone (past the work limit): a
+        decoded category, a length of at least 4 within the data and a plausible successor (or
+        the end)."""
+        if data[q] not in self.editions or len(data) - q < 3:
+            return False
+        nxt = q + ((data[q + 1] << 8) | data[q + 2])
+        return nxt - q >= 4 and nxt <= len(data) and (nxt == len(data) or _plausible(data, nxt))
+
+    def _over_limit(self) -> bool:
+        """Whether the damage read so far took the work limit (:data:`WASTE_FACTOR`)."""
+        room = max(self._fed, 1 << 16)
+        return (self._wasted > WASTE_FACTOR * room
+                or self._wasted_records > room // WASTE_RECORD_BYTES)
+
     def _resync(self, data: bytes, start: int) -> int | None:
-        """The first valid block start at or after ``start``. The last search is remembered:
-        every offset it passed was no start, so a search from within it has the same answer
-        (without this, each byte of a damaged tail searched to the end again: quadratic)."""
+        """The first valid block start at or after ``start`` (past the work limit: by its
+        header alone). The last search is remembered: every offset it passed was no start, so
+        a search from within it has the same answer (without this, each byte of a damaged tail
+        searched to the end again: quadratic)."""
         memo = self._resync_memo
-        if memo is not None and memo[0] is data and memo[1] <= start and (
-                memo[2] is None or start <= memo[2]):
-            return memo[2]
-        found = next((q for q in range(start, len(data)) if self._valid_start(data, q)), None)
-        self._resync_memo = (data, start, found)
+        if memo is not None and memo[0] is data and memo[1] == self._headers_only and (
+                memo[2] <= start and (memo[3] is None or start <= memo[3])):
+            return memo[3]
+        found = None
+        for q in range(start, len(data)):
+            if self._headers_only:
+                if self._header_start(data, q):
+                    found = q
+                    break
+            elif self._valid_start(data, q):
+                found = q
+                break
+            elif self._over_limit():
+                self._headers_only = True
+        self._resync_memo = (data, self._headers_only, start, found)
         return found
 
     def feed(self, data: bytes, base: int) -> None:
         """Decode the data blocks of ``data``, whose first byte is at file offset ``base``."""
         pos, end = 0, len(data)
         problems = self.problems
-        limit = self._parsed + MAX_PARSE_FACTOR * max(end, 1 << 16)
-        record_limit = self._parsed_records + max(end, 1 << 16) // MIN_RECORD_BYTES
+        self._fed += end
+        told = self._headers_only
         while pos < end:
-            if self._parsed > limit or self._parsed_records > record_limit:
-                # a long damaged stretch: linear work, the rest counted
-                problems.add("unrecognised_bytes", f"byte {base + pos}", f"{end - pos} bytes "
-                             "not read: the damage before them took the reader's work limit "
-                             f"({MAX_PARSE_FACTOR} times the bytes read, or a record per "
-                             f"{MIN_RECORD_BYTES} bytes)")
-                return
+            if not self._headers_only and self._over_limit():
+                self._headers_only = True
+            if self._headers_only and not told:
+                told = True
+                problems.add("damaged_stretch", f"byte {base + pos}", "the damage before took "
+                             f"the reader's work limit ({WASTE_FACTOR} times the bytes read, or "
+                             f"a record per {WASTE_RECORD_BYTES} bytes, parsed for no block): "
+                             "the rest of this part of the recording is read by block headers "
+                             "alone, a block whose records do not parse skipped to its declared "
+                             "end")
             if end - pos < 3:
                 problems.add("truncated_block", f"byte {base + pos}", f"{end - pos} byte(s) "
                              "left at the end, a block header has 3: skipped")
@@ -503,6 +562,18 @@ class _Decoder:
             if fits and err is None:
                 self._handle(cat, records, pos, base)  # the usual case
                 pos = nxt
+                continue
+            if fits and self._headers_only:  # past the work limit: on from where it failed,
+                assert err is not None  # or past a block of no data (linear: 1 MiB of 0x30)
+                self._handle(cat, records, pos, base)
+                q = self._resync(data, min(nxt, err[0] + NO_DATA_SKIP) if err[2] else err[0])
+                problems.add("bad_record", f"byte {base + err[0]}", f"CAT{cat:03d} record does "
+                             f"not parse ({err[1]}); {(q or end) - err[0]} bytes skipped up to "
+                             + (f"the next block at byte {base + q}" if q is not None
+                                else "the end"))
+                if q is None:
+                    return
+                pos = q
                 continue
             # something is wrong: find where the stream goes on
             q = self._resync(data, pos + 1)
