@@ -73,11 +73,12 @@ def test_a_sigterm_while_the_cluster_closes_leaves_no_worker_behind():
         return [p for p in me.children(recursive=True)
                 if "resource_tracker" not in " ".join(p.cmdline())]  # lives with this process
 
+    before = {p.pid for p in workers()}  # another test's processes in this test process
     with STOP_SIGNALS.installed():
         with pytest.raises(Stopped):
             with cli._cluster(None, 1) as client:
                 assert client.submit(sum, [1, 2]).result() == 3
-                started = workers()
+                started = [p for p in workers() if p.pid not in before]
                 threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGTERM)).start()
     assert started, "the embedded cluster's worker process"
     assert not [p for p in started if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
