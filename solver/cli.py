@@ -14,7 +14,8 @@ cluster at ``--scheduler``) with a progress bar, and writes into ``DIR``:
 - ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
   with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
   resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
-  ``tracks.geojsonl`` (one GeoJSON LineString feature per aircraft, for maps) and
+  ``tracks.geojsonl`` (one GeoJSON LineString feature per aircraft, for maps; a
+  MultiLineString cut at the antimeridian where a track crosses it) and
   ``manoeuvres.csv`` (every track's turns and speed changes, :mod:`solver.manoeuvres`, with
   latitude and longitude at their start and end);
 - ``sensors.json`` and ``sensors.csv``: per sensor, against the reconstruction
@@ -38,6 +39,7 @@ from __future__ import annotations
 import argparse
 import csv
 import gc
+import itertools
 import json
 import math
 import os
@@ -555,6 +557,28 @@ class _Sample:
             self.values[j] = value
 
 
+def line_geometry(coords: list[list[float]]) -> dict[str, Any]:
+    """A GeoJSON LineString of ``[lon, lat]`` points, cut into a MultiLineString where it
+    crosses the antimeridian (RFC 7946, 3.1.9: a step of more than 180 deg of longitude is a
+    crossing; each part ends at +-180 deg at the latitude interpolated linearly in longitude),
+    so maps do not draw the track across the whole world."""
+    parts, part = [], [coords[0]]
+    for a, b in itertools.pairwise(coords):
+        step = b[0] - a[0]
+        if abs(step) > 180.0:
+            edge = 180.0 if step < 0 else -180.0  # the side a is on
+            span = step + (360.0 if step < 0 else -360.0)  # the short way round
+            lat = a[1] + (b[1] - a[1]) * (edge - a[0]) / span if span else a[1]
+            part.append([edge, round(lat, 7)])
+            parts.append(part)
+            part = [[-edge, round(lat, 7)]]
+        part.append(b)
+    parts.append(part)
+    if len(parts) == 1:
+        return {"type": "LineString", "coordinates": coords}
+    return {"type": "MultiLineString", "coordinates": parts}
+
+
 def write_csv_and_geojson(out: Path) -> tuple[int, int]:
     """``tracks.csv`` and ``tracks.geojsonl`` from the Parquet parts, one part at a time
     (memory bounded by a part), each written whole under another name and then renamed;
@@ -580,8 +604,7 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
                           if math.isfinite(a) and math.isfinite(b)]
                 if len(coords) < 2:
                     continue
-                feature = {"type": "Feature", "geometry": {"type": "LineString",
-                                                            "coordinates": coords},
+                feature = {"type": "Feature", "geometry": line_geometry(coords),
                            "properties": {"aircraft": key, "t_start": float(t[sel].min()),
                                           "t_end": float(t[sel].max()),
                                           "plots": int(sel.size)}}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import gc
+import itertools
 import json
 import os
 import subprocess
@@ -1116,3 +1117,25 @@ def test_a_gap_piece_and_another_aircraft_get_their_own_figure_and_selection():
     names = {_safe(k) for k in ("R1:track:30", "R1:track:30#2", "R1:track:30~2")}
     assert len(names) == 3
     assert _normal_key("4ca2d1~2") == "4CA2D1~2" and _normal_key("4ca2d1#2") == "4CA2D1#2"
+
+
+def test_a_track_across_the_antimeridian_is_cut_there_in_the_geojson():
+    """A tester's Fiji track drew a 359.997-deg step across the whole world (RFC 7946,
+    3.1.9: cut the line there). Both ways round, the parts meet at +-180 deg at the latitude
+    between the two points; a track that does not cross stays one LineString."""
+    from solver.cli import line_geometry
+
+    east = [[179.8, -17.0], [179.9, -17.0], [-179.9, -16.8], [-179.8, -16.8]]
+    g = line_geometry(east)
+    assert g["type"] == "MultiLineString"
+    assert g["coordinates"] == [[[179.8, -17.0], [179.9, -17.0], [180.0, -16.9]],
+                                [[-180.0, -16.9], [-179.9, -16.8], [-179.8, -16.8]]]
+    west = line_geometry([[-179.95, 52.0], [179.85, 52.4], [-179.9, 52.5], [-179.7, 52.6]])
+    assert [len(p) for p in west["coordinates"]] == [2, 3, 3]  # across and back
+    assert west["coordinates"][0][-1] == [-180.0, 52.1]  # a quarter of the way
+    assert west["coordinates"][1][0] == [180.0, 52.1]
+    for part in west["coordinates"]:
+        lons = [p[0] for p in part]
+        assert max(abs(a - b) for a, b in itertools.pairwise(lons)) < 180.0
+    near = [[14.0, 46.0], [14.1, 46.1], [14.3, 46.0]]
+    assert line_geometry(near) == {"type": "LineString", "coordinates": near}
