@@ -340,6 +340,21 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
         yield out._note(part.rows)
 
 
+def check_recording(recording: Path) -> None:
+    """Raise :class:`InputError` at ``recording`` when the file is missing, unreadable or
+    (not a plot table by its name) no ASTERIX recording nor capture by its first bytes."""
+    try:
+        with open(recording, "rb") as f:
+            head = f.read(RECORDING_HEAD_BYTES)
+    except OSError as e:
+        raise InputError(("recording",), f"{recording}: {e.strerror or e}") from None
+    if recording.suffix.lower() not in TABLE_SUFFIXES:
+        try:
+            check_recording_head(head)
+        except InputError as e:
+            raise InputError(e.loc, f"{e.message} (in {recording})") from None
+
+
 def check_recording_head(head: bytes) -> None:
     """Raise :class:`InputError` at ``recording`` unless ``head`` (a file's first
     :data:`RECORDING_HEAD_BYTES`, or all of it) starts an ASTERIX recording or a capture."""
@@ -737,6 +752,7 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
     _check_out(out, Path(args.sensors))
     started = time.perf_counter()
     load_sensors(Path(args.sensors))  # a bad sensor file is refused before a cluster starts
+    check_recording(Path(args.recording))  # a missing one too (it took 25 s: the cluster's)
     settings = _settings(args)
     keep_settings(out, settings)  # a rerun resumes only the same run
     keep_inputs(out, Path(args.recording), Path(args.sensors))  # ... of the same files

@@ -102,6 +102,16 @@ def parse_bounds(items: Sequence[str]) -> Bounds:
     return bounds
 
 
+def finished_any(out: Path) -> bool:
+    """Whether ``out`` holds a finished track (a line of its ledger): a run that stopped
+    before any (a bad recording, a stop during the start) leaves nothing to resume, and its
+    ``run.json`` and ``inputs.json`` are replaced by the next run's (they refused the
+    corrected command; a docs-following helper)."""
+    from .batch import ledger_entries
+
+    return bool(ledger_entries(out))
+
+
 def stored(out: Path) -> RunSettings | None:
     """The settings of the run in ``out``, or None (no run there, or one written before this
     file was kept)."""
@@ -117,9 +127,9 @@ def stored(out: Path) -> RunSettings | None:
 
 def keep(out: Path, settings: RunSettings) -> None:
     """Record ``settings`` in ``out`` (before any track is solved); :class:`InputError` when
-    ``out`` holds a run with other settings."""
+    ``out`` holds finished tracks of a run with other settings."""
     earlier = stored(out)
-    if earlier is not None:
+    if earlier is not None and finished_any(out):
         old, new = earlier.as_json(), settings.as_json()
         same = {"filters": lambda a, b: sorted(a) == sorted(b)}
         differ = [f"{k} {old[k]} (asked: {new[k]})" for k in old
@@ -185,7 +195,7 @@ def keep_inputs(out: Path, recording: Path, sensors: Path) -> None:
     now = {"recording": fingerprint(recording), "sensors": fingerprint(sensors),
            "software": software()}
     path = out / INPUTS_FILE
-    if path.is_file():
+    if path.is_file() and finished_any(out):
         try:
             before = json.loads(path.read_text(encoding="utf-8"))
         except ValueError:

@@ -11,6 +11,8 @@ import json
 import os
 import subprocess
 import sys
+import time
+from dataclasses import replace
 from pathlib import Path
 
 import asterix.generated as ast
@@ -328,6 +330,25 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys, scheduler
                      "--scheduler", scheduler, "--no-progress"])
         err = capsys.readouterr().err
         assert code == 2 and message in err and "Traceback" not in err, err
+    # a missing recording: said before a cluster starts (25 s of an embedded one's start
+    # and close before), nothing left in --out; the corrected command then runs there
+    start = time.perf_counter()
+    code = main([str(tmp_path / "nope.ast"), "--sensors", str(d / "sensors.json"), "--out",
+                 str(tmp_path / "out7"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "nope.ast: No such file or directory" in err, err
+    assert time.perf_counter() - start < 5.0 and not (tmp_path / "out7" / "run.json").exists()
+    # what a run that stopped before any track leaves (other settings, another recording)
+    # is no run to resume: the corrected command is not refused (it was, naming the files)
+    left = tmp_path / "out8"
+    left.mkdir()
+    (left / "run.json").write_text(json.dumps(replace(run_settings.RunSettings(), method="sliding")
+                                              .as_json()))
+    (left / "inputs.json").write_text(json.dumps({"recording": {"name": "nope.ast"}}))
+    code = main([str(tmp_path / "plots.csv"), "--sensors", str(d / "sensors.json"), "--out",
+                 str(left), "--scheduler", scheduler, "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    assert json.loads((left / "run.json").read_text())["method"] == "refined"
     # a table of which no plot can be read: said, exit 2, and the outputs still complete
     empty = tmp_path / "empty.csv"
     empty.write_text("t,sensor,range_m,azimuth_deg\n1,NOPE,50000,10\n")
