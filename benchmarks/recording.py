@@ -802,6 +802,8 @@ def main(argv: list[str] | None = None) -> int:
                     "results JSON (adds the decoding rate if missing and the recording is "
                     "still there)")
     ap.add_argument("--notes", default=None, help="a text file of notes for the report")
+    ap.add_argument("--build-only", action="store_true", help="write the recording and its "
+                    "sensors.json into --work (default rec/) and stop: a sample recording")
     args = ap.parse_args(argv)
     if args.report_from:
         r = json.loads(Path(args.report_from).read_text())
@@ -824,6 +826,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         spec = RecordingSpec(aircraft=args.aircraft or 2000)
         out = Path(args.out or RESULTS / "recording")
+    if args.build_only:
+        built = build(spec, Path(args.work or "rec"))
+        print(f"{built.recording} ({built.plots} plots of {spec.aircraft} aircraft) and "
+              f"{built.sensors}")
+        return 0
     out.parent.mkdir(parents=True, exist_ok=True)
     sample = args.sample or (8 if args.quick else 120)
     command = "python -m benchmarks.recording " + " ".join(argv if argv is not None

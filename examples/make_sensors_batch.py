@@ -3,7 +3,7 @@ with several sensors on the earth (spec sensors.md).
 
 The aircraft is the benchmarks' ADS-B truth ``calibration__vienna`` placed where it flew
 (``benchmarks.earth``), first 1200 s, seen by a primary radar at its original site (seed 000's
-accuracy, 4.8-s scans, no altitude), a secondary radar 80+ km away (SSR accuracy, no Mode C)
+accuracy, 4.8-s scans, no altitude), a secondary radar 113 km away (SSR accuracy, no Mode C)
 whose range is 120 m long (asked to be estimated), and ADS-B every 2 s with outages; random seed
 0: deterministic. Run from the repository root:
 

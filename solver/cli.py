@@ -1269,11 +1269,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     print_summary(result)
     if not result["tracks"] and result.get("aircraft") is None:
         print(f"trajrecon: no aircraft's track could be read from {args.recording} (what was "
-              f"left out, and why: {args.out}/problems.txt)", file=sys.stderr)
+              f"left out, and why: {Path(args.out) / 'problems.txt'})", file=sys.stderr)
         return 2
     if result.get("aircraft_not_found"):
         print(f"trajrecon: not in the recording (or too short to reconstruct: "
-              f"{args.out}/problems.txt names those): "
+              f"{Path(args.out) / 'problems.txt'} names those): "
               f"{', '.join(result['aircraft_not_found'])}", file=sys.stderr)
         return 2
     return 1 if result["output"]["tracks_failed"] else 0

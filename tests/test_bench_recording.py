@@ -146,3 +146,17 @@ def test_the_in_process_reference_pools_every_timing():
     assert ref["plots_per_s"] == pytest.approx(2000 / 2.0)  # plots over time, not a mean of rates
     assert ref["plots_per_cpu_s"] == pytest.approx(2000 / 1.4)
     assert ref["each_plots_per_s"] == [2000, 667]
+
+
+def test_a_sample_recording_for_the_command_line(tmp_path, capsys):
+    """``--build-only`` (the README's way to a first recording) writes a recording and its
+    sensor file that read back whole, and measures nothing."""
+    from benchmarks.recording import main
+    from solver.io.sensors_file import load_sensors
+
+    assert main(["--quick", "--aircraft", "3", "--build-only", "--work", str(tmp_path)]) == 0
+    assert "plots of 3 aircraft" in capsys.readouterr().out
+    rec = read_recording(tmp_path / "recording.ast", load_sensors(tmp_path / "sensors.json"))
+    assert len(rec.rows) > 100 and not rec.problems
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["built.json", "recording.ast",
+                                                          "sensors.json"]
