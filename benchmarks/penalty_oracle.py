@@ -87,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profiles", nargs="+", default=list(PROFILE_NAMES), choices=PROFILE_NAMES)
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if not set(ENSEMBLE) <= set(args.scales):
+        ap.error(f"--scales must include {' '.join(map(str, ENSEMBLE))} (the ensemble's)")
     names = [n for n in truth_names() if n != SYNTHETIC]
     t0 = time.perf_counter()
     rows = []
