@@ -17,7 +17,9 @@ from solver.estimation import FUSION_NAMES
 from solver.estimation.gating import gate_warnings
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar, format_loc
+from solver.io.altitudes import MAX_OFFSET_M, OFFSET_WINDOW_S, geometric_altitudes
 from solver.io.sensors_file import KnownOffsets, offset_arrays, take_off_offsets
+from solver.io.tables import FL_M
 from solver.manoeuvres import from_segments
 from solver.plots import PlotTable, validate_sensors
 from solver.results import (
@@ -174,7 +176,7 @@ def _legacy_table(req: ReconstructionRequest) -> PlotTable:
     radar = Radar(**_radar(req.radar))
     radar.validate()
     for i, p in enumerate(req.plots):
-        for name in ("sensor", "lat_deg", "lon_deg"):
+        for name in ("sensor", "lat_deg", "lon_deg", "flight_level"):
             if getattr(p, name) is not None:
                 raise InputError(("plots", i, name), "is only allowed with `sensors` (this "
                                  "request has the single `radar`)")
@@ -239,7 +241,7 @@ def _sensor_table(req: ReconstructionRequest, notes: list[str]) -> PlotTable:
                                   getattr(s, "azimuth_offset_deg", 0.0), s.time_offset_s)
                for s in req.sensors}
     try:
-        return plot_table(sensors, req.plots, reference, offsets=offsets)
+        return plot_table(sensors, req.plots, reference, offsets=offsets, notes=notes)
     except InputError as e:
         if sent or e.loc[:1] != ("reference",):
             raise
@@ -262,11 +264,13 @@ def require_fields(plot: PlotIn, kind: str | None, loc: tuple[str | int, ...]) -
 
 def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
                reference: LocalFrame | None, loc: tuple[str | int, ...] = ("plots",),
-               offsets: Mapping[str, KnownOffsets] | None = None) -> PlotTable:
+               offsets: Mapping[str, KnownOffsets] | None = None,
+               notes: list[str] | None = None) -> PlotTable:
     """The validated table of request plots, each naming one of ``sensors`` (every one
-    used), each sensor's known ``offsets`` (by id) taken off its plots; an error at a plot
-    is named at ``loc`` (a job's track ``("tracks", key)``: the plot's index within the
-    track)."""
+    used), each sensor's known ``offsets`` (by id) taken off its plots, pressure altitudes
+    made geometric as a recording's (:func:`solver.io.altitudes.geometric_altitudes`, said
+    in ``notes``); an error at a plot is named at ``loc`` (a job's track ``("tracks", key)``:
+    the plot's index within the track)."""
     kinds = {s.id: s.kind for s in sensors}
     for i, p in enumerate(plots):
         require_fields(p, kinds.get(p.sensor), (*loc, i))
@@ -280,9 +284,11 @@ def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
         offset_arrays([(offsets or {}).get(s.id, KnownOffsets()) for s in sensors]),
         np.array([index.get(p.sensor or "", 0) for p in plots], dtype=int),
         col("t"), col("range_m"), col("azimuth_deg"))
+    altitude = _geometric(t, col("altitude_m"), col("flight_level"),
+                          np.array([kinds.get(p.sensor) == "position" for p in plots]), notes)
     try:
         return PlotTable.build(sensors, t, [p.sensor for p in plots], r, np.deg2rad(az),
-                               col("lat_deg"), col("lon_deg"), col("altitude_m"),
+                               col("lat_deg"), col("lon_deg"), altitude,
                                reference=reference)
     except InputError as e:
         if loc == ("plots",) or e.loc[:1] != ("plots",):
@@ -290,6 +296,31 @@ def plot_table(sensors: Sequence[Sensor], plots: Sequence[PlotIn],
         # the message may name another plot too ("is not after plots[4].t")
         raise InputError((*loc, *e.loc[1:]), e.message.replace("plots[", f"{format_loc(loc)}[")
                          ) from None
+
+
+def _geometric(t: np.ndarray, altitude: np.ndarray, flight_level: np.ndarray,
+               position: np.ndarray, notes: list[str] | None) -> np.ndarray:
+    """The plots' altitudes: a flight level without an altitude gives its pressure altitude,
+    and pressure altitudes are moved by the ADS-B offset where there is one (in time order,
+    as :func:`geometric_altitudes` takes them)."""
+    if not np.isfinite(flight_level).any():
+        return altitude
+    altitude = np.where(np.isnan(altitude), flight_level * FL_M, altitude)
+    order = np.argsort(t, kind="stable")
+    got = geometric_altitudes(t[order], altitude[order], flight_level[order], position[order])
+    if got.rejected and notes is not None:
+        notes.append(f"{got.rejected} geometric height(s) differ from the aircraft's barometric "
+                     f"altitude by more than {MAX_OFFSET_M:g} m: not used to make its Mode C "
+                     "geometric")
+    if not got.corrected:
+        return altitude
+    if notes is not None:
+        notes.append(f"{got.corrected} pressure altitude(s) made geometric by the aircraft's "
+                     f"ADS-B: {got.median_m:+.1f} m (median of {got.pairs} pairs; running "
+                     f"median over {OFFSET_WINDOW_S:g} s)")
+    out = np.empty_like(altitude)
+    out[order] = got.altitude_m
+    return out
 
 
 def unsent_reference(e: InputError, sensors: Sequence[Sensor],

@@ -192,6 +192,15 @@ class PlotIn(_In):
         "pressure altitude, `FL * 30.48` m, taken as the height (its difference from the "
         "geometric height, tens to hundreds of metres, moves a plot by about that times "
         "h / r). Omit or null when unknown.", examples=[None])
+    flight_level: float | None = Field(
+        None, ge=-20.0, le=1000.0, description="Mode C or barometric flight level (FL, 100 ft; "
+        "ASTERIX CAT048 I090, CAT021 I145), with `sensors` only. Without `altitude_m` it gives "
+        "the pressure altitude `FL * 30.48` m; an `altitude_m` equal to that is one too. As in "
+        "a recording, the request's pressure altitudes are made geometric by the aircraft's "
+        "own offset where at least 3 position plots (ADS-B) carry both a geometric "
+        "`altitude_m` and their `flight_level` (or pair with a radar's within 5 s): the "
+        "running median over 120 s of their differences, said in the answer's warnings. "
+        "Without such pairs pressure altitudes are taken as heights.", examples=[None])
 
 
 Pair = list[float]

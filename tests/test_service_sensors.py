@@ -457,3 +457,51 @@ def test_known_offsets_are_taken_off_the_plots(client):
         bad["sensors"][1][field] = value
         res = client.post("/v1/reconstructions", json=bad)
         assert res.status_code == 422 and res.json()["detail"][0]["loc"][-1] == field, res.text
+
+
+def test_flight_levels_are_made_geometric_by_the_aircrafts_adsb(client):
+    """A request's Mode C (`flight_level`) is corrected as a recording's (a tester: the JSON
+    routes had no flight level, so a job of tracks and a single request took pressure
+    altitudes as heights and answered up to 5 m and 8 residual metres away from the command
+    line on the same plots). Here the air mass puts every pressure altitude 200 m low: with
+    the ADS-B reports' own flight levels the answer equals the one given the true heights;
+    without ADS-B heights (no pairs) the pressure altitudes are taken as heights: it
+    differs."""
+    true = _body(mode_c=True)
+    fl = (10_000.0 - 200.0) / 30.48
+    corrected = copy.deepcopy(true)
+    for p in corrected["plots"]:
+        if p["sensor"] == "SSR2":
+            del p["altitude_m"]
+            p["flight_level"] = fl
+        elif p["sensor"] == "ADSB":
+            p["flight_level"] = fl
+    lone = copy.deepcopy(corrected)  # ADS-B without heights: nothing to pair with
+    for p in lone["plots"]:
+        if p["sensor"] == "ADSB":
+            del p["flight_level"], p["altitude_m"]
+    answers = []
+    for body in (true, corrected, lone):
+        res = client.post("/v1/reconstructions", json=body)
+        assert res.status_code == 200, res.text
+        answers.append(res.json())
+    xz = [np.array([[s["x"], s["z"]] for s in a["trajectory"]["at_plots"]]) for a in answers]
+    assert np.abs(xz[1] - xz[0]).max() < 0.01
+    assert np.abs(xz[2] - xz[0]).max() > 1.0
+    said = [w for w in answers[1]["diagnostics"]["warnings"] if "made geometric" in w]
+    assert said == [f"{sum(p['sensor'] == 'SSR2' for p in true['plots'])} pressure "
+                    "altitude(s) made geometric by the aircraft's ADS-B: +200.0 m (median of "
+                    f"{sum(p['sensor'] == 'ADSB' for p in true['plots'])} pairs; running "
+                    "median over 120 s)"]
+    assert not [w for w in answers[2]["diagnostics"]["warnings"] if "made geometric" in w]
+    # a flight level needs a site on the earth: refused with the single radar
+    legacy = json.loads((ROOT / "examples" / "seed_track.json").read_text())
+    legacy["plots"][3]["flight_level"] = 330.0
+    res = client.post("/v1/reconstructions", json=legacy)
+    assert res.status_code == 422 and res.json()["detail"][0]["loc"] == ["plots", 3,
+                                                                         "flight_level"]
+    bad = copy.deepcopy(corrected)
+    bad["plots"][0]["flight_level"] = 5000.0
+    res = client.post("/v1/reconstructions", json=bad)
+    assert res.status_code == 422 and res.json()["detail"][0]["loc"][:3] == ["plots", 0,
+                                                                            "flight_level"]
