@@ -442,7 +442,14 @@ class SensorOut(_Out):
                             "10 plots or more; else the gated ones), which the residual "
                             "statistics leave out. Not a part of `plots_gated`, nor it of this: "
                             "a radar's offset that is not estimated moves its plots beyond the "
-                            "reconstruction's gate, not beyond this.")
+                            "reconstruction's gate, not beyond this. Plots out of reach of the "
+                            "track's others at the bounds' speed are wild.")
+    plots_no_reference: int = Field(0, description="Of `plots`, those where the track is no "
+                                    "reference for the sensors, which the residual statistics "
+                                    "leave out too: within 60 s of plots far from the track "
+                                    "where `u` or `v` sits at a bound (an aircraft flying beyond "
+                                    "`bounds`; warned), not the sensor's fault. Apart from "
+                                    "`plots_wild`.")
     range_bias_m: float | None = Field(description="Estimated range offset (m; reported "
                                        "minus true); null unless `estimate_bias`.")
     range_bias_sigma_m: float | None = Field(description="Its standard deviation (m).")

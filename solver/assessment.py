@@ -71,7 +71,8 @@ class SensorResiduals:
     (deg); a position sensor's along- and across-track residuals (m) over the ground speed
     (m/s), where a report late by ``d`` s lies about ``speed * d`` behind. Binned statistics
     per panel, totals, and a scatter sample (columns: axis 0, axis 1, residual 0, residual 1,
-    wild); the statistics leave the wild plots out, as ``sensors.json`` does."""
+    left out); the statistics leave out the wild plots and those where the track is no
+    reference (``wild``, ``no_reference``), as ``sensors.json`` does."""
 
     sensor: str
     kind: str = "radar"
@@ -79,6 +80,7 @@ class SensorResiduals:
     second: _Binned = field(default_factory=lambda: _Binned.empty(_azimuth_bins()))
     plots: int = 0
     wild: int = 0
+    no_reference: int = 0
     total: np.ndarray = field(default_factory=lambda: np.zeros(5))  # n, s0, s00, s1, s11
     sample: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -89,9 +91,13 @@ class SensorResiduals:
                    _Binned.empty(_speed_bins()))
 
     def add(self, x0: FloatArray, x1: FloatArray, y0: FloatArray, y1: FloatArray,
-            wild: np.ndarray, keys: FloatArray) -> None:
+            wild: np.ndarray, keys: FloatArray, no_reference: np.ndarray | None = None
+            ) -> None:
         self.plots += x0.size
-        self.wild += int(wild.sum())
+        far = np.zeros(x0.size, bool) if no_reference is None else no_reference
+        self.wild += int((wild & ~far).sum())
+        self.no_reference += int(far.sum())
+        wild = wild | far
         ok = ~wild
         bins = ((_range_bin(x0[ok]), _azimuth_bin(x1[ok])) if self.kind == "radar"
                 else (_speed_bin(x0[ok]), _speed_bin(x1[ok])))
@@ -153,13 +159,15 @@ def sensor_residuals(out: Path, order: Sequence[str] = ()) -> list[SensorResidua
         if not set(_COLUMNS) <= names:  # a part of an earlier version: no residuals
             continue
         wanted = _COLUMNS + (_POSITION_COLUMNS if set(_POSITION_COLUMNS) <= names else []) + (
-            ["wild"] if "wild" in names else [])
+            [c for c in ("wild", "no_reference") if c in names])
         t = pq.read_table(part, columns=wanted)
         cols = {c: t.column(c).to_numpy(zero_copy_only=False) for c in wanted}
         sensors = cols["sensor"].astype(str)
         # the plots the sensors' statistics leave out (sensors.json); a part written before
         # that column: the gated ones
         wild = cols["wild" if "wild" in cols else "gated"].astype(bool)
+        far = (cols["no_reference"].astype(bool) if "no_reference" in cols
+               else np.zeros(t.num_rows, bool))
         keys = rng.random(t.num_rows)
         panels = [("radar", cols["plot_range_m"], cols["plot_azimuth_deg"],
                    cols["range_residual_m"], cols["azimuth_residual_deg"])]
@@ -175,7 +183,7 @@ def sensor_residuals(out: Path, order: Sequence[str] = ()) -> list[SensorResidua
                     found[(kind, sid)] = (SensorResiduals(sid) if kind == "radar"
                                           else SensorResiduals.position(sid))
                 found[(kind, sid)].add(x0[sel].astype(float), x1[sel].astype(float), y0[sel],
-                                       y1[sel].astype(float), wild[sel], keys[sel])
+                                       y1[sel].astype(float), wild[sel], keys[sel], far[sel])
     rank = {sid: k for k, sid in enumerate(order)}
     return sorted(found.values(), key=lambda x: (x.kind != "radar", rank.get(x.sensor, len(rank)),
                                                  x.sensor))

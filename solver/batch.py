@@ -58,7 +58,7 @@ COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_v
                "cov_vx_vx", "cov_vx_vz", "cov_vz_vz")
 RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "plot_altitude_m", "range_residual_m",
                     "azimuth_residual_deg", "position_residual_m", "along_track_residual_m",
-                    "cross_track_residual_m", "gated", "wild")
+                    "cross_track_residual_m", "gated", "wild", "no_reference")
 TRACK_COLUMNS = ("aircraft", "plot", "source", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
                  "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m",
                  *RESIDUAL_COLUMNS)
@@ -81,9 +81,11 @@ after the sensor's estimated offsets
 (``position_residual_m``) and its parts along and across the track (``along_track_residual_m``:
 ahead of the state positive, a late report's is negative; ``cross_track_residual_m``: right of
 the track positive); null where they do not apply or the method gives none; ``gated``: given no
-weight as wild; ``wild``: left out of the sensors' statistics (``sensors.json``, ``sensors.png``:
-a radar's plots far out in its own residuals' spread, :func:`solver.refine.output.statistics_wild`;
-another sensor's gated plots)."""
+weight as wild; ``wild``: far out in the sensor's own residuals' spread (a radar's,
+:func:`solver.refine.output.statistics_wild`; another sensor's gated plots); ``no_reference``:
+where the track is no reference for the sensors (out of reach of the track's other plots; a
+stretch the aircraft's bounds bend it off, :func:`solver.refine.output.no_reference_mask`). The
+sensors' statistics (``sensors.json``, ``sensors.png``) leave out both."""
 FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
                   "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS, "gated")
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
@@ -97,7 +99,7 @@ solution with its covariance, as the single-track answer's ``trajectory.samples`
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
 _TYPES = {"aircraft": pa.string(), "sensor": pa.string(), "filter": pa.string(),
           "source": pa.string(), "plot": pa.int32(), "gated": pa.bool_(),
-          "wild": pa.bool_()}  # others: float64
+          "wild": pa.bool_(), "no_reference": pa.bool_()}  # others: float64
 
 
 def read_part(path: Path, names: Sequence[str] = TRACK_COLUMNS) -> pa.Table:
@@ -301,6 +303,8 @@ def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
         gated=pa.array(np.zeros(n, bool) if res is None else res.gated, pa.bool_()),
         wild=pa.array(np.zeros(n, bool) if res is None or res.wild is None else res.wild,
                       pa.bool_()),
+        no_reference=pa.array(np.zeros(n, bool) if res is None or res.no_reference is None
+                              else res.no_reference, pa.bool_()),
         source=pa.nulls(n, pa.string()))  # named by reconstruct_many (with_sources)
     return _arrow(cols, TRACK_COLUMNS, n)
 

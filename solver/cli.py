@@ -101,7 +101,8 @@ from .sensors import RadarSensor
 from .stopping import STOP_SIGNALS, Stopped
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
-SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "plots_wild", "scan_period_s",
+SENSOR_COLUMNS = ("sensor", "kind", "tracks", "plots", "plots_gated", "plots_wild",
+                  "plots_no_reference", "scan_period_s",
                   "detection_rate", "coverage_holes", "coverage_hole_s",
                   "range_residual_mean_m", "range_residual_sigma_m", "range_sigma_estimate_m",
                   "azimuth_residual_mean_deg", "azimuth_residual_sigma_deg",
@@ -439,7 +440,8 @@ class SensorStats:
         self.sensors = sensors
         self.periods = dict(periods)
         self.acc: dict[str, dict[str, Any]] = {
-            s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "plots_wild": 0, "used": 0,
+            s.id: {"tracks": 0, "plots": 0, "plots_gated": 0, "plots_wild": 0,
+                   "plots_no_reference": 0, "used": 0,
                    "steps": _Sample(MEDIAN_SAMPLE), "span_s": 0.0, "spans": 0,
                    "holes": 0, "hole_s": 0.0,
                    "r1": 0.0, "r2": 0.0, "a1": 0.0, "a2": 0.0, "p2": 0.0,
@@ -456,11 +458,13 @@ class SensorStats:
             if a is None:
                 continue
             wild = r.get("plots_wild", r["plots_gated"])  # (a report of before the field)
-            n = r["plots"] - wild  # the plots its statistics are of
+            far = r.get("plots_no_reference", 0)
+            n = r["plots"] - wild - far  # the plots its statistics are of
             a["tracks"] += 1
             a["plots"] += r["plots"]
             a["plots_gated"] += r["plots_gated"]
             a["plots_wild"] += wild
+            a["plots_no_reference"] += far
             a["span_s"] += r.get("span_s", 0.0)
             a["spans"] += r.get("stretches", 1)
             a["holes"] += r.get("holes", 0)
@@ -508,7 +512,8 @@ class SensorStats:
             n = a["used"]
             row: dict[str, Any] = {"sensor": s.id, "kind": s.kind, "tracks": a["tracks"],
                                    "plots": a["plots"], "plots_gated": a["plots_gated"],
-                                   "plots_wild": a["plots_wild"]}
+                                   "plots_wild": a["plots_wild"],
+                                   "plots_no_reference": a["plots_no_reference"]}
             steps = a["steps"].values
             period = self.periods.get(s.id) or (float(np.median(steps)) if steps else None)
             row["scan_period_s"] = period
@@ -720,7 +725,8 @@ def write_sensor_csv(out: Path, rows: list[dict[str, Any]]) -> None:
     """``out/sensors.csv``: the sensors' statistics (:data:`SENSOR_COLUMNS`)."""
     cols = {k: [r[k] for r in rows] for k in SENSOR_COLUMNS}
     types = {k: pa.string() if k in ("sensor", "kind") else
-             pa.int64() if k in ("tracks", "plots", "plots_gated", "plots_wild", "coverage_holes")
+             pa.int64() if k in ("tracks", "plots", "plots_gated", "plots_wild",
+                                 "plots_no_reference", "coverage_holes")
              else pa.float64()
              for k in SENSOR_COLUMNS}
     pacsv.write_csv(pa.table({k: pa.array(v, types[k]) for k, v in cols.items()}),
@@ -1010,7 +1016,8 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
                 print(f"  {key}: {texts[0][:200]}", file=file)
     # residuals after the estimated offsets (those on the lines below)
     # and the sensors' sigmas estimated from them (sigma_estimates)
-    print(f"{'sensor':<12}{'plots':>8}{'det.':>7}{'wild':>6}{'range res.':>12}{'sigma':>8}"
+    print(f"{'sensor':<12}{'plots':>8}{'det.':>7}{'wild':>6}{'no ref':>7}{'range res.':>12}"
+          f"{'sigma':>8}"
           f"{'az res.':>10}{'sigma':>8}{'est. sigma r / az / pos':>26}", file=file)
     for r in p["sensors"]:
         def f(v: Any, fmt: str) -> str:
@@ -1019,7 +1026,8 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
                      f"{f(r.get('azimuth_sigma_estimate_deg'), '.3f')} / "
                      f"{f(r.get('position_sigma_estimate_m'), '.1f')}")
         print(f"{r['sensor']:<12}{r['plots']:>8}{f(r['detection_rate'], '.2f'):>7}"
-              f"{r['plots_wild']:>6}{f(r['range_residual_mean_m'], '.1f'):>12}"
+              f"{r['plots_wild']:>6}{r.get('plots_no_reference', 0):>7}"
+              f"{f(r['range_residual_mean_m'], '.1f'):>12}"
               f"{f(r['range_residual_sigma_m'], '.1f'):>8}"
               f"{f(r['azimuth_residual_mean_deg'], '.3f'):>10}"
               f"{f(r['azimuth_residual_sigma_deg'], '.3f'):>8}{estimated:>26}", file=file)

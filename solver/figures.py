@@ -218,7 +218,9 @@ def residuals_figure(sensors: Sequence[SensorResiduals],
             _residual_panel(ax, smp, res.sensor, *panel, estimate=est)
         if res.kind == "radar":
             row[1].set_xlim(0.0, 360.0)
-        row[0].annotate(f"{res.plots} plots, {res.wild} wild", (0.01, 0.97),
+        row[0].annotate(f"{res.plots} plots, {res.wild} wild"
+                        + (f", {res.no_reference} where the track is no reference"
+                           if res.no_reference else ""), (0.01, 0.97),
                         xycoords="axes fraction", va="top", fontsize=8)
     # wrapped: on one line the title ran past both edges of the figure (cut off)
     fig.suptitle(textwrap.fill(

@@ -133,14 +133,16 @@ class SensorReport:
     range (m) and azimuth (rad) for a radar; for a position sensor the horizontal RMS (m) and
     the mean and standard deviation along and across the track (m). ``plots_gated``: plots
     the reconstruction gave no weight; ``plots_wild``: plots outside the sensor's own residual
-    distribution (:func:`solver.refine.output.wild_residuals`), which the statistics leave
-    out."""
+    distribution (:func:`solver.refine.output.wild_residuals`), ``plots_no_reference``: plots
+    where the track is no reference (out of reach of its others; a stretch the aircraft's
+    bounds bend it off), both left out of the statistics."""
 
     id: str
     kind: str
     plots: int
     plots_gated: int = 0
     plots_wild: int = 0
+    plots_no_reference: int = 0
     range_bias_m: float | None = None
     range_bias_sigma_m: float | None = None
     azimuth_bias_rad: float | None = None
@@ -180,8 +182,10 @@ class PlotResiduals:
     ``position_m`` (horizontal distance) for position plots, split along the track's velocity
     (``along_m``: ahead of the state positive, so a report late by ``d`` s gives about
     ``-speed * d``) and across it (``cross_m``: right of the track positive); NaN where a kind
-    does not apply; ``gated``: given no weight as wild; ``wild``: left out of the sensors'
-    statistics (:func:`solver.refine.output.statistics_wild`)."""
+    does not apply; ``gated``: given no weight as wild; ``wild``: outside the sensor's own
+    residual distribution (:func:`solver.refine.output.statistics_wild`); ``no_reference``:
+    where the track is no reference for its sensors; both left out of the sensors' statistics
+    (:meth:`left_out`)."""
 
     range_m: FloatArray
     azimuth_rad: FloatArray
@@ -192,6 +196,13 @@ class PlotResiduals:
     wild: np.ndarray | None = None
     leverage: FloatArray | None = None  # (n, 2): along and across the ray (a position plot:
     # half the total each), see SensorReport.range_dof
+    no_reference: np.ndarray | None = None
+
+    def left_out(self) -> np.ndarray:
+        """The plots the sensors' statistics leave out: wild, or where the track is no
+        reference (without those flags: the gated ones)."""
+        out = self.gated if self.wild is None else self.wild
+        return out if self.no_reference is None else out | self.no_reference
 
 
 @dataclass

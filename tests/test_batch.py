@@ -341,7 +341,7 @@ def test_parts_of_an_earlier_version_conform(tmp_path):
     new = {c: pa.array(np.full(n, 1.0)) for c in TRACK_COLUMNS}
     new.update(aircraft=pa.array(["NEW"] * n), sensor=pa.array(["R1"] * n),
                plot=pa.array(np.arange(n, dtype=np.int32)), gated=pa.array([False] * n),
-               wild=pa.array([False] * n),
+               wild=pa.array([False] * n), no_reference=pa.array([False] * n),
                lat_deg=pa.array(np.linspace(46, 46.1, n)), lon_deg=pa.array(np.full(n, 14.0)))
     old = {k: v for k, v in new.items() if k not in (*RESIDUAL_COLUMNS, "time_of_day_s")}
     old["aircraft"] = pa.array(["OLD"] * n)

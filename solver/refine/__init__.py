@@ -348,7 +348,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         lever = None if at_plots_own.cov is None else leverages(
             data.weighed_info()[plot_node], data.ray[plot_node], at_plots_own.cov)
         rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors,
-                                       np.union1d(impossible, misfit).astype(int), lever)
+                                       misfit, lever, unreachable=impossible)
         rec.sensors = sensor_reports(table, rec.residuals, biases, bias_cov, bias_sensors)
     if variant.altitude:
         w = np.gradient(t_nodes) if n > 1 else np.ones(1)

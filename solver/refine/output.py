@@ -116,14 +116,17 @@ def leverages(info: FloatArray, ray: FloatArray, cov: FloatArray) -> FloatArray:
 def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
                    biases: np.ndarray, bias_sensors: list[int],
                    no_reference: np.ndarray | None = None,
-                   leverage: FloatArray | None = None) -> PlotResiduals:
+                   leverage: FloatArray | None = None,
+                   unreachable: np.ndarray | None = None) -> PlotResiduals:
     """Every plot against the track, measured minus predicted from the track after its
     sensor's estimated offsets (wild plots too, flagged): range and azimuth for radar plots,
     horizontal distance for position plots (NaN where a kind does not apply, or without a
     frame for position plots); ``no_reference``: the plots (indexes) where the track is no
-    reference for the sensors (out of reach of the track's others,
-    :func:`solver.refine.gate.unreachable_plots`; where the bounds bend it off,
-    :func:`solver.refine.gate.misfit_stretches`), for :func:`statistics_wild`."""
+    reference for the sensors (where the bounds bend it off,
+    :func:`solver.refine.gate.misfit_stretches`); ``unreachable``: those out of reach of the
+    track's others (:func:`solver.refine.gate.unreachable_plots`), wild, as is what lies far
+    out in its sensor's residuals' spread (:func:`statistics_wild`, which neither kind
+    enters)."""
     n = len(table)
     out = PlotResiduals(np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan),
                         np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan))
@@ -154,7 +157,9 @@ def plot_residuals(table: PlotTable, at_plots: StateSeries, gated: np.ndarray,
             assert out.along_m is not None and out.cross_m is not None
             out.along_m[rows] = dx * ux + dz * uz
             out.cross_m[rows] = dz * ux - dx * uz
-    out.wild = statistics_wild(table, out, no_reference)
+    far = no_reference_mask(n, unreachable)
+    out.no_reference = no_reference_mask(n, no_reference) & ~far
+    out.wild = statistics_wild(table, out, far | out.no_reference) | far
     out.leverage = leverage
     return out
 
@@ -178,20 +183,31 @@ def wild_residuals(res: FloatArray, sigma: float) -> np.ndarray:
     return np.abs(res - med) > WILD_SIGMAS * scale
 
 
-def statistics_wild(table: PlotTable, residuals: PlotResiduals,
-                    no_reference: np.ndarray | None = None) -> np.ndarray:
-    """The plots the sensors' statistics leave out: those where the track is no reference
-    (``no_reference``, indexes: out of reach of the track's others, no plot of this aircraft,
-    e.g. another's under one key, whose residuals of tens of km made a radar's range bias -47
-    km in a tester's recording; stretches the bounds bend the track off), and of the rest a
-    radar's (with :data:`WILD_MIN_PLOTS` in the track) beyond :func:`wild_residuals` in range
-    or azimuth, other sensors' the gated ones. ``tracks.parquet`` keeps it (``wild``), so that
-    ``sensors.png`` pools the plots that ``sensors.json`` does (it took the gated ones alone:
-    0 wild and a 97.5-m range sigma in the figure where the table said 27 wild and 79.1 m)."""
-    far = np.zeros(len(table), dtype=bool)
+def no_reference_mask(n: int, no_reference: np.ndarray | None) -> np.ndarray:
+    """Per plot, whether it is among the indexes ``no_reference``: where the track is no
+    reference for its sensor, in a stretch the aircraft's bounds bend the track off (a
+    tester's aircraft turning at 10 m/s^2 against the 7 of the bounds: 161 of its 272 plots;
+    they were counted wild, 206 of a radar's 2,121 plots of Gaussian noise, as if the radar
+    were to blame), or out of reach of the track's others (no plot of this aircraft: a false
+    plot, or another aircraft's under one key, whose residuals of tens of km made a radar's
+    range bias -47 km in a tester's recording; counted wild)."""
+    far = np.zeros(n, dtype=bool)
     if no_reference is not None:
         far[np.asarray(no_reference, dtype=int)] = True
-    wild = residuals.gated | far
+    return far
+
+
+def statistics_wild(table: PlotTable, residuals: PlotResiduals,
+                    far: np.ndarray | None = None) -> np.ndarray:
+    """The wild plots, which the sensors' statistics leave out: of those where the track is a
+    reference and that it can reach (not ``far``, see :func:`no_reference_mask`) a radar's (with
+    :data:`WILD_MIN_PLOTS` in the track) beyond :func:`wild_residuals` in range or azimuth,
+    other sensors' the gated ones. ``tracks.parquet`` keeps it (``wild``, beside
+    ``no_reference``), so that ``sensors.png`` pools the plots that ``sensors.json`` does (it
+    took the gated ones alone: 0 wild and a 97.5-m range sigma in the figure where the table
+    said 27 wild and 79.1 m)."""
+    far = np.zeros(len(table), dtype=bool) if far is None else far
+    wild = residuals.gated & ~far
     for k, sensor in enumerate(table.sensors):
         rows = np.flatnonzero((table.sensor == k) & ~far)
         if isinstance(sensor, RadarSensor) and rows.size >= WILD_MIN_PLOTS:
@@ -230,15 +246,18 @@ def sensor_reports(table: PlotTable, residuals: PlotResiduals, biases: np.ndarra
     (:func:`statistics_wild`): mean, RMS and standard deviation in range and azimuth (radars)
     or the horizontal RMS (position sensors)."""
     reports = []
-    every_wild = (residuals.wild if residuals.wild is not None
-                  else statistics_wild(table, residuals))
+    far = (np.zeros(len(table), dtype=bool) if residuals.no_reference is None
+           else residuals.no_reference)
+    wild = (residuals.wild if residuals.wild is not None
+            else statistics_wild(table, residuals, far))
+    left_out = wild | far
     for k, sensor in enumerate(table.sensors):
         rows = np.flatnonzero(table.sensor == k)
-        wild = every_wild[rows]
         rep = SensorReport(id=sensor.id, kind=sensor.kind, plots=int(rows.size),
                            plots_gated=int(residuals.gated[rows].sum()),
-                           plots_wild=int(wild.sum()))
-        keep = rows[~wild]
+                           plots_wild=int(wild[rows].sum()),
+                           plots_no_reference=int(far[rows].sum()))
+        keep = rows[~left_out[rows]]
         if residuals.leverage is not None and keep.size:
             free = 1.0 - np.clip(residuals.leverage[keep], 0.0, 1.0)
             if isinstance(sensor, RadarSensor):
