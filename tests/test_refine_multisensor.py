@@ -1003,3 +1003,31 @@ def test_the_sensors_sigmas_are_estimated_from_the_residuals_degrees_of_freedom(
             assert a["azimuth_residual_sigma_deg"] < 0.93 * 0.06
         else:
             assert rows["ADSB"]["position_sigma_estimate_m"] == pytest.approx(15.0, rel=0.05)
+
+
+def test_two_radars_registered_alone_have_their_sigmas_estimated():
+    """Two radars estimating their offsets on short tracks (300 s) without ADS-B: the track's
+    position carries the offsets' common shift, which the plots' predictions do not. The
+    leverages took the position's covariance alone and clipped at 1: 0.22 degrees of freedom
+    a plot and the sigmas estimated at 97 m and 0.168 deg for 50 m and 0.08 deg (a tester's
+    recording: 89 m for 50). Now from the covariance of each plot's predicted position."""
+    from dataclasses import asdict
+
+    from solver.cli import SensorStats
+    from solver.io.sensors_file import parse_sensors
+
+    a, b = replace(SSR_A, estimate_bias=True), replace(SSR_B, estimate_bias=True)
+    spec = [{"id": s.id, "kind": "radar", "lat_deg": s.site.lat_deg, "lon_deg": s.site.lon_deg,
+             "height_m": s.site.height_m, "range_error_m": 150.0, "azimuth_error_deg": 0.24,
+             "estimate_bias": True} for s in (a, b)]
+    stats = SensorStats(parse_sensors(spec), {})
+    for seed in range(4):
+        table, *_ = _simulate((a, b), ((4.8, 0.3), (4.0, 1.1)), noise=1.0, seed=seed,
+                              t_end=300.0, mode_c=True, biases={
+                                  0: (120.0, np.deg2rad(0.08), 0.0),
+                                  1: (-60.0, np.deg2rad(-0.05), 0.0)})
+        stats.add([asdict(r) for r in reconstruct(table).sensors])
+    for row in stats.rows():
+        assert row["range_sigma_estimate_m"] == pytest.approx(SSR_A.sigma_r, rel=0.05), row
+        assert row["azimuth_sigma_estimate_deg"] == pytest.approx(
+            np.rad2deg(SSR_A.sigma_psi), rel=0.12), row

@@ -40,7 +40,7 @@ from .blocks import (
     cut,
     solve_block,
 )
-from .covariance import node_covariance, state_size
+from .covariance import node_covariance, plot_covariances, state_size
 from .gate import (
     RESCALE_ROUNDS,
     misfit_stretches,
@@ -346,7 +346,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         misfit = misfit_stretches(np.where(data.weight > 0, quad_end, 0.0)[plot_node],
                                   table.t, sol, bounds, st.outlier_gate, plot_node)
         lever = None if at_plots_own.cov is None else leverages(
-            data.weighed_info()[plot_node], data.ray[plot_node], at_plots_own.cov)
+            data.weighed_info()[plot_node], data.ray[plot_node],
+            plot_covariances(cov_nodes, sol, biases, data, variant, delta, plot_node))
         rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors,
                                        misfit, lever, unreachable=impossible)
         rec.sensors = sensor_reports(table, rec.residuals, biases, bias_cov, bias_sensors)

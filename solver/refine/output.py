@@ -93,10 +93,11 @@ MIN_SPEED_FOR_TRACK_AXES = 1.0
 
 def leverages(info: FloatArray, ray: FloatArray, cov: FloatArray) -> FloatArray:
     """``(n, 2)`` share of each plot's error the track absorbs along its ray and across it:
-    ``lambda_u u^T P u`` and ``lambda_w w^T P w`` with ``P`` the track's position covariance at
-    the plot, ``u`` the ray's direction (``w`` across it) and ``lambda`` the plot's weight
-    (``info``: the entries ``(a, b, c)`` of its 2x2 weight) along each; a plot without a ray
-    (a position plot, a circle) gets half its total ``tr(M P)`` each."""
+    ``lambda_u u^T P u`` and ``lambda_w w^T P w`` with ``P`` the covariance of the position the
+    track predicts for the plot (:func:`solver.refine.covariance.plot_covariances`), ``u`` the
+    ray's direction (``w`` across it) and ``lambda`` the plot's weight (``info``: the entries
+    ``(a, b, c)`` of its 2x2 weight) along each; a plot without a ray (a position plot, a
+    circle) gets half its total ``tr(M P)`` each."""
     a, b, c = info.T
     length = np.hypot(*ray.T)
     has = length > 0
