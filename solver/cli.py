@@ -152,7 +152,8 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
         if figures_dir is not None:
             from .figures import save, track_figure
 
-            save(track_figure(table, rec, title=key), Path(figures_dir) / f"{_safe(key)}.png")
+            save(track_figure(table, rec, title=key, times_of_day=times_of_day),
+                 Path(figures_dir) / f"{_safe(key)}.png")
         return {"sensors": [{**asdict(r), **spans.get(r.id, {})} for r in rec.sensors]}
 
     out = solve_track(key, table, config, time_limit_s, extras=extras, filters=filters,
@@ -718,7 +719,7 @@ def write_map(out: Path, sensors: SensorSet, rows: PlotRows | None = None, *,
             else:
                 px, pz = frame.to_plane(np.array([s.site.lat_deg]), np.array([s.site.lon_deg]))
                 sites.append((s.id, float(px[0]), float(pz[0])))
-    return save(recording_map(lines, sites, title=f"{len(lines)} tracks"), out / "map.png")
+    return save(recording_map(lines, sites), out / "map.png")
 
 
 def write_sensor_csv(out: Path, rows: list[dict[str, Any]]) -> None:
@@ -1222,7 +1223,8 @@ def plot(args: argparse.Namespace) -> list[Path]:
             if track.key not in wanted:
                 continue
             rec = reconstruct(track.table, config=config)
-            written.append(save(track_figure(track.table, rec, title=track.key),
+            written.append(save(track_figure(track.table, rec, title=track.key,
+                                             times_of_day=bool(loaded.times_of_day)),
                                 out / "figures" / f"{_safe(track.key)}.png"))
             wanted.discard(track.key)
             if not wanted:

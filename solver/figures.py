@@ -16,7 +16,6 @@ labels when the plane has a frame).
 from __future__ import annotations
 
 import io
-import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,7 +28,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.collections import PatchCollection
 from matplotlib.figure import Figure
-from matplotlib.patches import Ellipse
+from matplotlib.patches import Ellipse, Patch
+from matplotlib.ticker import FuncFormatter, MultipleLocator
 
 from .inputs import FloatArray
 from .manoeuvres import Manoeuvre, from_segments
@@ -42,8 +42,12 @@ if TYPE_CHECKING:
 
 CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square with 2 degrees of freedom
 MAX_ELLIPSES = 400  # drawn per figure (every k-th plot beyond): more only hide the track
-COLOURS = ("tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive",
-           "tab:cyan", "tab:gray")
+COLOURS = ("#0072B2", "#E69F00", "#009E73", "#CC79A7", "#56B4E9", "#D55E00", "#999999")
+"""The sensors' colours (Okabe and Ito's, told apart with red-green colour blindness; a
+reviewer measured the earlier blue against purple and green against the red track at a
+colour difference of 6-8 for deuteranopes), each with its own marker (:data:`MARKERS`); the
+reconstruction is black."""
+MARKERS = ("+", "x", "1", "2", "3", "4", ".")
 DPI = 100
 
 
@@ -77,111 +81,182 @@ def _fix_covariances(table: PlotTable) -> tuple[FloatArray, FloatArray, FloatArr
 
 def _map_axes(ax: Axes, title: str) -> None:
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("east (km)")
+    ax.set_xlabel("east of the plane's origin (km)")
     ax.set_ylabel("north (km)")
     ax.set_title(title)
     ax.grid(True, lw=0.3)
 
 
-def track_figure(table: PlotTable, rec: Reconstruction, title: str = "") -> Figure:
-    """One aircraft's plots, reconstruction and controls (see the module docstring)."""
+CLOCK_STEPS_S = (10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200)
+
+
+def clock(t: float) -> str:
+    """Seconds from a UTC midnight as ``HH:MM:SS`` (``+1d`` past the next midnight)."""
+    day, rest = divmod(int(np.rint(t)), 86_400)
+    text = f"{rest // 3600:02d}:{rest % 3600 // 60:02d}:{rest % 60:02d}"
+    return text + (f" +{day}d" if day else "")
+
+
+def _time_axis(ax: Axes, times_of_day: bool) -> None:
+    if times_of_day:  # ticks on whole clock steps (10 s to 2 h), about six of them
+        lo, hi = ax.get_xlim()
+        step = next((s for s in CLOCK_STEPS_S if (hi - lo) / s <= 7), CLOCK_STEPS_S[-1])
+        ax.xaxis.set_major_locator(MultipleLocator(step))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: clock(v)))
+        ax.set_xlabel("time of day (UTC)")
+    else:
+        ax.set_xlabel("t (s)")
+
+
+def track_figure(table: PlotTable, rec: Reconstruction, title: str = "",
+                 times_of_day: bool = False) -> Figure:
+    """One aircraft's plots, reconstruction and controls (see the module docstring);
+    ``times_of_day``: the table's times are seconds from a UTC midnight (a recording's),
+    shown as clock times."""
     has_alt = rec.samples.h is not None
     fig = plt.figure(figsize=(13, 7.5), dpi=DPI)
     grid = fig.add_gridspec(4 if has_alt else 3, 2, width_ratios=(1.3, 1))
     ax = fig.add_subplot(grid[:, 0])
     cx, cz, cov = _fix_covariances(table)
+    counts = []
     for k, sensor in enumerate(table.sensors):
         rows = np.flatnonzero(table.sensor == k)
         colour = COLOURS[k % len(COLOURS)]
-        ax.plot(cz[rows] / 1e3, cx[rows] / 1e3, "+", ms=4, color=colour,
-                label=f"{sensor.id} ({sensor.kind}, {rows.size} plots)")
+        ax.plot(cz[rows] / 1e3, cx[rows] / 1e3, MARKERS[k % len(MARKERS)], ms=4, color=colour,
+                label=f"{sensor.id} ({sensor.kind}, {rows.size} plots; 3-sigma ellipses)",
+                zorder=2)
         sel = rows[_thin(rows.size)]
         patches = _ellipse_patches(cx[sel], cz[sel], 9.0 * cov[sel])  # 3 sigma
         ax.add_collection(PatchCollection(patches, facecolor="none", edgecolor=colour, lw=0.4,
-                                          alpha=0.6))
+                                          alpha=0.6, zorder=1))
+        counts.append(f"{sensor.id} {rows.size}")
     s = rec.samples
-    ax.plot(s.z / 1e3, s.x / 1e3, "-", color="tab:red", lw=1.2, label="reconstruction")
-    starts = np.array([[seg.z, seg.x] for seg in rec.segments[1:]]) / 1e3
-    if starts.size:
-        ax.plot(starts[:, 0], starts[:, 1], ".", color="k", ms=3,
-                label=f"control switches ({len(rec.segments) - 1})")
     a = rec.at_plots
     if a.cov is not None:
         sel = _thin(len(a))
         patches = _ellipse_patches(a.x[sel], a.z[sel], CHI2_2DOF_95 * a.cov[sel, :2, :2])
-        ax.add_collection(PatchCollection(patches, facecolor="tab:red", edgecolor="none",
-                                          alpha=0.25))
-    ax.legend(loc="best", fontsize=8)
+        ax.add_collection(PatchCollection(patches, facecolor="0.5", edgecolor="none",
+                                          alpha=0.3, zorder=3))
+    ax.plot(s.z / 1e3, s.x / 1e3, "-", color="k", lw=1.2, label="reconstruction", zorder=4)
+    starts = np.array([[seg.z, seg.x] for seg in rec.segments[1:]]) / 1e3
+    if starts.size:  # under the line, small: 160 of them on a noisy track buried it
+        ax.plot(starts[:, 0], starts[:, 1], "o", mfc="white", mec="0.35", mew=0.5, ms=2.5,
+                label=f"control switches ({len(rec.segments) - 1})", zorder=3.5)
+    ax.plot(s.z[:1] / 1e3, s.x[:1] / 1e3, "o", color="k", ms=6, zorder=5,
+            label=f"start ({clock(s.t[0]) if times_of_day else f't = {s.t[0]:g} s'})")
+    if len(s) > 1:
+        heading = np.degrees(np.arctan2(s.z[-1] - s.z[-2], s.x[-1] - s.x[-2]))
+        ax.plot(s.z[-1:] / 1e3, s.x[-1:] / 1e3, marker=(3, 0, -heading), color="k", ms=8,
+                ls="none", zorder=5, label="end")
+    handles, _ = ax.get_legend_handles_labels()
+    if a.cov is not None:  # after the reconstruction's line
+        at = len(table.sensors) + 1
+        handles.insert(at, Patch(facecolor="0.5", alpha=0.3, label="its 95 % ellipses"))
+    ax.legend(handles=handles, loc="best", fontsize=7)
     _map_axes(ax, title or f"{len(table)} plots, {len(table.sensors)} sensor(s)")
+    found = from_segments(rec.segments)
+    span = (f"{clock(s.t[0])} to {clock(s.t[-1])} UTC" if times_of_day
+            else f"t {s.t[0]:g} to {s.t[-1]:g} s")
+    fig.suptitle(f"{title + ': ' if title else ''}{span}, {len(table)} plots "
+                 f"({', '.join(counts)}), {len(rec.segments) - 1} control switches, "
+                 f"{len(found)} manoeuvre(s)", fontsize=10)
     t = np.array([seg.t_start for seg in rec.segments] + [rec.segments[-1].t_end])
-    panels = [("u (m/s^2)", [seg.u for seg in rec.segments]),
-              ("w (m/s^2)", [seg.w for seg in rec.segments])]
-    control_axes = []
+    panels = [("u, lateral (m/s$^2$, + right)", [seg.u for seg in rec.segments]),
+              ("w, along track (m/s$^2$)", [seg.w for seg in rec.segments])]
+    control_axes: list[Axes] = []
     for i, (label, values) in enumerate(panels):
-        axc = fig.add_subplot(grid[i, 1])
-        axc.step(t, [*values, values[-1]], where="post", color="tab:red", lw=1)
-        axc.set_ylabel(label)
+        axc = fig.add_subplot(grid[i, 1], sharex=control_axes[0] if control_axes else None)
+        axc.step(t, [*values, values[-1]], where="post", color="k", lw=1)
+        axc.set_ylabel(label, fontsize=8)
         axc.grid(True, lw=0.3)
         control_axes.append(axc)
-    _mark_manoeuvres(ax, control_axes, from_segments(rec.segments))
-    axv = fig.add_subplot(grid[2, 1])
-    axv.plot(s.t, s.speed, color="tab:red", lw=1)
-    axv.set_ylabel("speed (m/s)")
+    _mark_manoeuvres(ax, control_axes, found)
+    axv = fig.add_subplot(grid[2, 1], sharex=control_axes[0])
+    axv.plot(s.t, s.speed, color="k", lw=1)
+    axv.set_ylabel("speed (m/s)", fontsize=8)
     axv.grid(True, lw=0.3)
     if has_alt:
         assert s.h is not None and s.h_sigma is not None
-        axh = fig.add_subplot(grid[3, 1])
-        axh.plot(s.t, s.h, color="tab:red", lw=1, label="estimated height")
-        axh.fill_between(s.t, s.h - 2 * s.h_sigma, s.h + 2 * s.h_sigma, color="tab:red",
-                         alpha=0.2, lw=0)
+        axh = fig.add_subplot(grid[3, 1], sharex=control_axes[0])
+        axh.plot(s.t, s.h, color="k", lw=1, label="estimated height")
+        axh.fill_between(s.t, s.h - 2 * s.h_sigma, s.h + 2 * s.h_sigma, color="0.5",
+                         alpha=0.3, lw=0, label="+-2 sigma")
         known = np.isfinite(table.altitude_m)
         if known.any():
-            axh.plot(table.t[known], table.altitude_m[known], ".", ms=2, color="k",
+            axh.plot(table.t[known], table.altitude_m[known], ".", ms=2, color=COLOURS[0],
                      label="reported altitude")
-            axh.legend(fontsize=7)
-        axh.set_ylabel("height (m)")
+        low = float(np.min(s.h - 2 * s.h_sigma))
+        if low < HEIGHT_FLOOR_M:  # an unobservable height's band reached -2 km
+            axh.set_ylim(bottom=HEIGHT_FLOOR_M)
+        axh.legend(fontsize=7, loc="best")
+        axh.set_ylabel("height (m)", fontsize=8)
         axh.grid(True, lw=0.3)
-    fig.axes[-1].set_xlabel("t (s)")
+    for axr in fig.axes[1:-1]:
+        axr.tick_params(labelbottom=False)
+    _time_axis(fig.axes[-1], times_of_day)
     fig.tight_layout()
     return fig
 
 
-MANOEUVRE_COLOURS = {"right": "tab:orange", "left": "tab:blue", "increase": "tab:green",
-                     "decrease": "tab:purple"}
+HEIGHT_FLOOR_M = -500.0
+"""The height panel's lowest value (the band of a height the plots hardly tell went below)."""
+
+
+MANOEUVRE_HATCHES = {"right": "////", "left": "\\\\\\\\", "increase": "////",
+                     "decrease": "\\\\\\\\"}
+"""Manoeuvres are shaded grey (the colours are the sensors'), hatched by direction."""
 
 
 def _mark_manoeuvres(ax: Axes, control_axes: list[Axes], found: list[Manoeuvre]) -> None:
     """Number the manoeuvres where they start on the map and shade their spans on the ``u``
-    (turns) and ``w`` (speed changes) panels, labelled with the number and the change (deg,
-    m/s)."""
+    (turns) and ``w`` (speed changes) panels, labelled above the panel with the number and
+    the change (deg, m/s; two rows, so that neighbours do not overprint the line or each
+    other)."""
     for i, m in enumerate(found, 1):
-        colour = MANOEUVRE_COLOURS[m.direction]
-        ax.annotate(str(i), (m.z_start / 1e3, m.x_start / 1e3), xytext=(4, 4),
-                    textcoords="offset points", fontsize=7, color=colour, weight="bold",
-                    bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none",
-                          "alpha": 0.8})
+        ax.annotate(str(i), (m.z_start / 1e3, m.x_start / 1e3), xytext=(6, 6),
+                    textcoords="offset points", fontsize=7, weight="bold", zorder=6,
+                    bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "0.3", "lw": 0.5,
+                          "alpha": 0.9},
+                    arrowprops={"arrowstyle": "-", "lw": 0.5, "color": "0.3"})
         turn = m.kind == "turn"
         axc = control_axes[0 if turn else 1]
-        axc.axvspan(m.t_start, m.t_end, color=colour, alpha=0.15, lw=0)
-        change = f"{m.heading_change_deg:+.0f}" if turn else f"{m.speed_change:+.0f}"
-        # staggered over three rows: neighbours' labels do not overprint
-        axc.text((m.t_start + m.t_end) / 2, 0.98 - 0.09 * (i % 3), f"{i}: {change}",
-                 color=colour, fontsize=6, ha="center", va="top",
+        axc.axvspan(m.t_start, m.t_end, facecolor="0.85", edgecolor="0.6", lw=0,
+                    hatch=MANOEUVRE_HATCHES[m.direction], alpha=0.6)
+        change = (f"{m.heading_change_deg:+.0f} deg" if turn
+                  else f"{m.speed_change:+.0f} m/s")
+        axc.text((m.t_start + m.t_end) / 2, 1.01 + 0.12 * (i % 2), f"{i}: {change}",
+                 fontsize=7, ha="center", va="bottom", clip_on=False,
                  transform=axc.get_xaxis_transform())
+
+
+MAP_LABELS_UP_TO = 50
+"""A recording map names its tracks (at their ends) when it has at most this many."""
 
 
 def recording_map(tracks: Sequence[tuple[str, FloatArray, FloatArray]],
                   sensors: Sequence[tuple[str, float, float]] = (), title: str = "") -> Figure:
-    """Every track ``(key, x, z)`` (metres in one plane) and sensor sites ``(id, x, z)``."""
+    """Every track ``(key, x, z)`` (metres in one plane; coloured in the order of the keys, so
+    a track keeps its colour from run to run; a dot at its start, its key at its end when
+    there are at most :data:`MAP_LABELS_UP_TO`) and sensor sites ``(id, x, z)``."""
     fig, ax = plt.subplots(figsize=(10, 9), dpi=DPI)
-    for i, (_, x, z) in enumerate(tracks):
-        ax.plot(np.asarray(z) / 1e3, np.asarray(x) / 1e3, "-", lw=0.7,
-                color=plt.cm.tab20(i % 20))
-    for sid, x, z in sensors:
-        ax.plot(z / 1e3, x / 1e3, "^", color="k", ms=8)
+    ordered = sorted(tracks, key=lambda track: track[0])
+    for i, (key, x, z) in enumerate(ordered):
+        x, z = np.asarray(x) / 1e3, np.asarray(z) / 1e3
+        colour = plt.cm.tab10(i % 10)
+        ax.plot(z, x, "-", lw=0.9, color=colour)
+        if x.size:
+            ax.scatter(z[:1], x[:1], s=8, color=colour, zorder=3)
+            if len(ordered) <= MAP_LABELS_UP_TO:
+                ax.annotate(key, (z[-1], x[-1]), textcoords="offset points", xytext=(3, 3),
+                            fontsize=6, color=colour)
+    for j, (sid, x, z) in enumerate(sensors):
+        ax.plot(z / 1e3, x / 1e3, "^", color="k", ms=8, label="radar" if j == 0 else None)
         ax.annotate(sid, (z / 1e3, x / 1e3), textcoords="offset points", xytext=(5, 5),
                     fontsize=8)
-    _map_axes(ax, title or f"{len(tracks)} tracks")
+    ax.scatter([], [], s=8, color="0.3", label="track start")
+    ax.legend(loc="best", fontsize=8)
+    n = len(tracks)
+    _map_axes(ax, title or f"{n} track{'s' * (n != 1)}")
     fig.tight_layout()
     return fig
 
@@ -203,9 +278,9 @@ def residuals_figure(sensors: Sequence[SensorResiduals],
         smp = res.sample
         if res.kind == "radar":
             panels = ((0, 2, res.first, RANGE_BIN_M, 1e-3, "slant range (km)", "range residual",
-                       "m", (m0, sd0), 1, "bias"),
+                       "m", (m0, sd0), 1, "mean"),
                       (1, 3, res.second, AZIMUTH_BIN_DEG, 1.0, "azimuth (deg)",
-                       "azimuth residual", "deg", (m1, sd1), 4, "bias"))
+                       "azimuth residual", "deg", (m1, sd1), 4, "mean"))
         else:
             panels = ((0, 2, res.first, SPEED_BIN_MS, 1.0, "ground speed (m/s)",
                        "along-track residual", "m", (m0, sd0), 1, "mean"),
@@ -217,20 +292,42 @@ def residuals_figure(sensors: Sequence[SensorResiduals],
         for ax, panel, est in zip(row, panels, sigmas, strict=True):
             _residual_panel(ax, smp, res.sensor, *panel, estimate=est)
         if res.kind == "radar":
-            row[1].set_xlim(0.0, 360.0)
+            row[1].set_xlim(*_azimuth_span(smp[smp[:, 4] == 0, 1]))
+        offsets = _offsets_text(row_est)
         row[0].annotate(f"{res.plots} plots, {res.wild} wild"
                         + (f", {res.no_reference} where the track is no reference"
-                           if res.no_reference else ""), (0.01, 0.97),
+                           if res.no_reference else "")
+                        + (f"\n{offsets}" if offsets else ""), (0.01, 0.97),
                         xycoords="axes fraction", va="top", fontsize=8)
-    # wrapped: on one line the title ran past both edges of the figure (cut off)
-    fig.suptitle(textwrap.fill(
-        "Plots against the reconstruction (measured minus reconstructed; after the offsets of "
-        "sensors with estimate_bias, and without it an offset shows only in part, the track "
-        "drawn towards the plots; along-track: ahead positive, a late report lies behind; "
-        "bands: binned mean +- sigma; estimated: the sensor's sigma from the residuals' degrees "
-        "of freedom)", 120), fontsize=10)
+    fig.suptitle("Plots against the reconstruction: measured minus reconstructed, after the "
+                 "estimated offsets; band: binned mean +- sigma; x: left out\n(along track: "
+                 "ahead positive, a late report lies behind; estimated: the sensor's sigma from "
+                 "the residuals' degrees of freedom)", fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def _offsets_text(row: Mapping[str, Any]) -> str:
+    """A sensor's estimated offsets (a ``sensors.json`` row), which its residuals are after:
+    the figure said "bias -0.1 m" of a radar whose 119.6-m offset was estimated (a reviewer)."""
+    parts = [f"{name} {row[key]:+.{digits}f}{unit}"
+             for name, key, digits, unit in (("range", "range_bias_m", 1, " m"),
+                                              ("azimuth", "azimuth_bias_deg", 3, " deg"),
+                                              ("time", "time_bias_s", 2, " s"))
+             if row.get(key) is not None]
+    return "estimated offsets taken off: " + ", ".join(parts) if parts else ""
+
+
+def _azimuth_span(az: FloatArray) -> tuple[float, float]:
+    """The azimuth axis: 0-360 deg, or the plots' span +- 5 deg where they cover less than
+    half the circle without crossing north (a sector radar's 25-50 deg filled 7 % of it)."""
+    az = np.sort(np.mod(np.asarray(az, dtype=float), 360.0))
+    if az.size < 2:
+        return 0.0, 360.0
+    gaps = np.diff(np.append(az, az[0] + 360.0))
+    if gaps[-1] < 180.0:  # the largest stretch without plots is not across north
+        return 0.0, 360.0
+    return max(0.0, float(az[0]) - 5.0), min(360.0, float(az[-1]) + 5.0)
 
 
 def _residual_panel(ax: Axes, smp: np.ndarray, sensor: str, col: int, res: int, binned: Any,
@@ -254,8 +351,9 @@ def _residual_panel(ax: Axes, smp: np.ndarray, sensor: str, col: int, res: int, 
     if np.isfinite(m) and sd > 0:
         ax.set_ylim(m - 5 * sd, m + 5 * sd)
     ok = smp[~wild, col]
-    if ok.size:
-        ax.set_xlim(0.0, float(ok.max()) * scale * 1.05)
+    if ok.size:  # from the nearest plot (0 when it is within a third of the farthest's)
+        lo, hi = float(ok.min()) * scale, float(ok.max()) * scale
+        ax.set_xlim(0.0 if lo < hi / 3 else 0.95 * lo, hi * 1.05)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(f"{name} ({unit})")
     also = "" if estimate is None else f", estimated {estimate:.{digits}f} {unit}"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from test_refine_multisensor import SSR_A, SSR_B, _simulate
 
@@ -60,3 +62,36 @@ def test_track_figure_marks_the_manoeuvres():
     assert [s.split(":")[0] for s in u_labels] == ["2", "4"]
     assert [s.split(":")[0] for s in w_labels] == ["1", "3", "5"]
     assert len(fig.axes[1].patches) == 2 and len(fig.axes[2].patches) == 3
+
+
+def test_what_a_figure_reviewer_asked_for():
+    """A reviewer's points, each checked: clock times for a recording's track (seconds from a
+    UTC midnight), the reconstruction's 95 % ellipses and the plots' 3-sigma ones in the
+    legend, a sector radar's azimuth axis zoomed to its plots (and not across north), the
+    estimated offsets said beside residuals that are after them ("bias -0.1 m" of a radar
+    whose 119.6-m offset was taken off), a map's tracks coloured by key (a track kept its
+    colour from run to run only by chance) with "1 track" in the singular."""
+    from solver.figures import _azimuth_span, _offsets_text, clock
+
+    assert clock(22_997.4) == "06:23:17" and clock(86_400 + 61) == "00:01:01 +1d"
+    table, *_ = _simulate((SSR_A, SSR_B), ((4.8, 0.3), (12.0, 1.1)), noise=1.0, t_end=400.0)
+    table = dataclasses.replace(table, t=table.t + 22_000.0)
+    fig = track_figure(table, reconstruct(table), title="4CA2D1", times_of_day=True)
+    assert fig.axes[-1].get_xlabel() == "time of day (UTC)"
+    assert fig.axes[-1].xaxis.get_major_formatter()(22_020.0, 0) == "06:07:00"
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "its 95 % ellipses" in labels and any("3-sigma ellipses" in x for x in labels)
+    assert fig._suptitle.get_text().startswith("4CA2D1: 06:06:40 to 06:13:")
+    assert _azimuth_span(np.array([25.0, 40.0, 50.0])) == (20.0, 55.0)
+    assert _azimuth_span(np.array([350.0, 5.0, 20.0])) == (0.0, 360.0)  # across north
+    assert _azimuth_span(np.linspace(0, 350, 36)) == (0.0, 360.0)
+    assert _offsets_text({"range_bias_m": 119.6, "azimuth_bias_deg": 0.0033,
+                          "time_bias_s": -0.02}) == (
+        "estimated offsets taken off: range +119.6 m, azimuth +0.003 deg, time -0.02 s")
+    assert _offsets_text({"range_bias_m": None}) == ""
+    x = np.linspace(0, 1e4, 5)
+    one = recording_map([("B", x, x), ("A", x, -x)])
+    two = recording_map([("A", x, -x), ("B", x, x)])
+    assert [line.get_color() for line in one.axes[0].lines] == [
+        line.get_color() for line in two.axes[0].lines]
+    assert recording_map([("A", x, x)]).axes[0].get_title() == "1 track"
