@@ -9,8 +9,8 @@
 - :func:`residuals_figure`: each radar's plots against the reconstruction over a run, by
   range and by azimuth (:mod:`solver.assessment`).
 
-Map axes: east to the right, north up, in km in the local plane (with latitude/longitude ticks'
-labels when the plane has a frame).
+Map axes: east to the right, north up, in km in the local plane (about the request's
+``reference`` or the recording's, :func:`solver.io.split.recording_frame`).
 """
 
 from __future__ import annotations
