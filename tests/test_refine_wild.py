@@ -101,3 +101,22 @@ def test_misfit_stretches_are_the_plots_near_far_ones_at_a_bound():
     near = (np.abs(t - t[42]) <= MISFIT_MARGIN_S) | (np.abs(t - t[81]) <= MISFIT_MARGIN_S)
     np.testing.assert_array_equal(got, np.flatnonzero(near))
     assert misfit_stretches(quad, t, sol, bounds, None, np.arange(t.size)).size == 0
+
+
+@pytest.mark.parametrize(("end", "offset_m"), [(0, -1900.0), (-1, 2000.0), (-1, -1900.0)])
+def test_a_wild_plot_at_a_tracks_end_is_no_turn(end, offset_m):
+    """A lone radar's first or last plot 2 km off: the lateral acceleration at its bound at
+    the track's end took it for a turn harder than the bounds (kept, the next plot then 250-500
+    m off and 13-14 good plots left out of the statistics; a tester's recording). At the ends
+    no plot beyond can say it is a turn: it is given no weight, and the track fits the rest."""
+    from test_refine_multisensor import SSR_A, _simulate
+
+    table, *_ = _simulate((SSR_A,), ((4.8, 0.3),), noise=1.0, seed=5, t_end=400.0,
+                          mode_c=True)
+    order = np.argsort(table.t)
+    r = table.range_m.copy()
+    r[order[end]] += offset_m
+    rec = reconstruct(replace(table, range_m=r))
+    assert rec.residuals.gated[order[end]]
+    assert abs(rec.residuals.range_m[order[1 if end == 0 else -2]]) < 4 * SSR_A.sigma_r
+    assert rec.sensors[0].plots_wild == 1 and rec.sensors[0].plots_no_reference == 0
