@@ -987,6 +987,44 @@ def test_sensor_statistics_pool_a_position_sensors_time_offset():
     assert row["range_bias_m"] is None and row["azimuth_bias_deg"] is None
 
 
+def test_a_sensors_offsets_pool_by_precision_against_one_time_reference():
+    """A tester's recording: R1's offsets pooled as the plain median of its tracks' (a track
+    whose offsets are barely observable, +-184 m, counting as much as a +-7 m one), without a
+    sigma; and its time offset mixed two references, the ADS-B's on tracks with ADS-B not
+    estimating (-0.56 s: the radar against the ADS-B's latency) and the radars' mean on tracks
+    of two radars alone (-0.19 s). Now a median weighted by the inverse variances, with its
+    sigma, the time from the tracks with a sensor that kept its own where there are any."""
+    from solver.cli import SensorStats
+
+    spec = [{**SENSOR_FILE[0], "estimate_bias": True}, {**SENSOR_FILE[1], "estimate_bias": True},
+            SENSOR_FILE[2]]
+    stats = SensorStats(parse_sensors(spec), {})
+
+    def report(sid, rng_m, rng_sd, t_s, adsb):
+        r1 = {"id": sid, "kind": "radar", "plots": 100, "plots_gated": 0,
+              "range_residual_mean_m": None, "position_residual_rms_m": None,
+              "range_bias_m": rng_m, "range_bias_sigma_m": rng_sd,
+              "azimuth_bias_rad": np.deg2rad(0.05), "azimuth_bias_sigma_rad": np.deg2rad(0.01),
+              "time_bias_s": t_s, "time_bias_sigma_s": 0.05, "span_s": 400.0}
+        return [r1] + ([{"id": "ADSB", "kind": "position", "plots": 80, "plots_gated": 0,
+                         "range_residual_mean_m": None, "position_residual_rms_m": 20.0,
+                         "range_bias_m": None, "azimuth_bias_rad": None,
+                         "time_bias_s": None}] if adsb else [])
+
+    for k in range(3):  # precise, with ADS-B: the radar against the ADS-B's time
+        stats.add(report("R1", 120.0 + k, 7.0, -0.55 + 0.01 * k, True))
+    for k in range(4):  # two radars alone: vague offsets, time against the radars' mean
+        stats.add(report("R1", 400.0 + 100 * k, 184.0, -0.19, False))
+    row = {r["sensor"]: r for r in stats.rows()}["R1"]
+    assert row["range_bias_m"] == 121.0 and row["offset_tracks"] == 7
+    assert row["range_bias_sigma_m"] == pytest.approx(1.2533 / np.sqrt(
+        3 / 7.0**2 + 4 / 184.0**2), rel=1e-9)
+    assert row["time_bias_s"] == pytest.approx(-0.54)  # the ADS-B tracks' alone
+    assert row["time_bias_sigma_s"] == pytest.approx(1.2533 * 0.05 / np.sqrt(3))
+    assert row["time_bias_reference"] == "the sensors not estimating their offsets"
+    assert row["azimuth_bias_deg"] == pytest.approx(0.05)
+
+
 def test_a_rerun_reports_the_tracks_earlier_runs_failed(recording, tmp_path, capsys, scheduler):
     """A resumed run keeps earlier failures in view: exit status 1 and their reasons until
     `--retry-failed` redoes them; `output` in summary.json is the whole directory's state."""
