@@ -243,27 +243,83 @@ class JobTrackResult(_Out):
 
 
 class SensorSummaryOut(_Out):
-    """One sensor over all tracks of a finished job (plot-weighted)."""
+    """One sensor over all tracks of a finished job (plot-weighted): every field of the job's
+    `results/sensors.json` and of the command line's `sensors.json`
+    (:data:`solver.cli.SENSOR_COLUMNS`, in its order). A job finished by an earlier version
+    lacks the later fields: null (the counts 0)."""
 
-    sensor: str
-    kind: str
-    tracks: int
-    plots: int
+    sensor: str = Field(description="Sensor id.")
+    kind: str = Field(description="`radar` or `position`.")
+    tracks: int = Field(description="Reconstructed tracks with plots of this sensor.")
+    plots: int = Field(description="Its plots in those tracks.")
     plots_gated: int = Field(description="Plots the reconstruction gave no weight as wild.")
     plots_wild: int = Field(0, description="Plots outside the sensor's own residual "
                             "distribution in their track (as the single-track answer's "
                             "`sensors[].plots_wild`), which the residual statistics leave out.")
-    scan_period_s: float | None = Field(None, description="From CAT034, else estimated.")
-    detection_rate: float | None = Field(None, description="Plots over expected scans.")
-    range_residual_mean_m: float | None = None
-    range_residual_sigma_m: float | None = None
-    azimuth_residual_mean_deg: float | None = None
-    azimuth_residual_sigma_deg: float | None = None
-    position_residual_rms_m: float | None = None
-    along_track_residual_mean_m: float | None = None
-    along_track_residual_sigma_m: float | None = None
-    cross_track_residual_mean_m: float | None = None
-    cross_track_residual_sigma_m: float | None = None
-    range_bias_m: float | None = None
-    azimuth_bias_deg: float | None = None
-    time_bias_s: float | None = None
+    plots_no_reference: int = Field(0, description="Plots where their track is no reference "
+                                    "for the sensors (as the single-track answer's "
+                                    "`sensors[].plots_no_reference`: near plots far from the "
+                                    "track with `u` or `v` at a bound), left out of the "
+                                    "residual statistics too; apart from `plots_wild`.")
+    scan_period_s: float | None = Field(None, description="From CAT034, else estimated from "
+                                        "the tracks' plot intervals (s).")
+    detection_rate: float | None = Field(None, description="Plots over the scans expected in "
+                                         "the tracks' time within the sensor's coverage (the "
+                                         "holes left out).")
+    coverage_holes: int | None = Field(None, description="Runs of missed scans too long for "
+                                       "the detection rate the track shows elsewhere (under a "
+                                       "1 % chance): holes in the sensor's coverage (out of "
+                                       "range, masked, cone of silence, outage), counted "
+                                       "over all tracks, not as missed detections.")
+    coverage_hole_s: float | None = Field(None, description="Their time in all (s).")
+    range_residual_mean_m: float | None = Field(None, description="Mean of measured minus "
+                                                "predicted slant range (m); radars.")
+    range_residual_sigma_m: float | None = Field(None, description="Their standard deviation "
+                                                 "(m).")
+    range_sigma_estimate_m: float | None = Field(
+        None, description="The radar's range sigma estimated from its residuals and their "
+        "degrees of freedom over all tracks (as the single-track answer's "
+        "`sensors[].range_sigma_estimate_m`: the residuals' own sigma reads low where the "
+        "track follows the plots); null without the tracks' covariance (sliding).")
+    azimuth_residual_mean_deg: float | None = Field(None, description="Mean azimuth residual "
+                                                    "(deg); radars.")
+    azimuth_residual_sigma_deg: float | None = Field(None, description="Their standard "
+                                                     "deviation (deg).")
+    azimuth_sigma_estimate_deg: float | None = Field(None, description="The azimuth sigma "
+                                                     "estimated alike (deg).")
+    position_residual_rms_m: float | None = Field(None, description="Horizontal RMS of a "
+                                                  "position sensor's plots against the tracks "
+                                                  "(m).")
+    position_sigma_estimate_m: float | None = Field(None, description="A position sensor's "
+                                                    "sigma per horizontal axis, estimated "
+                                                    "alike (m).")
+    along_track_residual_mean_m: float | None = Field(None, description="Mean of a position "
+                                                      "sensor's residuals along the track (m; "
+                                                      "ahead positive: a latency reads "
+                                                      "negative).")
+    along_track_residual_sigma_m: float | None = Field(None, description="Their standard "
+                                                       "deviation (m).")
+    cross_track_residual_mean_m: float | None = Field(None, description="Mean of the "
+                                                      "residuals across the track (m; right "
+                                                      "positive).")
+    cross_track_residual_sigma_m: float | None = Field(None, description="Their standard "
+                                                       "deviation (m).")
+    range_bias_m: float | None = Field(
+        None, description="The radar's range offset estimated over its tracks (m; with "
+        "`estimate_bias`): the median of the tracks' offsets weighted by their inverse "
+        "variances.")
+    range_bias_sigma_m: float | None = Field(None, description="That median's standard "
+                                             "deviation (m).")
+    azimuth_bias_deg: float | None = Field(None, description="The azimuth offset pooled "
+                                           "alike (deg).")
+    azimuth_bias_sigma_deg: float | None = Field(None, description="Its standard deviation "
+                                                 "(deg).")
+    time_bias_s: float | None = Field(None, description="The time offset pooled alike (s), "
+                                      "against `time_bias_reference`.")
+    time_bias_sigma_s: float | None = Field(None, description="Its standard deviation (s).")
+    offset_tracks: int | None = Field(None, description="Tracks whose estimated offsets "
+                                      "were pooled (null: none estimated).")
+    time_bias_reference: str | None = Field(
+        None, description="What the time offset is against: the sensors not estimating their "
+        "offsets (e.g. ADS-B's time) where its tracks have any, else the mean of the "
+        "estimating sensors.")

@@ -501,6 +501,33 @@ def test_cancel_and_the_concurrent_job_limit(client):
     assert upload(client, b"\x00" * 10, name="x.csv").status_code == 202  # room again
 
 
+def test_a_jobs_sensors_carry_every_field_of_its_sensors_json(client):
+    """`GET /v1/jobs/{id}/sensors` is the job's `results/sensors.json`, every field (the
+    response model dropped the sigma estimates, the coverage holes and `plots_no_reference`,
+    which the file and the command line's carry): the same keys in the same order and the
+    same values, and the model lists the command line's columns, so a later one cannot be
+    dropped silently."""
+    from service.job_models import SensorSummaryOut
+    from solver.cli import SENSOR_COLUMNS
+
+    assert list(SensorSummaryOut.model_fields) == list(SENSOR_COLUMNS)
+    sensors, tracks = json_tracks(encode_recording(duration=40.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    assert wait(client, loc)["state"] == "done"
+    got = client.get(loc + "/sensors").json()
+    want = client.get(loc + "/results/sensors.json").json()
+    assert [list(s) for s in got] == [list(s) for s in want] and len(got) == 3
+    assert got == want
+    radar = next(s for s in got if s["sensor"] == "R1")
+    assert radar["range_sigma_estimate_m"] > 0 and radar["azimuth_sigma_estimate_deg"] > 0
+    assert radar["coverage_holes"] == 0 and radar["coverage_hole_s"] == 0.0
+    adsb = next(s for s in got if s["sensor"] == "ADSB")
+    assert adsb["position_sigma_estimate_m"] > 0
+    assert client.delete(loc).status_code == 204
+
+
 def test_upload_over_the_limit_is_413(client):
     r = upload(client, b"\x30" * (UPLOAD_LIMIT + 1))
     assert r.status_code == 413
