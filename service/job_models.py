@@ -206,10 +206,11 @@ class JobTrajectoryOut(_Out):
     manoeuvres: list[ManoeuvreOut] = Field(
         default_factory=list, description="Turns and speed changes, by start time.")
     at_plots: list[JobStateOut] = Field(description="State at every plot, in time order.")
-    altitude_m: float | None = Field(
-        None, description="Where the altitude was estimated from several sensors: the "
-        "time-weighted mean height above the ellipsoid (m); per state in `altitude_m`.")
-    altitude_sigma_m: float | None = Field(None, description="Its standard deviation (m).")
+    altitude_m: float | None = _optional(
+        "Where the altitude was estimated from several sensors: the time-weighted mean height "
+        "above the ellipsoid (m); per state in `altitude_m`. Absent otherwise (sensors.md), as "
+        "in the single-track answer.")
+    altitude_sigma_m: float | None = _optional("Its standard deviation (m); absent with it.")
     samples: list[StateOut] = Field(
         default_factory=list, description="States every `sample_step_s` of the job's options "
         "over the track (empty when the job keeps none).")

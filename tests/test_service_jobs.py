@@ -528,6 +528,33 @@ def test_a_jobs_sensors_carry_every_field_of_its_sensors_json(client):
     assert client.delete(loc).status_code == 204
 
 
+def test_a_jobs_track_has_no_altitude_where_the_single_answer_has_none(client):
+    """`trajectory.altitude_m` and `altitude_sigma_m` are absent unless the altitude was
+    estimated from several radars (sensors.md), as in `POST /v1/reconstructions`'s answer
+    for the same plots; a job's track had them null."""
+    enc = encode_recording(duration=40.0)
+    sensors, tracks = json_tracks(enc)
+    radar = [{**sensors[0], "id": "R"}]
+    alone = [p | {"sensor": "R"} for p in tracks["A"] if p["sensor"] == sensors[0]["id"]]
+    cases = {"ALONE": (radar, alone), **{k: (sensors, v) for k, v in tracks.items()}}
+    estimated = {}
+    for key, (sens, plots) in cases.items():
+        r = client.post("/v1/jobs", json={"sensors": sens, "tracks": {key: plots}})
+        assert r.status_code == 202, r.text
+        loc = r.headers["location"]
+        assert wait(client, loc)["state"] == "done"
+        got = client.get(f"{loc}/tracks/{key}").json()["trajectory"]
+        single = client.post("/v1/reconstructions", json={"sensors": sens, "plots": plots})
+        assert single.status_code == 200, single.text
+        want = single.json()["trajectory"]
+        for name in ("altitude_m", "altitude_sigma_m"):
+            assert (name in got) == (name in want), (key, name)
+            assert got.get(name, 0.0) == pytest.approx(want.get(name, 0.0), abs=1e-6)
+        estimated[key] = "altitude_m" in got
+        assert client.delete(loc).status_code == 204
+    assert estimated["ALONE"] is False, estimated
+
+
 def test_upload_over_the_limit_is_413(client):
     r = upload(client, b"\x30" * (UPLOAD_LIMIT + 1))
     assert r.status_code == 413
