@@ -484,9 +484,11 @@ def get_job(job_id: str, request: Request) -> JobStatus:
                                                              "were removed."}},
                summary="Cancel a job (or remove a finished one)")
 def delete_job(job_id: str, request: Request) -> Response:
-    """A queued or running job is cancelled (200 with its status; its finished tracks stay
-    readable until it is deleted); a finished job (done, failed, cancelled) is removed with
-    its data (204)."""
+    """A queued or running job is cancelled (200 with its status, at once: its tracks in
+    flight are dropped, its finished tracks stay readable until it is deleted, and the
+    whole-job results of those follow in a few seconds, 409 until then); a finished job
+    (done, failed, cancelled) is removed with its data (204; a job cancelled a moment ago,
+    still writing those results, answers 200 with its status until it has)."""
     runner = _runner(request)
     _job(runner, job_id)
     job = runner.cancel(job_id)
