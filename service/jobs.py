@@ -677,7 +677,7 @@ class JobRunner:
         try:
             if self._stop_requested(job.id):
                 return
-            reconstruct_many(
+            batch = reconstruct_many(
                 tracks, out, config=config, executor=pool,
                 time_limit_s=s.jobs_track_time_limit_s or None, flush_tracks=8, flush_s=1.0,
                 on_outcome=on_outcome,
@@ -697,7 +697,8 @@ class JobRunner:
             self._finish_cancelled(job.id, loaded, tracks)
             return
         solved = time.monotonic()
-        self._finish_outputs(job.id, loaded, _mode_c_offsets(tracks))
+        self._finish_outputs(job.id, loaded, _mode_c_offsets(tracks),
+                             rates=(began, batch.elapsed_s, batch.plots_per_s))
         reason = _nothing_reconstructed(self.progress(job.id), loaded.problems)
         self._db().finish(job.id, "failed" if reason else "done", reason)
         LOGGER.info("job failed" if reason else "job done", extra={"fields": {
@@ -763,10 +764,15 @@ class JobRunner:
                 "job": job_id}})
 
     def _finish_outputs(self, job_id: str, loaded: Any, mode_c_offsets: list[float],
-                        cancelled: bool = False) -> None:
+                        cancelled: bool = False,
+                        rates: tuple[float, float, float] | None = None) -> None:
         """The whole-recording outputs of :mod:`solver.cli` (CSV, GeoJSON lines, map,
         sensors' statistics, problems, summary) and single-file Parquet downloads; of the
-        tracks finished when ``cancelled`` (the summary says so)."""
+        tracks finished when ``cancelled`` (the summary says so). ``rates``: this run's start
+        (``time.monotonic``), its reconstruction's seconds and plots per second, for the
+        summary's ``elapsed_s``, ``reconstruct_s`` and ``plots_per_s`` as the command line's
+        (this run's: a resumed job's rate is of the tracks it reconstructed after the restart;
+        none for a cancelled job, whose reconstruction did not run to its end)."""
         out = self.job_dir(job_id) / "out"
         stats = SensorStats(loaded.sensors, loaded.scan_periods)
         for reports in _sensor_reports(out).values():
@@ -792,6 +798,9 @@ class JobRunner:
         summary = {"tracks": len(progress.entries), "done": progress.done,
                    "failed": progress.failed, "plots": progress.plots_done,
                    "rows_in_recording": len(loaded.rows),
+                   **({} if rates is None else {
+                       "elapsed_s": time.monotonic() - rates[0], "reconstruct_s": rates[1],
+                       "plots_per_s": rates[2]}),
                    "problems": dict(loaded.problems.counts),
                    "dropped": loaded.problems.left_out(),
                    "mode_c_offsets": offsets_summary(mode_c_offsets),

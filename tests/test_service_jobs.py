@@ -591,7 +591,7 @@ def test_a_jobs_sensors_carry_every_field_of_its_sensors_json(client):
     response model dropped the sigma estimates, the coverage holes and `plots_no_reference`,
     which the file and the command line's carry): the same keys in the same order and the
     same values, and the model lists the command line's columns, so a later one cannot be
-    dropped silently."""
+    dropped silently. The job's `summary.json` has the command line's rate fields."""
     from service.job_models import SensorSummaryOut
     from solver.cli import SENSOR_COLUMNS
 
@@ -610,6 +610,9 @@ def test_a_jobs_sensors_carry_every_field_of_its_sensors_json(client):
     assert radar["coverage_holes"] == 0 and radar["coverage_hole_s"] == 0.0
     adsb = next(s for s in got if s["sensor"] == "ADSB")
     assert adsb["position_sigma_estimate_m"] > 0
+    summary = client.get(loc + "/results/summary.json").json()
+    assert summary["plots_per_s"] == pytest.approx(summary["plots"] / summary["reconstruct_s"])
+    assert summary["elapsed_s"] > summary["reconstruct_s"] > 0
     assert client.delete(loc).status_code == 204
 
 
