@@ -129,16 +129,17 @@ def keep(out: Path, settings: RunSettings) -> None:
     """Record ``settings`` in ``out`` (before any track is solved); :class:`InputError` when
     ``out`` holds finished tracks of a run with other settings."""
     earlier = stored(out)
-    if earlier is not None and finished_any(out):
+    if earlier is not None:
         old, new = earlier.as_json(), settings.as_json()
         same = {"filters": lambda a, b: sorted(a) == sorted(b)}
         differ = [f"{k} {old[k]} (asked: {new[k]})" for k in old
                   if not same.get(k, lambda a, b: a == b)(old[k], new[k])]
-        if differ:
+        if not differ:
+            return
+        if finished_any(out):
             raise InputError(("out",), f"{out} holds a run made with {'; '.join(differ)}. A "
                              "rerun resumes that run, so it takes the same settings: give "
                              "them, or choose another --out")
-        return
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / f".{RUN_FILE}.tmp"
     tmp.write_text(json.dumps(settings.as_json(), indent=1) + "\n", encoding="utf-8")
@@ -195,19 +196,20 @@ def keep_inputs(out: Path, recording: Path, sensors: Path) -> None:
     now = {"recording": fingerprint(recording), "sensors": fingerprint(sensors),
            "software": software()}
     path = out / INPUTS_FILE
-    if path.is_file() and finished_any(out):
+    if path.is_file():
         try:
             before = json.loads(path.read_text(encoding="utf-8"))
         except ValueError:
             before = None
         differ = [k for k in now if not isinstance(before, dict) or before.get(k) != now[k]]
-        if differ:
+        if not differ:
+            return
+        if finished_any(out):
             what = " and ".join(_WHAT[k] for k in differ)
             verb = "differ" if len(differ) > 1 else "differs"
             raise InputError(("out",), f"{out} holds a run made from other inputs ({what} "
                              f"{verb} from {path.name}'s): a rerun resumes that run, so it "
                              "takes the same files; choose another --out")
-        return
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / f".{INPUTS_FILE}.tmp"
     tmp.write_text(json.dumps(now, indent=1) + "\n", encoding="utf-8")

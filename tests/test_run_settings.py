@@ -31,6 +31,11 @@ def test_a_run_keeps_its_settings_and_resumes_only_the_same(tmp_path):
     assert stored(tmp_path) == first
     assert json.loads((tmp_path / RUN_FILE).read_text())["bounds"]["v"] == [15.0, 250.0]
     keep(tmp_path, RunSettings("refined", Bounds(v=(15.0, 250.0)), ("singer", "cv_rts")))
+    # no track finished yet: nothing to resume, other settings take the place of these
+    keep(tmp_path / "unfinished", first)
+    keep(tmp_path / "unfinished", RunSettings("sliding"))
+    assert stored(tmp_path / "unfinished") == RunSettings("sliding")
+    (tmp_path / "progress.jsonl").write_text(json.dumps({"aircraft": "A"}) + "\n")  # one
     for other, named in ((RunSettings("sliding", first.bounds, first.filters), "method"),
                          (RunSettings("refined", Bounds(), first.filters), "bounds"),
                          (RunSettings("refined", first.bounds, ("cv_rts",)), "filters"),
