@@ -168,8 +168,9 @@ class SensorReport:
     position_sigma_estimate_m: float | None = None
     """Degrees of freedom of the residuals above, ``sum (1 - h_i)`` over the plots the
     statistics take, ``h_i`` the share of plot ``i``'s error the track absorbs (its leverage:
-    the plot's weight times the track's variance there, along the ray, across it, or half of
-    both for a position plot; :func:`solver.refine.output.leverages`): a track fitted to its
+    the plot's weight times the variance of the position the track predicts for it, its
+    sensor's estimated offsets included, along the radar's range, across it, or half of both
+    for a position plot; :func:`solver.refine.output.leverages`): a track fitted to its
     plots leaves residuals smaller than their errors, and ``sum r^2 / dof`` estimates the
     sensor's sigma (None without the track's covariance): ``*_sigma_estimate_*``
     (:func:`solver.refine.output.sigma_estimates`)."""
@@ -194,8 +195,8 @@ class PlotResiduals:
     along_m: FloatArray | None = None
     cross_m: FloatArray | None = None
     wild: np.ndarray | None = None
-    leverage: FloatArray | None = None  # (n, 2): along and across the ray (a position plot:
-    # half the total each), see SensorReport.range_dof
+    leverage: FloatArray | None = None  # (n, 2): along and across the range (a position
+    # plot: half the total each), see SensorReport.range_dof
     no_reference: np.ndarray | None = None
 
     def left_out(self) -> np.ndarray:
