@@ -129,9 +129,10 @@ with Mode S). Bytes that parse as records of 2-3 bytes over and over (0x30: ever
 12,336-byte CAT048 block) were read as sound blocks: 1 MiB of them took 42 s."""
 DENSE_SLACK = 8
 NO_DATA_SKIP = 256
-"""Past the work limit, bytes skipped after records that are no data before looking for the
-next block header (1 MiB of 0x30: 2.5 s; looking on from the record, 29 s): good data right
-after such damage lose at most this many bytes."""
+"""Past the work limit, bytes skipped (at least) after records that are no data before looking
+for the next block header (1 MiB of 0x30: 2.5 s; looking on from the record, 29 s): good data
+right after such damage lose at most this many bytes. A block whose records do not parse is
+skipped to its declared end (from the failed record, 15 ff ff ... took 650 s a MiB)."""
 MAX_CHECKED_RECORD_BYTES = 1024
 """Bytes given to that check beyond its budget (a record longer than this fails it)."""
 CHUNK_BYTES = 1 << 20
@@ -425,13 +426,13 @@ class _Decoder:
     # ------------------------------------------------------------------ block walking
 
     def _parse(self, cat: int, data: bytes, start: int, stop: int, budget: int | None = None
-               ) -> tuple[list[tuple[Any, int]], tuple[int, str, bool] | None]:
+               ) -> tuple[list[tuple[Any, int]], tuple[int, str, bool, int] | None]:
         """Records of ``data[start:stop]`` with their byte offsets, and where and why parsing
-        stopped early, and whether for records that are no data (None: every byte was read, or
-        ``budget`` bytes of records were). No data: records averaging fewer than
-        :data:`MIN_RECORD_BYTES` bytes (not returned) and, past the work limit, a record
-        without I010 (the data source every category decoded here requires). A check
-        (``budget``) and a parse that stops early count as waste."""
+        stopped early, whether for records that are no data, and where the bytes it read end
+        (None: every byte was read, or ``budget`` bytes of records were). No data: records
+        averaging fewer than :data:`MIN_RECORD_BYTES` bytes (not returned) and, past the work
+        limit, a record without I010 (the data source every category decoded here requires).
+        A check (``budget``) and a parse that stops early count as waste."""
         spec = self.editions.get(cat)
         if spec is None:
             return [], None
@@ -442,7 +443,7 @@ class _Decoder:
         # so over the whole unit (1 MiB) the cost per record grew with the unit's size.
         bits = Bits.from_bytes(data[start:stop])
         out: list[tuple[Any, int]] = []
-        err: tuple[int, str, bool] | None = None
+        err: tuple[int, str, bool, int] | None = None
         source = self._headers_only and budget is None
         at = start
         while len(bits):
@@ -450,14 +451,16 @@ class _Decoder:
             if budget is not None and at - start >= budget:
                 break
             if len(out) > (at - start) // MIN_RECORD_BYTES + DENSE_SLACK:
-                err, out = (at, f"{len(out)} records in {at - start} bytes: no data", True), []
+                err = (at, f"{len(out)} records in {at - start} bytes: no data", True, at)
+                out = []
                 break
             r = spec.cv_uap.cv_record.parse(ParsingMode.StrictParsing, bits)
             if isinstance(r, ValueError):
-                err = (at, str(r), False)
+                err = (at, str(r), False, at)
                 break
             if source and r[0].get_item("010") is None:
-                err = (at, "a record without I010 (data source): no data", True)
+                err = (at, "a record without I010 (data source): no data", True,
+                       start + r[1].bit_offset1 // 8)
                 break
             out.append((r[0], at))
             bits = r[1]
@@ -563,10 +566,12 @@ class _Decoder:
                 self._handle(cat, records, pos, base)  # the usual case
                 pos = nxt
                 continue
-            if fits and self._headers_only:  # past the work limit: on from where it failed,
-                assert err is not None  # or past a block of no data (linear: 1 MiB of 0x30)
-                self._handle(cat, records, pos, base)
-                q = self._resync(data, min(nxt, err[0] + NO_DATA_SKIP) if err[2] else err[0])
+            if fits and self._headers_only:  # past the work limit: to the declared end, or
+                assert err is not None  # past records that are no data: each byte parsed once
+                self._handle(cat, records, pos, base)  # (searching from the failed record
+                # parsed 64-KB blocks 3 bytes apart: 15 ff ff ... 650 s a MiB; a reviewer's)
+                q = (self._resync(data, min(nxt, max(err[3], err[0] + NO_DATA_SKIP)))
+                     if err[2] else nxt if nxt < end else None)
                 problems.add("bad_record", f"byte {base + err[0]}", f"CAT{cat:03d} record does "
                              f"not parse ({err[1]}); {(q or end) - err[0]} bytes skipped up to "
                              + (f"the next block at byte {base + q}" if q is not None
