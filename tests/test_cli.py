@@ -1023,6 +1023,18 @@ def test_a_sensors_offsets_pool_by_precision_against_one_time_reference():
     assert row["time_bias_sigma_s"] == pytest.approx(1.2533 * 0.05 / np.sqrt(3))
     assert row["time_bias_reference"] == "the sensors not estimating their offsets"
     assert row["azimuth_bias_deg"] == pytest.approx(0.05)
+    # one or two tracks: their weighted mean (the lower median of two read 100 for 100 and
+    # 120, a reviewer's); an even count of equal weights: the middle two's midpoint
+    from solver.cli import pooled_offsets, weighted_median
+
+    two = np.array([[1, 100.0, 0.0, -0.5, 10.0, 1e-3, 0.05], [1, 120.0, 0.0, -0.6, 10.0, 1e-3,
+                                                                0.05]])
+    got = pooled_offsets(two, radar=True)
+    assert got["range_bias_m"] == pytest.approx(110.0)
+    assert got["range_bias_sigma_m"] == pytest.approx(10.0 / np.sqrt(2))
+    assert got["time_bias_s"] == pytest.approx(-0.55)
+    assert weighted_median(np.array([0.0, 10.0, 20.0, 30.0]), np.ones(4)) == 15.0
+    assert weighted_median(np.array([0.0, 10.0, 20.0]), np.array([1.0, 1.0, 3.0])) == 20.0
 
 
 def test_a_rerun_reports_the_tracks_earlier_runs_failed(recording, tmp_path, capsys, scheduler):
