@@ -563,7 +563,10 @@ def pooled_offsets(values: np.ndarray, radar: bool) -> dict[str, Any]:
     with the sigma of that median (``1.2533 / sqrt(sum of the weights)``, the median's
     efficiency for Gaussian errors); of one or two tracks their weighted mean and its sigma
     (the lower median of two read 100 m for 100 and 120, -0.65 sigma on average; a
-    reviewer's). The time offset pools the tracks with a sensor that did not estimate its own
+    reviewer's); the sigma scaled by the square root of the reduced chi-square of the tracks
+    about their weighted mean where it is above 1 (the Birge ratio: ADS-B latencies differing
+    by aircraft scatter a radar's time offsets beyond their sigmas). The time offset pools
+    the tracks with a sensor that did not estimate its own
     (their time reference, e.g. ADS-B's) where there are any, else those whose estimating
     sensors' mean time is held: the two are other quantities (a radar without an offset read
     -0.54 s, its tracks' ADS-B latency, where the pooled median of both kinds had mixed -0.56
@@ -591,6 +594,10 @@ def pooled_offsets(values: np.ndarray, radar: bool) -> dict[str, Any]:
             value, sigma = float(w @ v / w.sum()), float(1.0 / np.sqrt(w.sum()))
         else:
             value, sigma = weighted_median(v, w), float(1.2533 / np.sqrt(w.sum()))
+        if v.size > 1:  # tracks scattered beyond their sigmas (ADS-B latency differing by
+            # aircraft: reduced chi-square 10.7, the sigma 3x small; a tester's): scaled
+            chi2 = float(w @ (v - w @ v / w.sum()) ** 2) / (v.size - 1)
+            sigma *= float(np.sqrt(max(chi2, 1.0)))
         out[name] = value * unit
         out[name.replace("_bias", "_bias_sigma")] = sigma * unit
     return out

@@ -994,7 +994,7 @@ def test_a_sensors_offsets_pool_by_precision_against_one_time_reference():
     estimating (-0.56 s: the radar against the ADS-B's latency) and the radars' mean on tracks
     of two radars alone (-0.19 s). Now a median weighted by the inverse variances, with its
     sigma, the time from the tracks with a sensor that kept its own where there are any."""
-    from solver.cli import SensorStats
+    from solver.cli import SensorStats, pooled_offsets, weighted_median
 
     spec = [{**SENSOR_FILE[0], "estimate_bias": True}, {**SENSOR_FILE[1], "estimate_bias": True},
             SENSOR_FILE[2]]
@@ -1013,25 +1013,33 @@ def test_a_sensors_offsets_pool_by_precision_against_one_time_reference():
 
     for k in range(3):  # precise, with ADS-B: the radar against the ADS-B's time
         stats.add(report("R1", 120.0 + k, 7.0, -0.55 + 0.01 * k, True))
-    for k in range(4):  # two radars alone: vague offsets, time against the radars' mean
-        stats.add(report("R1", 400.0 + 100 * k, 184.0, -0.19, False))
+    for v in (300.0, -60.0, 250.0, 0.0):  # two radars alone: vague offsets (within their
+        stats.add(report("R1", v, 184.0, -0.19, False))  # sigmas), time against their mean
     row = {r["sensor"]: r for r in stats.rows()}["R1"]
     assert row["range_bias_m"] == 121.0 and row["offset_tracks"] == 7
     assert row["range_bias_sigma_m"] == pytest.approx(1.2533 / np.sqrt(
         3 / 7.0**2 + 4 / 184.0**2), rel=1e-9)
     assert row["time_bias_s"] == pytest.approx(-0.54)  # the ADS-B tracks' alone
     assert row["time_bias_sigma_s"] == pytest.approx(1.2533 * 0.05 / np.sqrt(3))
+    # tracks scattered beyond their sigmas (each aircraft's ADS-B latency its own: a tester's
+    # radar had a reduced chi-square of 10.7 and a time sigma 3x small): scaled by its root
+    scattered = np.array([[1, np.nan, np.nan, t, np.nan, np.nan, 0.02]
+                          for t in (-0.40, -0.55, -0.70, -0.50)])
+    got = pooled_offsets(scattered, radar=False)
+    t = scattered[:, 3]
+    chi2 = np.sum((t - t.mean()) ** 2 / 0.02**2) / 3
+    assert chi2 > 10
+    assert got["time_bias_sigma_s"] == pytest.approx(1.2533 * 0.02 / 2 * np.sqrt(chi2))
     assert row["time_bias_reference"] == "the sensors not estimating their offsets"
     assert row["azimuth_bias_deg"] == pytest.approx(0.05)
     # one or two tracks: their weighted mean (the lower median of two read 100 for 100 and
     # 120, a reviewer's); an even count of equal weights: the middle two's midpoint
-    from solver.cli import pooled_offsets, weighted_median
-
     two = np.array([[1, 100.0, 0.0, -0.5, 10.0, 1e-3, 0.05], [1, 120.0, 0.0, -0.6, 10.0, 1e-3,
                                                                 0.05]])
     got = pooled_offsets(two, radar=True)
     assert got["range_bias_m"] == pytest.approx(110.0)
-    assert got["range_bias_sigma_m"] == pytest.approx(10.0 / np.sqrt(2))
+    # 10 / sqrt(2), times sqrt(2): the two lie 2 of their sigmas apart (chi-square 2)
+    assert got["range_bias_sigma_m"] == pytest.approx(10.0)
     assert got["time_bias_s"] == pytest.approx(-0.55)
     assert weighted_median(np.array([0.0, 10.0, 20.0, 30.0]), np.ones(4)) == 15.0
     assert weighted_median(np.array([0.0, 10.0, 20.0]), np.array([1.0, 1.0, 3.0])) == 20.0
