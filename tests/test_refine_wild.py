@@ -120,3 +120,5 @@ def test_a_wild_plot_at_a_tracks_end_is_no_turn(end, offset_m):
     assert rec.residuals.gated[order[end]]
     assert abs(rec.residuals.range_m[order[1 if end == 0 else -2]]) < 4 * SSR_A.sigma_r
     assert rec.sensors[0].plots_wild == 1 and rec.sensors[0].plots_no_reference == 0
+    # nor is the next plot, bent towards it in the first solve, said to be a turn (a tester)
+    assert not [w for w in rec.diagnostics.warnings if "turn harder" in w]

@@ -47,6 +47,7 @@ from .gate import (
     overstated_sigmas,
     report_bounds,
     report_scales,
+    turn_warning,
     unreachable_plots,
     wild_plots,
 )
@@ -247,6 +248,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
             prev = blk.x[keep - start]
         return out, biases, fails, its
 
+    kept = np.array([], dtype=int)  # far plots kept as a turn harder than the bounds
     try:
         biases0 = np.zeros((variant.biases, BIAS_TERMS))
         sol, biases, failures, iters = solve_all(guess, data, biases0, None, first_tol)
@@ -278,8 +280,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
                 sol, biases, f1, it1 = solve_all(sol, data, biases, None)
                 failures, iters, solves = failures + f1, iters + it1, solves + len(blocks)
         quad = data.quad(sol, biases, variant.altitude)
-        rejected = wild_plots(quad[plot_node], t_nodes, data.on_ground(sol), bounds, st, diag,
-                              plot_node)
+        rejected, kept = wild_plots(quad[plot_node], t_nodes, data.on_ground(sol), bounds,
+                                    st, diag, plot_node)
         fixed = None
         if polish:
             fixed = np.zeros((2, n), dtype=bool)
@@ -336,6 +338,9 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
     check_deadline(deadline)
     # a plot given no weight adds nothing, also where its residual is infinite (0 * inf)
     quad_end = data.quad(sol, biases, variant.altitude)
+    turned = turn_warning(kept, quad_end[plot_node], table.t, st.outlier_gate)
+    if turned is not None:
+        diag.warnings.append(turned)
     crit = np.where(data.weight > 0, data.weight * quad_end, 0.0)
     diag.criterion_values = [float(crit.sum())]
     nb = state_size(variant) - BIAS_TERMS * variant.biases

@@ -25,15 +25,17 @@ COLUMN = {"v": 3, "u": 4, "w": 5}  # columns of a node solution
 
 def wild_plots(quad_at_plots: FloatArray, t_nodes: FloatArray, sol: np.ndarray, bounds: Bounds,
                st: RefineSettings, diag: Diagnostics,
-               plot_node: np.ndarray | None = None) -> np.ndarray:
+               plot_node: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Indexes (into ``quad_at_plots``) of the plots to give no weight, with the warning when
-    far plots are not taken for wild ones. Far plots where the lateral acceleration sits at a
-    bound of ``bounds.u`` (on either side of their node: ``plot_node``) keep their weight, said:
-    a turn harder than the bounds allow leaves its plots far, and gating them cut the turn
-    further (a 3 deg/s turn at 230 m/s with u within 7 m/s^2: 25 plots 'wild', 1.4 km off);
-    but not at the track's first or last node."""
+    far plots are not taken for wild ones, and those of the far plots kept as a turn. Far
+    plots where the lateral acceleration sits at a bound of ``bounds.u`` (on either side of
+    their node: ``plot_node``) keep their weight (:func:`turn_warning` says so once the track
+    is final): a turn harder than the bounds allow leaves its plots far, and gating them cut
+    the turn further (a 3 deg/s turn at 230 m/s with u within 7 m/s^2: 25 plots 'wild', 1.4 km
+    off); but not at the track's first or last node."""
+    none = np.array([], dtype=int)
     if st.outlier_gate is None:
-        return np.array([], dtype=int)
+        return none, none
     far = np.flatnonzero(quad_at_plots > st.outlier_gate**2)
     n = quad_at_plots.size
     if far.size and plot_node is not None:
@@ -43,25 +45,38 @@ def wild_plots(quad_at_plots: FloatArray, t_nodes: FloatArray, sol: np.ndarray, 
         # lone-radar tracks: the next plot 250-500 m off, 13-14 good plots then left out)
         inner = (node != plot_node.min()) & (node != plot_node.max())
         turning = held_at_bound(sol, bounds, "u", node) & inner
-        if turning.any():
-            t = t_nodes[node[turning]]
-            diag.warnings.append(
-                f"{int(turning.sum())} plot(s) more than {st.outlier_gate:g} sigma from the "
-                f"track where the lateral acceleration sits at a bound of bounds.u (t {t.min():g}"
-                f"-{t.max():g} s): a turn harder than the bounds allow, not wild plots; they "
-                "keep their weight")
-            far = far[~turning]
+        kept = far[turning]
+        far = far[~turning]
+    else:
+        kept = none
     text = f"{far.size} of {n} plots are more than {st.outlier_gate:g} sigma from the track"
     if far.size and max(at_bounds(t_nodes, sol, bounds, "v")) >= SPEED_MISFIT_SHARE:
         diag.warnings.append(f"{text}, whose speed sits at a bound of bounds.v: the bounds, not "
                              "wild plots, keep them far; none of them was given zero weight for it")
-        return np.array([], dtype=int)
+        return none, kept
     if far.size > st.outlier_max_share * n:
         diag.warnings.append(f"{text}: too many to be wild plots (do the bounds and the "
                              "sensors' sigmas fit this aircraft?); none of them was given zero "
                              "weight for it")
-        return np.array([], dtype=int)
-    return far
+        return none, kept
+    return far, kept
+
+
+def turn_warning(kept: np.ndarray, quad_at_plots: FloatArray, t_plots: FloatArray,
+                 gate: float | None) -> str | None:
+    """The warning of the far plots kept as a turn harder than the bounds (``kept``, from
+    :func:`wild_plots`) that are still far from the final track: said of those plots the
+    next solve brought back (a wild end plot's neighbour, bent towards it before the end plot
+    was left out: a tester's), it named a turn that was not there."""
+    if gate is None or not kept.size:
+        return None
+    still = kept[quad_at_plots[kept] > gate**2]
+    if not still.size:
+        return None
+    t = t_plots[still]
+    return (f"{still.size} plot(s) more than {gate:g} sigma from the track where the lateral "
+            f"acceleration sits at a bound of bounds.u (t {t.min():g}-{t.max():g} s): a turn "
+            "harder than the bounds allow, not wild plots; they keep their weight")
 
 
 RESCALE_BELOW = 0.25
