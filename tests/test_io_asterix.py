@@ -826,3 +826,40 @@ def test_a_time_of_day_beyond_a_day_is_left_out_and_counted():
     assert not (rec.rows.mode_s == 0xABCDEF).any()
     assert rec.problems.counts["bad_value"] == 1 and rec.problems.dropped["bad_value"] == 1
     np.testing.assert_array_equal(rec.rows.t, read_recording(enc.data, SENSORS).rows.t)
+
+
+def test_the_cyclic_collector_is_paused_while_decoding_and_back_after():
+    """Decoding pauses the cyclic garbage collector (sound data 95 -> 60 us a plot); with two
+    threads decoding at once (two jobs) it is on again only when both are done, and stays off
+    where it was off before."""
+    import gc
+    import threading
+
+    from solver.io.asterix import cyclic_gc_paused
+
+    assert gc.isenabled()
+    inside, release = threading.Event(), threading.Event()
+
+    def other() -> None:
+        with cyclic_gc_paused():
+            inside.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=other)
+    with cyclic_gc_paused():
+        assert not gc.isenabled()
+        thread.start()
+        assert inside.wait(10)
+    assert not gc.isenabled()  # the other decode goes on
+    release.set()
+    thread.join(10)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with cyclic_gc_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+    enc = encode_recording(duration=20.0)
+    assert len(read_recording(enc.data, SENSORS).rows) > 0 and gc.isenabled()
