@@ -553,21 +553,33 @@ def test_delete_of_a_running_job_answers_at_once_and_the_job_stops(client):
     assert client.delete(loc).status_code == 204
 
 
+def _store_settings(client, tmp_path) -> Settings:
+    """A second service's settings on its own data directory and this module's cluster."""
+    return Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
+                    data_dir=tmp_path, dask_scheduler=client.app.state.jobs.dask_address,
+                    jobs_track_figures=False)
+
+
+def _upload_until_a_track_is_done(service) -> tuple[str, dict]:
+    """Upload a 300-s recording of MANY aircraft; its job's location and status once a track
+    is done."""
+    loc = upload(service, encode_recording(duration=300.0, flights=MANY).data).headers[
+        "location"]
+    end = time.monotonic() + 120
+    while (before := service.get(loc).json())["tracks_done"] < 1:
+        assert time.monotonic() < end, before
+        time.sleep(0.1)
+    return loc, before
+
+
 def test_a_service_stopped_right_after_a_delete_keeps_the_job_cancelled(client, tmp_path):
     """DELETE no longer waits for a cancelled job's whole-job outputs: a service stopped just
     after it (as on SIGTERM) still writes them, and the next service on the data directory
     has the job cancelled (not resumed), with the finished tracks of the DELETE's answer
     readable and the whole-job results of them."""
-    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
-                        data_dir=tmp_path, dask_scheduler=client.app.state.jobs.dask_address,
-                        jobs_track_figures=False)
+    settings = _store_settings(client, tmp_path)
     with TestClient(create_app(settings)) as first:
-        r = upload(first, encode_recording(duration=300.0, flights=MANY).data)
-        loc = r.headers["location"]
-        end = time.monotonic() + 120
-        while (before := first.get(loc).json())["tracks_done"] < 1:
-            assert time.monotonic() < end, before
-            time.sleep(0.1)
+        loc, _ = _upload_until_a_track_is_done(first)
         cancelled = first.delete(loc).json()
     assert cancelled["state"] == "cancelled" and 1 <= cancelled["tracks_done"] < len(MANY)
     with TestClient(create_app(settings)) as second:
@@ -940,16 +952,9 @@ def test_a_stopped_service_resumes_its_running_job(client, tmp_path):
     """A service stopped mid-job (its lifespan's end, as on SIGTERM) leaves the job running in
     its store; the next service on the data directory resumes it: no track failed by the
     stop, every track once. (Both on this module's cluster, through ``dask_scheduler``.)"""
-    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
-                        data_dir=tmp_path, dask_scheduler=client.app.state.jobs.dask_address,
-                        jobs_track_figures=False)
+    settings = _store_settings(client, tmp_path)
     with TestClient(create_app(settings)) as first:
-        r = upload(first, encode_recording(duration=300.0, flights=MANY).data)
-        loc = r.headers["location"]
-        end = time.monotonic() + 120
-        while (before := first.get(loc).json())["tracks_done"] < 1:
-            assert time.monotonic() < end, before
-            time.sleep(0.1)
+        loc, before = _upload_until_a_track_is_done(first)
     with TestClient(create_app(settings)) as second:
         assert second.get(loc).json()["state"] in ("queued", "running")
         status = wait(second, loc)
