@@ -81,10 +81,10 @@ after the sensor's estimated offsets
 (``position_residual_m``) and its parts along and across the track (``along_track_residual_m``:
 ahead of the state positive, a late report's is negative; ``cross_track_residual_m``: right of
 the track positive); null where they do not apply or the method gives none; ``gated``: given no
-weight as wild; ``wild``: far out in the sensor's own residuals' spread (a radar's,
-:func:`solver.refine.output.statistics_wild`; another sensor's gated plots); ``no_reference``:
-where the track is no reference for the sensors (out of reach of the track's other plots; a
-stretch the aircraft's bounds bend it off, :func:`solver.refine.output.no_reference_mask`). The
+weight as wild; ``wild``: out of reach of the track's other plots, or far out in the sensor's
+own residuals' spread (a radar's, :func:`solver.refine.output.statistics_wild`; another
+sensor's gated plots); ``no_reference``: in a stretch the aircraft's bounds bend the track off,
+where it is no reference for the sensors (:func:`solver.refine.output.no_reference_mask`). The
 sensors' statistics (``sensors.json``, ``sensors.png``) leave out both."""
 FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
                   "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS, "gated")

@@ -1098,8 +1098,8 @@ def print_summary(result: dict[str, Any], file: Any = None) -> None:
                   f"{_pm(r, 'range_bias_sigma_m', '.1f')} m, azimuth "
                   f"{r['azimuth_bias_deg']:+.4f}{_pm(r, 'azimuth_bias_sigma_deg', '.4f')} deg, "
                   f"time {r['time_bias_s']:+.3f}{_pm(r, 'time_bias_sigma_s', '.3f')} s "
-                  f"(medians over {r['offset_tracks']} "
-                  f"tracks weighted by their precision; time against "
+                  f"(pooled over {r['offset_tracks']} "
+                  f"tracks, weighted by their precision; time against "
                   f"{r['time_bias_reference']}; to take them off every track it sees, those "
                   "it sees alone too, add them to its sensor-file entry's range_offset_m, "
                   "azimuth_offset_deg and time_offset_s)", file=file)

@@ -446,7 +446,8 @@ class _Decoder:
         self.problems = Problems()
         self.rows: list[tuple] = []  # one tuple per row, in the order of _COLUMNS
         self._memo: dict[tuple, Any] = {}
-        self._resync_memo: tuple[Any, int, int | None] | None = None
+        # the last search: (data, headers only, from, found)
+        self._resync_memo: tuple[Any, bool, int, int | None] | None = None
         self._fed = 0  # bytes fed so far, for the work limit of feed()
         self._wasted = 0  # bytes parsed for no block (checks, failed blocks): the limit's
         self._wasted_records = 0  # records parsed (or failed on) for no block, the same

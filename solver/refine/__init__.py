@@ -350,8 +350,8 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
         # no reference for the sensors: plots out of reach, stretches the bounds bend off
         misfit = misfit_stretches(np.where(data.weight > 0, quad_end, 0.0)[plot_node],
                                   table.t, sol, bounds, st.outlier_gate, plot_node)
-        lever = None if at_plots_own.cov is None else leverages(  # along the radar's range:
-            data.weighed_info()[plot_node], data.d_range[plot_node],  # ray is the free heights
+        lever = None if at_plots_own.cov is None else leverages(
+            data.weighed_info()[plot_node], data.d_range[plot_node],
             plot_covariances(cov_nodes, sol, biases, data, variant, delta, plot_node))
         rec.residuals = plot_residuals(table, at_plots_own, rejected, biases, bias_sensors,
                                        misfit, lever, unreachable=impossible)

@@ -91,18 +91,19 @@ MIN_SPEED_FOR_TRACK_AXES = 1.0
 """m/s: below it a state has no direction to split a position residual along (NaN there)."""
 
 
-def leverages(info: FloatArray, ray: FloatArray, cov: FloatArray) -> FloatArray:
-    """``(n, 2)`` share of each plot's error the track absorbs along its ray and across it:
+def leverages(info: FloatArray, d_range: FloatArray, cov: FloatArray) -> FloatArray:
+    """``(n, 2)`` share of each plot's error the track absorbs along its range and across it:
     ``lambda_u u^T P u`` and ``lambda_w w^T P w`` with ``P`` the covariance of the position the
     track predicts for the plot (:func:`solver.refine.covariance.plot_covariances`), ``u`` the
-    ray's direction (``w`` across it) and ``lambda`` the plot's weight (``info``: the entries
-    ``(a, b, c)`` of its 2x2 weight) along each; a plot without a ray (a position plot, a
-    circle) gets half its total ``tr(M P)`` each."""
+    direction of ``d_range`` (the plot's position over its slant range; ``w`` across it) and
+    ``lambda`` the plot's weight (``info``: the entries ``(a, b, c)`` of its 2x2 weight) along
+    each; a plot without a range (a position plot, a circle) gets half its total ``tr(M P)``
+    each."""
     a, b, c = info.T
-    length = np.hypot(*ray.T)
+    length = np.hypot(*d_range.T)
     has = length > 0
-    ux = np.where(has, ray[:, 0] / np.where(has, length, 1.0), 1.0)
-    uz = np.where(has, ray[:, 1] / np.where(has, length, 1.0), 0.0)
+    ux = np.where(has, d_range[:, 0] / np.where(has, length, 1.0), 1.0)
+    uz = np.where(has, d_range[:, 1] / np.where(has, length, 1.0), 0.0)
     pxx, pxz, pzz = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
 
     def along(vx: FloatArray, vz: FloatArray) -> FloatArray:
