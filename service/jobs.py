@@ -35,6 +35,7 @@ import sqlite3
 import threading
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -419,6 +420,7 @@ class JobRunner:
         self._running: dict[str, _DaskPool | None] = {}
         self._solving: set[str] = set()  # jobs inside reconstruct_many (writing track parts)
         self._cancelled: set[str] = set()
+        self._outputs_due: deque[str] = deque()  # cancelled jobs whose outputs a stop cut
         self._client: Any = None
         self._cluster: Any = None
         self._client_lock = threading.Lock()
@@ -449,12 +451,17 @@ class JobRunner:
             return
         self.unavailable = None
         resumed = self.store.requeue_unfinished()
+        self._outputs_due = deque(j.id for j in reversed(self.store.recent(1 << 62, "cancelled"))
+                                  if self._outputs_cut(j.id))
         known = self.store.ids()
         for d in (self.root / "jobs").iterdir():
             if d.name not in known:  # a post interrupted before its 202 (or a deleted job)
                 shutil.rmtree(d, ignore_errors=True)
         if resumed:
             LOGGER.info("resuming jobs", extra={"fields": {"jobs": resumed}})
+        if self._outputs_due:
+            LOGGER.info("writing cancelled jobs' outputs", extra={"fields": {
+                "jobs": list(self._outputs_due)}})
         self._stopping = False
         for i in range(self.settings.jobs_max_running):
             t = threading.Thread(target=self._loop, name=f"job-runner-{i}", daemon=True)
@@ -545,6 +552,22 @@ class JobRunner:
             with self._wake:
                 if self._stopping:
                     return
+                if self._outputs_due:
+                    job_id = self._outputs_due.popleft()
+                    self._running[job_id] = None
+                else:
+                    job_id = None
+            if job_id is not None:
+                try:
+                    self._write_cut_outputs(job_id)
+                finally:
+                    with self._wake:
+                        self._running.pop(job_id, None)
+                        self._wake.notify_all()
+                continue
+            with self._wake:
+                if self._stopping:
+                    return
                 try:
                     job = self._db().claim()
                 except Exception as e:  # e.g. the disk full: the runner lives on and retries
@@ -607,20 +630,12 @@ class JobRunner:
         began = time.monotonic()
         settings = self.options(job.id)
         try:
-            recording = next((d / "inputs").glob("recording.*"))
-            loaded = load(recording, d / "inputs" / "sensors.json",
-                          max_speed=settings.config().bounds.v[1])
+            loaded, tracks = self._load(job.id, settings)
             if redone:
                 loaded.problems.add("software_changed", "job", f"resumed by other software "
                                     f"(version {software()['version']}, solver sources "
                                     f"changed): its {redone} finished track(s) were redone, "
                                     "so every track is this version's")
-            chosen = Selection(self.aircraft(job.id))
-            tracks = list(chosen.filter(loaded.tracks))
-            for key in chosen.missing():
-                loaded.problems.add("aircraft_not_found", "options.aircraft",
-                                    f"{key} is not in the recording (or its track is too "
-                                    "short: see short_track)")
         except (InputError, ValueError, OSError, StopIteration) as e:
             reason = self._public(job.id, (
                 f"{format_loc(e.loc)} {e.message}" if isinstance(e, InputError)
@@ -641,10 +656,10 @@ class JobRunner:
             # the status shows a few examples)
             (out / "problems.txt").write_text(loaded.problems.summary() + "\n",
                                               encoding="utf-8")
-            (out / "summary.json").write_text(json.dumps({
+            _write_whole(out / "summary.json", json.dumps({
                 "tracks": 0, "done": 0, "failed": 0, "plots": 0, "rows_in_recording": 0,
                 "problems": dict(loaded.problems.counts), "failures": {},
-                "error": self._public(job.id, reason)}, indent=1) + "\n", encoding="utf-8")
+                "error": self._public(job.id, reason)}, indent=1) + "\n")
             self._db().finish(job.id, "failed", self._public(job.id, reason))
             return
         if self._stop_requested(job.id):
@@ -706,6 +721,21 @@ class JobRunner:
             "outputs_s": round(time.monotonic() - solved, 3),
             **({"error": reason[:300]} if reason else {})}})
 
+    def _load(self, job_id: str, settings: RunSettings) -> tuple[Any, list[Any]]:
+        """The job's recording read and split, and its chosen tracks (an aircraft asked for
+        and not found is a problem of the recording's)."""
+        d = self.job_dir(job_id)
+        recording = next((d / "inputs").glob("recording.*"))
+        loaded = load(recording, d / "inputs" / "sensors.json",
+                      max_speed=settings.config().bounds.v[1])
+        chosen = Selection(self.aircraft(job_id))
+        tracks = list(chosen.filter(loaded.tracks))
+        for key in chosen.missing():
+            loaded.problems.add("aircraft_not_found", "options.aircraft",
+                                f"{key} is not in the recording (or its track is too "
+                                "short: see short_track)")
+        return loaded, tracks
+
     def _same_software(self, job_id: str, out: Path) -> int:
         """Keep ``out/software.json`` (:func:`solver.run_settings.software`); a job resumed by
         other software (the service upgraded while it ran) has its finished tracks removed,
@@ -763,6 +793,24 @@ class JobRunner:
             LOGGER.exception("cancelled job's outputs failed", extra={"fields": {
                 "job": job_id}})
 
+    def _outputs_cut(self, job_id: str) -> bool:
+        """Whether a cancelled job finished tracks but has no whole-job outputs: the service
+        was killed after the DELETE and before they were written (its results were 409 for
+        good; the summary is written last, whole)."""
+        return (not (self.job_dir(job_id) / "out" / "summary.json").is_file()
+                and bool(self.progress(job_id).entries))
+
+    def _write_cut_outputs(self, job_id: str) -> None:
+        """The whole-job outputs of a cancelled job whose service was killed before it wrote
+        them (:meth:`_outputs_cut`), from its inputs and finished tracks."""
+        try:
+            loaded, tracks = self._load(job_id, self.options(job_id))
+            self._finish_outputs(job_id, loaded, _mode_c_offsets(tracks), cancelled=True)
+            LOGGER.info("cancelled job's outputs written", extra={"fields": {"job": job_id}})
+        except Exception:  # e.g. deleted meanwhile: the finished tracks stay readable
+            LOGGER.exception("cancelled job's outputs failed", extra={"fields": {
+                "job": job_id}})
+
     def _finish_outputs(self, job_id: str, loaded: Any, mode_c_offsets: list[float],
                         cancelled: bool = False,
                         rates: tuple[float, float, float] | None = None) -> None:
@@ -815,8 +863,7 @@ class JobRunner:
         warned = output_state(out)  # and warnings.csv: every track's warnings
         summary.update(tracks_with_warnings=warned["tracks_with_warnings"],
                        warnings=warned["warnings"])
-        (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n",
-                                          encoding="utf-8")
+        _write_whole(out / "summary.json", json.dumps(summary, indent=1) + "\n")
 
     # -- cancelling and deleting
 
@@ -1029,6 +1076,14 @@ def _lock(path: Path) -> IO[bytes] | None:
         f.close()
         return None
     return f
+
+
+def _write_whole(path: Path, text: str) -> None:
+    """``text`` written to ``path`` whole or not at all (a kill mid-write leaves the old file
+    or none): a job's summary.json says its whole-job results are there."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
 
 
 def _read_json(path: Path) -> Any:
