@@ -10,6 +10,7 @@ import copy
 import csv
 import io
 import json
+import shutil
 import time
 import zipfile
 from pathlib import Path
@@ -94,6 +95,21 @@ def test_pcapng_capture_job_runs_to_done(client):
     assert status["tracks_total"] == status["tracks_done"] == len(FLIGHTS)
     assert status["problems"]["counts"] == {"truncated_packet": 1}
     assert status["plots"] == status["plots_done"] == status["rows"] > 0.95 * len(enc.plots)
+
+
+def test_an_ioss_recording_job_runs_to_done(client):
+    """An IOSS (FINAL) recording (frames of a recorder around the data blocks; named .ff) is a
+    recording: every plot read, every track done once."""
+    from test_io_framing import framed
+
+    enc = encode_recording(duration=60.0)
+    r = upload(client, framed(enc.blocks, 2), name="day.ff")
+    assert r.status_code == 202, r.text
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "done", status
+    assert status["tracks_total"] == status["tracks_done"] == len(FLIGHTS)
+    assert status["problems"]["counts"] == {}
+    assert status["plots"] == status["plots_done"] == status["rows"] == len(enc.plots)
 
 
 def test_asterix_recording_job_runs_to_done_with_every_track_once(client):
@@ -561,9 +577,10 @@ def _store_settings(client, tmp_path) -> Settings:
 
 
 def _upload_until_a_track_is_done(service) -> tuple[str, dict]:
-    """Upload a 300-s recording of MANY aircraft; its job's location and status once a track
-    is done."""
-    loc = upload(service, encode_recording(duration=300.0, flights=MANY).data).headers[
+    """Upload a 600-s recording of MANY aircraft; its job's location and status once a track
+    is done (tracks are committed in batches of up to a second: of 300-s tracks, all six were
+    once committed in the first, and the job ended before the stop its test meant to make)."""
+    loc = upload(service, encode_recording(duration=600.0, flights=MANY).data).headers[
         "location"]
     end = time.monotonic() + 120
     while (before := service.get(loc).json())["tracks_done"] < 1:
@@ -946,6 +963,35 @@ def test_a_second_service_on_the_same_data_dir_is_refused(client):
             "message"]
         assert other.get("/healthz").status_code == 200
     assert client.get("/v1/jobs/x").status_code == 404  # the first one serves on
+
+
+def test_a_cancelled_jobs_outputs_cut_by_a_kill_are_written_by_the_next_service(client,
+                                                                                  tmp_path):
+    """A service killed after a DELETE and before the cancelled job's whole-job outputs
+    (their files removed here, as a kill leaves them: the summary is written last, whole)
+    left its results 409 for good; the next service on the data directory writes them."""
+    settings = _store_settings(client, tmp_path)
+    with TestClient(create_app(settings)) as first:
+        loc, _ = _upload_until_a_track_is_done(first)
+        cancelled = first.delete(loc).json()
+        out = tmp_path / "jobs" / cancelled["id"] / "out"
+    written = {p.name: p.read_bytes() for p in (out / "export").iterdir()}
+    assert "tracks.parquet" in written
+    for name in ("summary.json", "sensors.json", "map.png"):
+        (out / name).unlink()
+    shutil.rmtree(out / "export")
+    with TestClient(create_app(settings)) as second:
+        end = time.monotonic() + 60
+        while (summary := second.get(loc + "/results/summary.json")).status_code == 409:
+            assert time.monotonic() < end, "the cut outputs were not written again"
+            time.sleep(0.1)
+        assert summary.status_code == 200, summary.text
+        assert summary.json()["cancelled"] and summary.json()["done"] == cancelled["tracks_done"]
+        assert second.get(loc).json()["state"] == "cancelled"
+        assert second.get(loc + "/map.png").status_code == 200
+        assert second.get(loc + "/sensors").status_code == 200
+        assert second.get(loc + "/results/tracks.parquet").content == written["tracks.parquet"]
+        assert second.delete(loc).status_code == 204
 
 
 def test_a_stopped_service_resumes_its_running_job(client, tmp_path):
