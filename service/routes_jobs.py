@@ -131,9 +131,10 @@ _CREATE_BODY = {
             "type": "object", "required": ["recording", "sensors"],
             "properties": {
                 "recording": {"type": "string", "format": "binary", "description":
-                              "The recording: raw ASTERIX (CAT048/021/034), a pcap or pcapng "
-                              "capture of it, or a plot table (.csv or .parquet; the file "
-                              "name's suffix or the content tells which)."},
+                              "The recording: raw ASTERIX (CAT048/021/034), an IOSS (FINAL) "
+                              "recording or a pcap or pcapng capture of it, or a plot table "
+                              "(.csv or .parquet; the file name's suffix or the content tells "
+                              "which)."},
                 "sensors": {"type": "string", "format": "binary", "description":
                             "The sensor file (JSON, recordings.md): a file part or a text "
                             "field."},
@@ -241,7 +242,7 @@ async def _save_upload(request: Request, inputs: Path, limit: int) -> None:
         recording, sensors = form.get("recording"), form.get("sensors")
         if not isinstance(recording, UploadFile):
             raise InputError(("recording",), "is required: a file part with the recording "
-                             "(raw ASTERIX, pcap, pcapng, CSV or Parquet)")
+                             "(raw ASTERIX, IOSS/FINAL, pcap, pcapng, CSV or Parquet)")
         if sensors is None:
             raise InputError(("sensors",), "is required: the sensor file (JSON) as a file "
                              "part or a text field")

@@ -437,6 +437,49 @@ def test_unknown_sac_sic_and_category_are_counted_and_skipped():
     assert rec.records == len(rec.rows) + sum(rec.problems.dropped.values()) + rec.blocks[34]
 
 
+def _with_cat062(blocks: list[bytes], seed: int = 7) -> list[bytes]:
+    """``blocks`` with a CAT062 block of 60-400 random bytes after each (a system track
+    processor's output recorded beside the plots; its records are never parsed here)."""
+    rng = np.random.default_rng(seed)
+    out: list[bytes] = []
+    for b in blocks:
+        n = int(rng.integers(60, 400))
+        out += [b, bytes([62, n >> 8, n & 0xFF]) + rng.integers(0, 256, n - 3, np.uint8).tobytes()]
+    return out
+
+
+def test_blocks_of_undecoded_categories_are_skipped_whole_and_their_bytes_counted():
+    enc = encode_recording()
+    blocks = _with_cat062(enc.blocks)
+    rec = decode_blocks(b"".join(blocks), SENSORS)
+    assert rec.problems.counts == {"unknown_category": len(enc.blocks)}
+    (cat,) = rec.problems.entries
+    assert cat.skipped_bytes == sum(len(b) for b in blocks[1::2])
+    assert f"{cat.skipped_bytes} bytes skipped" in str(cat)
+    assert_same_plots(rec.rows, enc.plots)
+
+
+@pytest.mark.parametrize("bit", range(16))
+def test_a_flipped_length_bit_of_an_undecoded_block_loses_no_plots(bit):
+    """An undecoded block's declared length cannot be checked by its records; its successors'
+    headers must chain (UNDECODED_CHAIN). Trusting one plausible successor, such a flip lost up
+    to a third of a recording's rows (a tester's sweep)."""
+    enc = encode_recording()
+    blocks = _with_cat062(enc.blocks)
+    lost = []
+    for k in range(1, len(blocks) - 4, 2):  # every CAT062 block in turn
+        b = bytearray(blocks[k])
+        length = ((b[1] << 8) | b[2]) ^ (1 << bit)
+        b[1], b[2] = length >> 8, length & 0xFF
+        data = b"".join([*blocks[:k], bytes(b), *blocks[k + 1:]])
+        rec = decode_blocks(data, SENSORS)
+        assert rec.problems.counts["unknown_category"] >= 1
+        lost.append(len(enc.plots) - len(rec.rows))
+        if lost[-1] == 0:
+            assert_same_plots(rec.rows, enc.plots)
+    assert max(lost) == 0, f"plots lost per damaged block: {lost}"
+
+
 def test_flagged_and_incomplete_reports_are_counted():
     rec_bad_fl = C048.cv_record.create({
         "010": (("SAC", 25), ("SIC", 201)), "140": (10.0, "s"),

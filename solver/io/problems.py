@@ -19,7 +19,9 @@ MAX_ENTRIES_PER_KIND = 100
 class Problem:
     """One problem: ``kind`` (stable name, e.g. ``"truncated_block"``), ``where`` (the first
     location, e.g. ``"byte 1234"``, ``"row 17"``, ``"aircraft mode_s:4CA2D1"``), a message, how
-    many times it occurred and how many plots (or records, rows) it cost."""
+    many times it occurred, how many plots (or records, rows) it cost and how many bytes of the
+    input it skipped where that is known and no message says it (blocks of a category not
+    decoded)."""
 
     kind: str
     where: str
@@ -27,11 +29,13 @@ class Problem:
     count: int = 1
     dropped: int = 0
     key: str | None = None
+    skipped_bytes: int = 0
 
     def __str__(self) -> str:
         more = f" ({self.count} times)" if self.count > 1 else ""
         lost = f"; {self.dropped} dropped" if self.dropped else ""
-        return f"{self.kind} at {self.where}: {self.message}{more}{lost}"
+        skipped = f"; {self.skipped_bytes} bytes skipped" if self.skipped_bytes else ""
+        return f"{self.kind} at {self.where}: {self.message}{more}{lost}{skipped}"
 
 
 @dataclass
@@ -46,7 +50,7 @@ class Problems:
     _per_kind: dict[str, int] = field(default_factory=dict, repr=False)
 
     def add(self, kind: str, where: str, message: str, *, key: str | None = None,
-            dropped: int = 0) -> None:
+            dropped: int = 0, skipped_bytes: int = 0) -> None:
         """Record a problem; with ``key``, occurrences of the same ``(kind, key)`` merge into
         the first entry (its ``where`` and ``message`` stay the first occurrence's)."""
         self.counts[kind] = self.counts.get(kind, 0) + 1
@@ -55,10 +59,11 @@ class Problems:
             entry = self._keyed[(kind, key)]
             entry.count += 1
             entry.dropped += dropped
+            entry.skipped_bytes += skipped_bytes
             return
         if self._per_kind.get(kind, 0) >= MAX_ENTRIES_PER_KIND:
             return
-        self._keep(Problem(kind, where, message, 1, dropped, key))
+        self._keep(Problem(kind, where, message, 1, dropped, key, skipped_bytes))
 
     def _keep(self, entry: Problem) -> None:
         self._per_kind[entry.kind] = self._per_kind.get(entry.kind, 0) + 1
@@ -74,8 +79,10 @@ class Problems:
             if first is not None:
                 first.count += e.count
                 first.dropped += e.dropped
+                first.skipped_bytes += e.skipped_bytes
             elif self._per_kind.get(e.kind, 0) < MAX_ENTRIES_PER_KIND:
-                self._keep(Problem(e.kind, e.where, e.message, e.count, e.dropped, e.key))
+                self._keep(Problem(e.kind, e.where, e.message, e.count, e.dropped, e.key,
+                                   e.skipped_bytes))
         for k, n in other.counts.items():
             self.counts[k] = self.counts.get(k, 0) + n
         for k, n in other.dropped.items():

@@ -1,0 +1,128 @@
+"""Recorders' frames around ASTERIX data blocks -> ``(byte offset, data blocks)`` pieces.
+
+Recording systems store the data blocks they receive wrapped in frames of their own that
+carry the time of reception. Read here: the **IOSS** framing, also called the **FINAL**
+format (``*.ff`` files, read by SASS-C and by jASTERIX as ``--framing ioss``; layout as in
+jASTERIX's ``definitions/framings/ioss.json``)::
+
+    length (2 bytes, big-endian: the whole frame) | a byte | board number | recording day
+    | time of reception (3 bytes, 1/100 s since midnight) | data blocks | 4 padding bytes
+
+so a frame of ``length`` bytes holds ``length - 12`` bytes of data blocks from its 9th byte.
+A file is taken for IOSS when its first frames check out (:func:`is_framed`); otherwise it is
+a raw file or a capture (:mod:`solver.io.asterix`, :mod:`solver.io.pcap`). The data blocks of
+each frame are decoded as a capture's datagrams are, with their offsets in the file (problems
+name the file's bytes). A damaged frame header is reported (``bad_frame``) and the walk goes on
+at the next place where a frame checks out: every offset is looked at once (linear time).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+from .problems import Problems
+
+FRAME_HEADER_BYTES = 8
+FRAME_PADDING_BYTES = 4
+FRAME_OVERHEAD = FRAME_HEADER_BYTES + FRAME_PADDING_BYTES
+FRAMES_CHECKED = 2
+"""Frames that must be sound at the start of a file for it to be taken for IOSS: a raw
+recording's first bytes (a category, a block length) almost never are, with data blocks 8
+bytes on that fill the frame exactly."""
+DAMAGED_PIECE_BYTES = 1 << 16
+"""A damaged stretch is given to the decoder in pieces of at most this many bytes (memory)."""
+CHECKED_BLOCKS = 8
+"""Data block headers of a frame checked for it to be sound (all of them where it holds fewer):
+they must follow one another within it, and fill it exactly where they are all it holds. Bounds
+the work per offset of looking for the next frame after damage."""
+
+
+def _blocks_fill(data: Any, at: int, stop: int) -> bool:
+    """Whether data block headers follow one another from ``at`` within ``stop`` (each a
+    length of at least 3; any category: the decoder reports those it does not decode), for
+    :data:`CHECKED_BLOCKS` blocks or to exactly ``stop``."""
+    for _ in range(CHECKED_BLOCKS):
+        if at == stop:
+            return True
+        if stop - at < 3:
+            return False
+        length = (data[at + 1] << 8) | data[at + 2]
+        if length < 3 or at + length > stop:
+            return False
+        at += length
+    return True
+
+
+def _frame_length(data: Any, pos: int) -> int | None:
+    """The length the frame at ``pos`` declares, where it holds its header, padding and a data
+    block header and ends within the data; else None."""
+    if len(data) - pos < FRAME_OVERHEAD + 3:
+        return None
+    length = (data[pos] << 8) | data[pos + 1]
+    return length if length >= FRAME_OVERHEAD + 3 and pos + length <= len(data) else None
+
+
+def _sound(data: Any, pos: int) -> bool:
+    """A frame starts at ``pos``: it fits the data, its data blocks fill it (:func:`_blocks_fill`)
+    and the next frame fits the data too (or the data end)."""
+    length = _frame_length(data, pos)
+    return (length is not None and _blocks_fill(data, pos + FRAME_HEADER_BYTES,
+                                                pos + length - FRAME_PADDING_BYTES)
+            and (pos + length == len(data) or _frame_length(data, pos + length) is not None))
+
+
+def is_framed(head: Any) -> bool:
+    """Whether a file starting with ``head`` (its first 64 KiB and 3 bytes, or all of it) is an
+    IOSS (FINAL) recording: :data:`FRAMES_CHECKED` sound frames one after the other, or fewer
+    up to the end of ``head`` (the last one checked may run past a ``head`` that is not the
+    whole file)."""
+    pos = 0
+    for k in range(FRAMES_CHECKED):
+        if pos == len(head) and pos > 0:
+            return True
+        length = _frame_length(head, pos)
+        if length is None and k > 0 and len(head) - pos >= FRAME_OVERHEAD + 3:
+            length = (head[pos] << 8) | head[pos + 1]  # runs past the head: its first block
+            at = pos + FRAME_HEADER_BYTES
+            return length >= FRAME_OVERHEAD + 3 and ((head[at + 1] << 8) | head[at + 2]) >= 3
+        if length is None or not _blocks_fill(head, pos + FRAME_HEADER_BYTES,
+                                              pos + length - FRAME_PADDING_BYTES):
+            return False
+        pos += length
+    return True
+
+
+def iter_frames(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
+    """``(byte offset in the file, data blocks)`` of every frame of an IOSS recording
+    (``data``: bytes or a memory map). A frame is taken as declared where it fits the data
+    and the next one does too (or the file ends), or its data blocks fill it. Elsewhere the
+    frame is reported (``truncated_frame`` at the end of the file, else ``bad_frame``), the
+    walk goes on at the next sound frame, and the bytes in between from the damaged frame's
+    9th on are still given to the decoder, which reports what it cannot read: nothing is left
+    out silently."""
+    pos, end = 0, len(data)
+    while pos < end:
+        length = _frame_length(data, pos)
+        if length is not None and (pos + length == end
+                                   or _frame_length(data, pos + length) is not None
+                                   or _blocks_fill(data, pos + FRAME_HEADER_BYTES,
+                                                   pos + length - FRAME_PADDING_BYTES)):
+            yield pos + FRAME_HEADER_BYTES, bytes(
+                data[pos + FRAME_HEADER_BYTES:pos + length - FRAME_PADDING_BYTES])
+            pos += length
+            continue
+        q = next((p for p in range(pos + 1, end) if _sound(data, p)), None)
+        stop = end if q is None else q
+        declared = (data[pos] << 8) | data[pos + 1] if end - pos >= 2 else 0
+        if q is None and pos + declared > end:
+            problems.add("truncated_frame", f"byte {pos}", f"frame declares {declared} bytes, "
+                         f"only {end - pos} remain: what it holds is read")
+        else:
+            problems.add("bad_frame", f"byte {pos}", f"no IOSS frame checks out here "
+                         f"(declared length {declared}); {stop - pos} bytes read as data "
+                         "blocks up to " + (f"the next frame at byte {q}" if q is not None
+                                            else "the end"))
+        for a in range(pos + FRAME_HEADER_BYTES, stop, DAMAGED_PIECE_BYTES):
+            yield a, bytes(data[a:min(a + DAMAGED_PIECE_BYTES, stop)])
+        pos = stop
