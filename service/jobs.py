@@ -804,6 +804,8 @@ class JobRunner:
         """The whole-job outputs of a cancelled job whose service was killed before it wrote
         them (:meth:`_outputs_cut`), from its inputs and finished tracks."""
         try:
+            if self._db().get(job_id) is None:  # deleted before its turn
+                return
             loaded, tracks = self._load(job_id, self.options(job_id))
             self._finish_outputs(job_id, loaded, _mode_c_offsets(tracks), cancelled=True)
             LOGGER.info("cancelled job's outputs written", extra={"fields": {"job": job_id}})
