@@ -437,6 +437,25 @@ def test_unknown_sac_sic_and_category_are_counted_and_skipped():
     assert rec.records == len(rec.rows) + sum(rec.problems.dropped.values()) + rec.blocks[34]
 
 
+def test_a_slant_range_beyond_256_nm_is_read_from_the_reserved_expansion_field():
+    """I020 ERR set: I040's RHO stays at its largest value (255.996 NM) and the slant range is
+    the RE field's ERR (as in jASTERIX's CAT048 1.23 sample, 257 NM); without a readable RE
+    the report is left out, counted."""
+    err = ((("TYP", 5), ("SIM", 0), ("RDP", 0), ("SPI", 0), ("RAB", 0), None),
+           (("TST", 0), ("ERR", 1), ("XPP", 0), ("ME", 0), ("MI", 0), ("FOEFRI", 0), None))
+    re = ast.Ref_048_1_13.cv_expansion.create({"ERR": (257.0, "NM")}).unparse().to_bytes()
+    far = cat048("R1", 36_000.0, 255.99, 30.0, 350.0, 0xABCDEF, 7)
+    records = [C048.cv_record.create({**{k: far.get_item(k) for k in ("010", "140", "040")},
+                                      "020": err, "RE": re}),
+               C048.cv_record.create({**{k: far.get_item(k) for k in ("010", "140", "040")},
+                                      "020": err}),
+               cat048("R1", 36_001.0, 200.0, 30.0, 350.0, 0xABCDEF, 7)]
+    rec = decode_blocks(C048.create(records).unparse().to_bytes(), SENSORS)
+    assert rec.rows.range_m.tolist() == [257.0 * 1852.0, pytest.approx(200.0 * 1852.0, abs=4)]
+    assert rec.problems.counts == {"bad_value": 1} and rec.problems.dropped["bad_value"] == 1
+    assert "RE ERR" in rec.problems.entries[0].message
+
+
 def _with_cat062(blocks: list[bytes], seed: int = 7) -> list[bytes]:
     """``blocks`` with a CAT062 block of 60-400 random bytes after each (a system track
     processor's output recorded beside the plots; its records are never parsed here)."""
@@ -456,6 +475,24 @@ def test_blocks_of_undecoded_categories_are_skipped_whole_and_their_bytes_counte
     (cat,) = rec.problems.entries
     assert cat.skipped_bytes == sum(len(b) for b in blocks[1::2])
     assert f"{cat.skipped_bytes} bytes skipped" in str(cat)
+    assert_same_plots(rec.rows, enc.plots)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_undecoded_blocks_of_categories_libasterix_does_not_define_are_skipped_whole(seed):
+    """CAT030 / CAT252 (ARTAS) blocks are recognised by their headers: a sound undecoded block
+    before one is not distrusted (the reader resynchronised inside a CAT020 block followed by
+    a CAT030 one and read CAT034 records of its bytes: jASTERIX's samples concatenated)."""
+    rng = np.random.default_rng(seed)
+    enc = encode_recording()
+
+    def block(cat: int, n: int) -> bytes:
+        return bytes([cat, n >> 8, n & 0xFF]) + rng.integers(0, 256, n - 3, np.uint8).tobytes()
+
+    head = [block(20, 101), block(30, 64), block(252, 40), block(62, 80)]
+    rec = decode_blocks(b"".join(head + enc.blocks[:5] + [block(30, 50)] + enc.blocks[5:]),
+                        SENSORS)
+    assert rec.problems.counts == {"unknown_category": 5}, rec.problems.summary()
     assert_same_plots(rec.rows, enc.plots)
 
 

@@ -13,15 +13,17 @@ import pytest
 from test_io_asterix import SENSORS, assert_same_plots, encode_recording
 
 from solver.io.asterix import decode_blocks, looks_like_recording, read_recording
-from solver.io.framing import is_framed, iter_frames
+from solver.io.framing import frame_header_bytes, is_framed, iter_frames
 from solver.io.problems import Problems
 
 
-def frame(blocks: bytes, time_s: float, board: int = 3, day: int = 27) -> bytes:
-    """One IOSS frame around ``blocks``."""
-    length = 8 + len(blocks) + 4
+def frame(blocks: bytes, time_s: float, board: int = 3, day: int = 27,
+          seq: int | None = None) -> bytes:
+    """One IOSS frame around ``blocks`` (with ``seq``: the variant with a sequence number)."""
+    length = 8 + len(blocks) + 4 + (0 if seq is None else 4)
     cs = round(time_s * 100)
-    return (struct.pack(">HBBB", length, 0, board, day) + cs.to_bytes(3, "big") + blocks
+    return (struct.pack(">H", length) + (b"" if seq is None else struct.pack(">I", seq))
+            + struct.pack(">BBB", 0, board, day) + cs.to_bytes(3, "big") + blocks
             + b"\xa5" * 4)
 
 
@@ -108,3 +110,23 @@ def test_garbage_is_not_a_framed_recording_and_reading_it_is_linear():
     assert sum(len(p) for _, p in pieces) >= len(junk)  # the junk went to the decoder
     rec = read_recording(data, SENSORS)
     assert len(rec.rows) >= len(enc.plots) - 3  # a false frame in the junk may cut one block
+
+
+def test_the_sequence_numbered_variant_and_empty_frames_are_read():
+    """jASTERIX's ioss_seq framing (a 4-byte sequence number after the length: 12-byte
+    headers) and empty frames (a recorder's frame of no data block: length 12), also at the
+    start of a file; a tester found both read as raw data (0 of 3 reports)."""
+    enc = encode_recording()
+    seq = b"".join(frame(b, 36_000.0 + k, seq=1000 + k) for k, b in enumerate(enc.blocks))
+    assert frame_header_bytes(seq) == 12 and frame_header_bytes(framed(enc.blocks)) == 8
+    rec = read_recording(seq, SENSORS)
+    assert not rec.problems, rec.problems.summary()
+    assert_same_plots(rec.rows, enc.plots)
+    empty = frame(b"", 35_999.0)
+    assert len(empty) == 12
+    gappy = b"".join([empty, empty, *[frame(b, 36_000.0 + k) + (empty if k % 5 == 0 else b"")
+                                      for k, b in enumerate(enc.blocks)]])
+    assert frame_header_bytes(gappy) == 8
+    rec = read_recording(gappy, SENSORS)
+    assert not rec.problems, rec.problems.summary()
+    assert_same_plots(rec.rows, enc.plots)

@@ -19,7 +19,8 @@ Containers (:func:`read_recording` tells them apart by the first bytes):
 Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=`` picks others):
 
 - CAT048 target reports: I010 SAC/SIC -> sensor (sensor file), I140 time of day, I040 measured
-  slant range (1/256 NM -> m) and azimuth (360/2^16 deg), I090 flight level (1/4 FL) ->
+  slant range (1/256 NM -> m; beyond 256 NM, where I020 ERR is set, the Reserved Expansion
+  field's ERR) and azimuth (360/2^16 deg), I090 flight level (1/4 FL) ->
   ``flight_level`` and the pressure altitude ``altitude_m = FL * 30.48`` (used only when its
   V and G bits say validated and not garbled), I220 Mode S address, I070 Mode 3/A (validated,
   not garbled), I161 track number. Reports flagged simulated or test (I020 SIM, TST) or from a
@@ -78,7 +79,7 @@ import numpy as np
 from asterix.base import Bits, ParsingMode, Unsigned
 
 from ..sensors import PositionSensor, RadarSensor
-from .framing import is_framed, iter_frames
+from .framing import frame_header_bytes, is_framed, iter_frames
 from .pcap import is_capture, iter_udp_payloads
 from .problems import Problems
 from .sensors_file import SensorSet
@@ -87,8 +88,14 @@ from .tables import DAY_S, FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
 NM_M = 1852.0
 DEFAULT_EDITIONS: dict[int, Any] = {48: ast.Cat_048_1_32, 21: ast.Cat_021_2_7,
                                     34: ast.Cat_034_1_29}
-KNOWN_CATEGORIES = frozenset(ast.manifest["CATS"])
-"""Categories libasterix knows (used only to recognise block headers when resynchronising)."""
+REF_048 = ast.Ref_048_1_13
+"""CAT048's Reserved Expansion field (read for the extended range, ERR)."""
+KNOWN_CATEGORIES = frozenset(ast.manifest["CATS"]) | {30, 31, 32, 252}
+"""Categories whose block headers are recognised (when resynchronising, and in the chain of
+headers an undecoded block is trusted by): libasterix's and those of ARTAS and other systems
+it does not define (CAT030, CAT031, CAT032, CAT252), skipped as ``unknown_category``. A sound
+CAT020 block followed by a CAT030 one was distrusted: the reader resynchronised inside it and
+read nine CAT034 records of its bytes (a tester's, on jASTERIX's samples)."""
 
 @dataclass
 class ServiceStats:
@@ -231,9 +238,8 @@ def _pieces(data: bytes | mmap.mmap, problems: Problems
     recording."""
     if is_capture(data):
         return iter_udp_payloads(data, problems)
-    if is_framed(data):
-        return iter_frames(data, problems)
-    return None
+    header = frame_header_bytes(data)
+    return None if header is None else iter_frames(data, problems, header)
 
 
 def _units(data: bytes | mmap.mmap, chunk_bytes: int
@@ -801,6 +807,30 @@ class _Decoder:
                           key=f"{sensor}/{name}", dropped=1)
         return True
 
+    def _beyond_rho(self, i020: Any) -> bool:
+        """Whether CAT048 I020's ERR (extended range) is set: the slant range is beyond what
+        I040's RHO holds (256 NM) and RHO stays at its largest value."""
+        memo_key = ("020/ERR", i020.unparse().to_bytes())
+        err = self._memo.get(memo_key)
+        if err is None:
+            sub = i020.variation.get_item("ERR")
+            err = self._memo[memo_key] = sub is not None and bool(sub.as_uint())
+        return err
+
+    @staticmethod
+    def _extended_range(re: Any) -> float | None:
+        """The slant range (NM) of CAT048's Reserved Expansion field (ERR, 1/256 NM, its
+        edition 1.13 as libasterix defines it), or None where it has none. A long-range radar's
+        plot beyond 256 NM read at I040's RHO was up to hundreds of metres short (jASTERIX's
+        CAT048 1.23 sample: 257 NM read as 255.996, 1,859 m; a tester's check)."""
+        if re is None:
+            return None
+        parsed = REF_048.cv_expansion.parse(Bits.from_bytes(re.variation.get_bytes()))
+        if isinstance(parsed, ValueError):
+            return None
+        err = parsed[0].get_item("ERR")
+        return None if err is None else float(err.variation.content.as_quantity("NM"))
+
     def _on_ground(self, item: Any, what: str, read: Any) -> int:
         """What ``item`` says of the aircraft (``read(item)``: 1 on the ground, 0 airborne, -1
         not said), read once per raw value; -1 without it."""
@@ -882,7 +912,8 @@ class _Decoder:
         if sensor is None:
             return None
         get = rec.get_item
-        if self._flagged(get("020"), ("SIM", "TST", "RAB"), sensor, at, 48):
+        i020 = get("020")
+        if self._flagged(i020, ("SIM", "TST", "RAB"), sensor, at, 48):
             return None
         i140, i040 = get("140"), get("040")
         if i140 is None:
@@ -894,6 +925,14 @@ class _Decoder:
             return None
         g040 = i040.variation
         rho = self._unsigned(g040.get_item("RHO"), "NM")
+        if i020 is not None and self._beyond_rho(i020):
+            rho = self._extended_range(get("RE"))
+            if rho is None:
+                self.problems.add("bad_value", f"byte {at}", f"CAT048 report of {sensor!r}: "
+                                  "I020 ERR says its slant range is beyond I040's 256 NM, and "
+                                  "no extended range (RE ERR) is readable: left out",
+                                  key=f"{sensor}/err", dropped=1)
+                return None
         theta = self._unsigned(g040.get_item("THETA"), "°")
         fl = np.nan
         i090 = get("090")

@@ -8,8 +8,10 @@ jASTERIX's ``definitions/framings/ioss.json``)::
     length (2 bytes, big-endian: the whole frame) | a byte | board number | recording day
     | time of reception (3 bytes, 1/100 s since midnight) | data blocks | 4 padding bytes
 
-so a frame of ``length`` bytes holds ``length - 12`` bytes of data blocks from its 9th byte.
-A file is taken for IOSS when its first frames check out (:func:`is_framed`); otherwise it is
+so a frame of ``length`` bytes holds ``length - 12`` bytes of data blocks from its 9th byte
+(none in an empty frame); and its variant with a 4-byte sequence number after the length
+(``ioss_seq.json``: a 12-byte header, ``length - 16`` bytes of data blocks).
+A file is taken for IOSS when its first frames check out (:func:`frame_header_bytes`); else it is
 a raw file or a capture (:mod:`solver.io.asterix`, :mod:`solver.io.pcap`). The data blocks of
 each frame are decoded as a capture's datagrams are, with their offsets in the file (problems
 name the file's bytes). A damaged frame header is reported (``bad_frame``) and the walk goes on
@@ -23,13 +25,15 @@ from typing import Any
 
 from .problems import Problems
 
-FRAME_HEADER_BYTES = 8
+FRAME_HEADERS = (8, 12)
+"""Header bytes of the IOSS frames read: without and with the sequence number."""
 FRAME_PADDING_BYTES = 4
-FRAME_OVERHEAD = FRAME_HEADER_BYTES + FRAME_PADDING_BYTES
 FRAMES_CHECKED = 2
-"""Frames that must be sound at the start of a file for it to be taken for IOSS: a raw
-recording's first bytes (a category, a block length) almost never are, with data blocks 8
-bytes on that fill the frame exactly."""
+"""Frames holding data blocks that must be sound at the start of a file for it to be taken for
+IOSS (empty frames before them apart, at most :data:`EMPTY_FRAMES_PASSED`): a raw recording's
+first bytes (a category, a block length) almost never are, with data blocks 8 (or 12) bytes on
+that fill the frame exactly."""
+EMPTY_FRAMES_PASSED = 64
 DAMAGED_PIECE_BYTES = 1 << 16
 """A damaged stretch is given to the decoder in pieces of at most this many bytes (memory)."""
 CHECKED_BLOCKS = 8
@@ -54,65 +58,85 @@ def _blocks_fill(data: Any, at: int, stop: int) -> bool:
     return True
 
 
-def _frame_length(data: Any, pos: int) -> int | None:
-    """The length the frame at ``pos`` declares, where it holds its header, padding and a data
-    block header and ends within the data; else None."""
-    if len(data) - pos < FRAME_OVERHEAD + 3:
+def _frame_length(data: Any, pos: int, header: int) -> int | None:
+    """The length the frame at ``pos`` declares, where it holds its header and padding (and a
+    data block header, unless it is empty) and ends within the data; else None."""
+    if len(data) - pos < header + FRAME_PADDING_BYTES:
         return None
     length = (data[pos] << 8) | data[pos + 1]
-    return length if length >= FRAME_OVERHEAD + 3 and pos + length <= len(data) else None
+    empty = header + FRAME_PADDING_BYTES
+    return length if ((length == empty or length >= empty + 3)
+                      and pos + length <= len(data)) else None
 
 
-def _sound(data: Any, pos: int) -> bool:
+def _sound(data: Any, pos: int, header: int) -> bool:
     """A frame starts at ``pos``: it fits the data, its data blocks fill it (:func:`_blocks_fill`)
     and the next frame fits the data too (or the data end)."""
-    length = _frame_length(data, pos)
-    return (length is not None and _blocks_fill(data, pos + FRAME_HEADER_BYTES,
+    length = _frame_length(data, pos, header)
+    return (length is not None and _blocks_fill(data, pos + header,
                                                 pos + length - FRAME_PADDING_BYTES)
-            and (pos + length == len(data) or _frame_length(data, pos + length) is not None))
+            and (pos + length == len(data) or _frame_length(data, pos + length, header)
+                 is not None))
+
+
+def frame_header_bytes(head: Any) -> int | None:
+    """The header size of :data:`FRAME_HEADERS` with which a file starting with ``head`` (its
+    first 64 KiB and 3 bytes, or all of it) is an IOSS (FINAL) recording: its first frames are
+    whole (:data:`FRAMES_CHECKED` of them with data blocks that fill them, empty ones passed)
+    up to the end of ``head`` (the last one checked may run past a ``head`` that is not the
+    whole file); None for another file."""
+    return next((h for h in FRAME_HEADERS if _framed_with(head, h)), None)
+
+
+def _framed_with(head: Any, header: int) -> bool:
+    pos, full, empty = 0, 0, 0
+    while full < FRAMES_CHECKED and empty <= EMPTY_FRAMES_PASSED:
+        if pos == len(head):
+            return full > 0
+        length = _frame_length(head, pos, header)
+        if length is None and full > 0 and len(head) - pos >= header + FRAME_PADDING_BYTES + 3:
+            length = (head[pos] << 8) | head[pos + 1]  # runs past the head: its first block
+            at = pos + header
+            return (length >= header + FRAME_PADDING_BYTES + 3
+                    and ((head[at + 1] << 8) | head[at + 2]) >= 3)
+        if length is None or not _blocks_fill(head, pos + header,
+                                              pos + length - FRAME_PADDING_BYTES):
+            return False
+        if length == header + FRAME_PADDING_BYTES:
+            empty += 1
+        else:
+            full += 1
+        pos += length
+    return full >= FRAMES_CHECKED
 
 
 def is_framed(head: Any) -> bool:
-    """Whether a file starting with ``head`` (its first 64 KiB and 3 bytes, or all of it) is an
-    IOSS (FINAL) recording: :data:`FRAMES_CHECKED` sound frames one after the other, or fewer
-    up to the end of ``head`` (the last one checked may run past a ``head`` that is not the
-    whole file)."""
-    pos = 0
-    for k in range(FRAMES_CHECKED):
-        if pos == len(head) and pos > 0:
-            return True
-        length = _frame_length(head, pos)
-        if length is None and k > 0 and len(head) - pos >= FRAME_OVERHEAD + 3:
-            length = (head[pos] << 8) | head[pos + 1]  # runs past the head: its first block
-            at = pos + FRAME_HEADER_BYTES
-            return length >= FRAME_OVERHEAD + 3 and ((head[at + 1] << 8) | head[at + 2]) >= 3
-        if length is None or not _blocks_fill(head, pos + FRAME_HEADER_BYTES,
-                                              pos + length - FRAME_PADDING_BYTES):
-            return False
-        pos += length
-    return True
+    """Whether a file starting with ``head`` is an IOSS recording (:func:`frame_header_bytes`)."""
+    return frame_header_bytes(head) is not None
 
 
-def iter_frames(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
+def iter_frames(data: Any, problems: Problems, header: int = FRAME_HEADERS[0]
+                ) -> Iterator[tuple[int, bytes]]:
     """``(byte offset in the file, data blocks)`` of every frame of an IOSS recording
-    (``data``: bytes or a memory map). A frame is taken as declared where it fits the data
-    and the next one does too (or the file ends), or its data blocks fill it. Elsewhere the
-    frame is reported (``truncated_frame`` at the end of the file, else ``bad_frame``), the
-    walk goes on at the next sound frame, and the bytes in between from the damaged frame's
-    9th on are still given to the decoder, which reports what it cannot read: nothing is left
-    out silently."""
+    (``data``: bytes or a memory map; ``header``: its frames' header bytes) but the empty
+    ones. A frame is taken as declared where it fits the data and the next one does too (or
+    the file ends), or its data blocks fill it. Elsewhere the frame is reported
+    (``truncated_frame`` at the end of the file, else ``bad_frame``), the walk goes on at the
+    next sound frame, and the bytes in between from the damaged frame's header's end on are
+    still given to the decoder, which reports what it cannot read: nothing is left out
+    silently."""
     pos, end = 0, len(data)
     while pos < end:
-        length = _frame_length(data, pos)
+        length = _frame_length(data, pos, header)
         if length is not None and (pos + length == end
-                                   or _frame_length(data, pos + length) is not None
-                                   or _blocks_fill(data, pos + FRAME_HEADER_BYTES,
+                                   or _frame_length(data, pos + length, header) is not None
+                                   or _blocks_fill(data, pos + header,
                                                    pos + length - FRAME_PADDING_BYTES)):
-            yield pos + FRAME_HEADER_BYTES, bytes(
-                data[pos + FRAME_HEADER_BYTES:pos + length - FRAME_PADDING_BYTES])
+            if length > header + FRAME_PADDING_BYTES:
+                yield pos + header, bytes(data[pos + header:pos + length - FRAME_PADDING_BYTES])
             pos += length
             continue
-        q = next((p for p in range(pos + 1, end) if _sound(data, p)), None)
+        q = next((p for p in range(pos + 1, end) if _sound(data, p, header)), None)
         stop = end if q is None else q
         declared = (data[pos] << 8) | data[pos + 1] if end - pos >= 2 else 0
         if q is None and pos + declared > end:
@@ -123,6 +147,6 @@ def iter_frames(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
                          f"(declared length {declared}); {stop - pos} bytes read as data "
                          "blocks up to " + (f"the next frame at byte {q}" if q is not None
                                             else "the end"))
-        for a in range(pos + FRAME_HEADER_BYTES, stop, DAMAGED_PIECE_BYTES):
+        for a in range(pos + header, stop, DAMAGED_PIECE_BYTES):
             yield a, bytes(data[a:min(a + DAMAGED_PIECE_BYTES, stop)])
         pos = stop
