@@ -20,8 +20,8 @@ from pathlib import Path
 import dpkt
 from dpkt import pcapng
 
-from solver.cli import STREAM_CHUNK_BYTES
 from solver.io.asterix import block_chunks, iter_recording
+from solver.io.reading import STREAM_CHUNK_BYTES
 from solver.io.sensors_file import load_sensors
 
 from .recording import RecordingSpec, build

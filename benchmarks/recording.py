@@ -617,8 +617,8 @@ def decode_rate(recording: Path, max_bytes: int = 2 << 20,
     this process (libasterix, one core) as the command line decodes it: ``iter_recording``
     in units of ``chunk_bytes`` (default the command line's ``STREAM_CHUNK_BYTES``), times
     unwrapped across the units."""
-    from solver.cli import STREAM_CHUNK_BYTES
     from solver.io.asterix import block_chunks, iter_recording
+    from solver.io.reading import STREAM_CHUNK_BYTES
 
     chunk = chunk_bytes or STREAM_CHUNK_BYTES
     with open(recording, "rb") as f:

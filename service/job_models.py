@@ -246,7 +246,7 @@ class JobTrackResult(_Out):
 class SensorSummaryOut(_Out):
     """One sensor over all tracks of a finished job (plot-weighted): every field of the job's
     `results/sensors.json` and of the command line's `sensors.json`
-    (:data:`solver.cli.SENSOR_COLUMNS`, in its order). A job finished by an earlier version
+    (:data:`solver.sensor_stats.SENSOR_COLUMNS`, in its order). A job finished by an earlier version
     lacks the later fields: null (the counts 0)."""
 
     sensor: str = Field(description="Sensor id.")

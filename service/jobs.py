@@ -48,25 +48,17 @@ import pyarrow.parquet as pq
 
 from solver.assessment import write_sensors_figure
 from solver.batch import TRACK_COLUMNS, TrackOutcome, read_part, reconstruct_many
-from solver.cli import (
-    AssessedTrack,
-    Selection,
-    SensorStats,
-    assess_track,
-    load,
-    output_state,
-    write_csv_and_geojson,
-    write_manoeuvres,
-    write_map,
-    write_sensor_csv,
-)
 from solver.config import FILTER_GATE_SIGMA, ReconstructionConfig
 from solver.inputs import InputError, format_loc
 from solver.io.altitudes import offsets_summary
 from solver.io.problems import Problems
+from solver.io.reading import Selection, load
 from solver.io.split import recording_frame
 from solver.io.tables import PlotRows
+from solver.outputs import output_state, write_csv_and_geojson, write_manoeuvres, write_map
 from solver.run_settings import RunSettings, software
+from solver.sensor_stats import SensorStats, write_sensor_csv
+from solver.track_task import AssessedTrack, assess_track
 
 from .logs import LOGGER
 from .settings import Settings
@@ -366,7 +358,7 @@ def job_track(key: str, table: Any, config: ReconstructionConfig | None,
               times_of_day: bool = False, filters: tuple[str, ...] = (),
               filter_gate: float | None = FILTER_GATE_SIGMA, samples: bool = False,
               max_samples: int | None = None) -> AssessedTrack:
-    """The per-track task of a job (on a worker): :func:`solver.cli.assess_track` (with the
+    """The per-track task of a job (on a worker): :func:`solver.track_task.assess_track` (with the
     job's ``filters`` and samples), the figure in a directory of its own per key
     (:func:`figure_dir`)."""
     figures = None if figures_root is None else str(figure_dir(Path(figures_root), key))
@@ -816,13 +808,14 @@ class JobRunner:
     def _finish_outputs(self, job_id: str, loaded: Any, mode_c_offsets: list[float],
                         cancelled: bool = False,
                         rates: tuple[float, float, float] | None = None) -> None:
-        """The whole-recording outputs of :mod:`solver.cli` (CSV, GeoJSON lines, map,
-        sensors' statistics, problems, summary) and single-file Parquet downloads; of the
-        tracks finished when ``cancelled`` (the summary says so). ``rates``: this run's start
-        (``time.monotonic``), its reconstruction's seconds and plots per second, for the
-        summary's ``elapsed_s``, ``reconstruct_s`` and ``plots_per_s`` as the command line's
-        (this run's: a resumed job's rate is of the tracks it reconstructed after the restart;
-        none for a cancelled job, whose reconstruction did not run to its end)."""
+        """The command line's whole-recording outputs (CSV, GeoJSON lines, map:
+        :mod:`solver.outputs`; sensors' statistics: :mod:`solver.sensor_stats`; problems,
+        summary) and single-file Parquet downloads; of the tracks finished when ``cancelled``
+        (the summary says so). ``rates``: this run's start (``time.monotonic``), its
+        reconstruction's seconds and plots per second, for the summary's ``elapsed_s``,
+        ``reconstruct_s`` and ``plots_per_s`` as the command line's (this run's: a resumed
+        job's rate is of the tracks it reconstructed after the restart; none for a cancelled
+        job, whose reconstruction did not run to its end)."""
         out = self.job_dir(job_id) / "out"
         stats = SensorStats(loaded.sensors, loaded.scan_periods)
         for reports in _sensor_reports(out).values():

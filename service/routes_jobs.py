@@ -21,8 +21,8 @@ from starlette.datastructures import UploadFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from solver.cli import RECORDING_HEAD_BYTES, check_recording_head
 from solver.inputs import Bounds, InputError
+from solver.io.reading import RECORDING_HEAD_BYTES, check_recording_head
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
 from solver.io.tables import PIECE_NAME, PlotRows, write_table

@@ -333,7 +333,7 @@ def test_parts_of_an_earlier_version_conform(tmp_path):
     missing columns null (writing the second kind with the first's schema failed)."""
     from service.jobs import _combine
     from solver.batch import RESIDUAL_COLUMNS, read_part
-    from solver.cli import write_csv_and_geojson
+    from solver.outputs import write_csv_and_geojson
 
     parts = tmp_path / "tracks.parquet"
     parts.mkdir()

@@ -375,18 +375,18 @@ def test_plot_table_and_a_bad_sensor_file(recording, tmp_path, capsys, scheduler
 
 def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkeypatch):
     """Rows by aircraft (then time) or by sensor, read in batches as the command line does
-    (:func:`solver.cli.stream`, the command line's reading): an aircraft was closed at a
+    (:func:`solver.io.reading.stream`, the command line's reading): an aircraft was closed at a
     batch's end and its later rows started a new track (a tester's 60 aircraft: 70 tracks;
     here 3 for 2). Such a table is read whole and sorted, said in the problems; the tracks
     are the recording's two, with every plot. Times of day across midnight in time order are
     in order (no false alarm)."""
-    import solver.cli as cli
+    import solver.io.reading as reading
     from solver.io.tables import time_disorder_s
 
     d, _ = recording
     (tmp_path / "long.ast").write_bytes(encode_recording(duration=600.0).data)  # > 360 s
     rows = read_recording(tmp_path / "long.ast", parse_sensors(SENSOR_FILE)).rows
-    monkeypatch.setattr(cli, "STREAM_BATCH_ROWS", 200)
+    monkeypatch.setattr(reading, "STREAM_BATCH_ROWS", 200)
     keys = np.array([f"{m:06X}" for m in rows.mode_s])
     write_table(rows, tmp_path / "in_order.parquet")
     assert time_disorder_s(tmp_path / "in_order.parquet") == 0.0
@@ -395,7 +395,7 @@ def test_a_table_not_in_time_order_is_sorted_not_cut(recording, tmp_path, monkey
                         ("by_sensor.csv", np.lexsort((rows.t, rows.sensor.astype(str))))):
         if order is not None:
             write_table(rows.take(order), tmp_path / name)
-        read = cli.stream(tmp_path / name, d / "sensors.json")
+        read = reading.stream(tmp_path / name, d / "sensors.json")
         tracks = list(read.tracks)
         assert sorted(t.key for t in tracks) == sorted(f"{f.address:06X}" for f in FLIGHTS)
         assert sum(len(t.table) for t in tracks) == len(rows)
@@ -698,7 +698,7 @@ def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, 
     alarm; a stream that still gets plots late (the sampling bypassed) counts each one."""
     from test_io_asterix import SENSORS, pcap
 
-    import solver.cli as cli
+    import solver.io.reading as reading
     from solver.io.asterix import iter_recording, time_disorder_s
     from solver.io.split import split_stream
 
@@ -708,11 +708,11 @@ def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, 
     swapped = blocks[half:] + blocks[:half]
     (tmp_path / "cat.ast").write_bytes(b"".join(swapped))
     (tmp_path / "cat.pcap").write_bytes(pcap(swapped))
-    monkeypatch.setattr(cli, "STREAM_CHUNK_BYTES", 4096)
+    monkeypatch.setattr(reading, "STREAM_CHUNK_BYTES", 4096)
     n = len(read_recording(tmp_path / "cat.ast", SENSORS).rows)
     for name in ("cat.ast", "cat.pcap"):
         assert 600 < time_disorder_s(tmp_path / name, SENSORS, every_bytes=4096) < 1200
-        read = cli.stream(tmp_path / name, d / "sensors.json")
+        read = reading.stream(tmp_path / name, d / "sensors.json")
         tracks = list(read.tracks)
         assert sorted(t.key for t in tracks) == sorted(f"{f.address:06X}" for f in FLIGHTS)
         assert sum(len(t.table) for t in tracks) == n
@@ -720,7 +720,7 @@ def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, 
         assert "unordered_recording" in read.problems.counts
         assert "late_plots" not in read.problems.counts
     assert time_disorder_s(d / "day.ast", SENSORS, every_bytes=64) == 0.0
-    read = cli.stream(d / "day.ast", d / "sensors.json")
+    read = reading.stream(d / "day.ast", d / "sensors.json")
     assert len(list(read.tracks)) == 2 and "unordered_recording" not in read.problems.counts
     problems = Problems()
     late = list(split_stream((p.rows for p in iter_recording(tmp_path / "cat.ast", SENSORS,
@@ -738,8 +738,9 @@ def test_scan_period_from_a_track_that_misses_scans(detected):
     plots): the period is 4 s within 1 %, and the sensor statistics' detection rate is the
     share (its split plots counted: 1/40 more; the median interval gave 5 s at half the scans
     missed, 8 s at 60 %)."""
-    from solver.cli import SensorStats, _sensor_spans, scan_step
+    from solver.io.scans import scan_step
     from solver.plots import PlotTable
+    from solver.sensor_stats import SensorStats, sensor_spans
 
     rng = np.random.default_rng(int(detected * 100))
     t = np.arange(0.0, 3000.0, 4.0) + rng.normal(0, 0.05, 750)
@@ -751,7 +752,7 @@ def test_scan_period_from_a_track_that_misses_scans(detected):
     radar = sensors.sensors[0]
     table = PlotTable.build([radar], t, np.zeros(t.size, int), range_m=np.full(t.size, 5e4),
                             azimuth_rad=np.zeros(t.size))
-    spans = _sensor_spans(table)[radar.id]
+    spans = sensor_spans(table)[radar.id]
     assert spans["median_step_s"] == period
     stats = SensorStats(sensors, {})
     stats.add([{"id": radar.id, "kind": "radar", "plots": t.size, "plots_gated": 0, **spans,
@@ -770,8 +771,8 @@ def test_a_hole_in_coverage_is_no_missed_detection(detected):
     counted apart (``coverage_holes``, ``coverage_hole_s``), the detection rate the share in
     both (the hole, counted as 37 missed scans, read 0.85 for 0.9, 0.47 for 0.5); runs of
     misses the rate explains are no holes (none in 20 tracks without one)."""
-    from solver.cli import SensorStats, _sensor_spans
     from solver.plots import PlotTable
+    from solver.sensor_stats import SensorStats, sensor_spans
 
     sensors = parse_sensors(SENSOR_FILE)
     radar = sensors.sensors[0]
@@ -782,7 +783,7 @@ def test_a_hole_in_coverage_is_no_missed_detection(detected):
                                 range_m=np.full(t.size, 5e4), azimuth_rad=np.zeros(t.size))
         stats = SensorStats(sensors, {})
         stats.add([{"id": radar.id, "kind": "radar", "plots": t.size, "plots_gated": 0,
-                    **_sensor_spans(table)[radar.id], "range_residual_mean_m": 0.0,
+                    **sensor_spans(table)[radar.id], "range_residual_mean_m": 0.0,
                     "range_residual_rms_m": 50.0, "azimuth_residual_mean_rad": 0.0,
                     "azimuth_residual_rms_rad": 1e-3, "position_residual_rms_m": None,
                     "range_bias_m": None, "azimuth_bias_rad": None, "time_bias_s": None}])
@@ -808,8 +809,9 @@ def test_a_hole_in_coverage_is_no_missed_detection(detected):
 
 def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
     """``python -m solver.cli`` runs the module as ``__main__``; its task must still be
-    ``solver.cli.assess_track``, pickled by reference (a ``__main__`` function is pickled by
-    value, and so is every result's class): the worker then imports ``solver.cli``."""
+    ``solver.track_task.assess_track``, pickled by reference (a ``__main__`` function is
+    pickled by value, and so is every result's class): the worker then imports
+    ``solver.track_task``, and not the command line's module."""
     from distributed import Client, LocalCluster
 
     d, _ = recording
@@ -817,7 +819,7 @@ def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
     monkeypatch.setenv("TRAJRECON_COMPILE", "0")  # the worker interprets: same results
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                       dashboard_address=":0") as cluster, Client(cluster) as client:
-        assert not any(client.run(lambda: "solver.cli" in sys.modules).values())
+        assert not any(client.run(lambda: "solver.track_task" in sys.modules).values())
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             [str(root), *filter(None, [os.environ.get("PYTHONPATH")])])}
         done = subprocess.run(
@@ -826,12 +828,13 @@ def test_python_m_submits_the_importable_task(recording, tmp_path, monkeypatch):
              cluster.scheduler_address, "--no-progress"], cwd=root, env=env,
             capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, done.stderr
-        assert all(client.run(lambda: "solver.cli" in sys.modules).values())
+        assert all(client.run(lambda: "solver.track_task" in sys.modules).values())
+        assert not any(client.run(lambda: "solver.cli" in sys.modules).values())
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == len(FLIGHTS)
 
 
 def test_key_groups_select_what_a_scan_per_key_selects():
-    from solver.cli import _key_groups
+    from solver.outputs import _key_groups
 
     rng = np.random.default_rng(16)
     keys = np.array([f"{v:06X}" for v in rng.integers(0, 7, 500)], dtype=object)
@@ -960,7 +963,7 @@ def test_sliding_windows_reconstruct_the_recording(recording, tmp_path, capsys, 
 def test_a_selection_takes_a_keys_later_pieces():
     from types import SimpleNamespace
 
-    from solver.cli import Selection
+    from solver.io.reading import Selection
 
     chosen = Selection(["4ca2d1", "R1:track:101"])
     names = ["4CA2D1", "3C6DD4", "4CA2D1#2", "4CA2D12", "R1:track:101#3", "R1:track:1011"]
@@ -974,7 +977,7 @@ def test_a_selection_takes_a_keys_later_pieces():
 def test_sensor_statistics_pool_a_position_sensors_time_offset():
     """A position sensor's per-track time offsets (its latency) pool to their median; it has
     no range or azimuth offset."""
-    from solver.cli import SensorStats
+    from solver.sensor_stats import SensorStats
 
     stats = SensorStats(parse_sensors(SENSOR_FILE), {})
     for k, lag in enumerate((0.9, 1.1, 1.0)):
@@ -994,7 +997,7 @@ def test_a_sensors_offsets_pool_by_precision_against_one_time_reference():
     estimating (-0.56 s: the radar against the ADS-B's latency) and the radars' mean on tracks
     of two radars alone (-0.19 s). Now a median weighted by the inverse variances, with its
     sigma, the time from the tracks with a sensor that kept its own where there are any."""
-    from solver.cli import SensorStats, pooled_offsets, weighted_median
+    from solver.sensor_stats import SensorStats, pooled_offsets, weighted_median
 
     spec = [{**SENSOR_FILE[0], "estimate_bias": True}, {**SENSOR_FILE[1], "estimate_bias": True},
             SENSOR_FILE[2]]
@@ -1194,18 +1197,19 @@ def test_a_gap_piece_and_another_aircraft_get_their_own_figure_and_selection():
     """``KEY#2`` (a piece after a time gap) and ``KEY~2`` (another aircraft under the key) both
     became the file name ``KEY_2`` (one figure over the other), and ``--aircraft 4ca2d1~2``
     matched nothing (a reviewer's)."""
-    from solver.cli import _normal_key, _safe
+    from solver.io.reading import normal_key
+    from solver.track_task import track_file_name
 
-    names = {_safe(k) for k in ("R1:track:30", "R1:track:30#2", "R1:track:30~2")}
+    names = {track_file_name(k) for k in ("R1:track:30", "R1:track:30#2", "R1:track:30~2")}
     assert len(names) == 3
-    assert _normal_key("4ca2d1~2") == "4CA2D1~2" and _normal_key("4ca2d1#2") == "4CA2D1#2"
+    assert normal_key("4ca2d1~2") == "4CA2D1~2" and normal_key("4ca2d1#2") == "4CA2D1#2"
 
 
 def test_a_track_across_the_antimeridian_is_cut_there_in_the_geojson():
     """A tester's Fiji track drew a 359.997-deg step across the whole world (RFC 7946,
     3.1.9: cut the line there). Both ways round, the parts meet at +-180 deg at the latitude
     between the two points; a track that does not cross stays one LineString."""
-    from solver.cli import line_geometry
+    from solver.outputs import line_geometry
 
     east = [[179.8, -17.0], [179.9, -17.0], [-179.9, -16.8], [-179.8, -16.8]]
     g = line_geometry(east)

@@ -12,8 +12,13 @@ import pytest
 from test_io_asterix import SENSOR_FILE, SENSORS
 
 import solver.cli as cli
+import solver.io.reading as reading
+import solver.sensor_stats as sensor_stats
 from solver.frames import LocalFrame
+from solver.io.problems import Problems
 from solver.io.tables import PlotRows, write_table
+from solver.run_settings import RunSettings
+from solver.track_task import AssessedTrack
 
 
 def _table(path, aircraft: int) -> int:
@@ -37,7 +42,7 @@ def _table(path, aircraft: int) -> int:
 def _peak_while_streaming(path, sensors) -> tuple[int, int, int]:
     tracemalloc.start()
     try:
-        s = cli.stream(path, sensors, read_ahead=4)
+        s = reading.stream(path, sensors, read_ahead=4)
         tracks = plots = 0
         for tr in s.tracks:
             tracks += 1
@@ -50,7 +55,7 @@ def _peak_while_streaming(path, sensors) -> tuple[int, int, int]:
 
 
 def test_streamed_reading_memory_is_flat_in_the_recording_length(tmp_path, monkeypatch):
-    monkeypatch.setattr(cli, "STREAM_BATCH_ROWS", 1000)
+    monkeypatch.setattr(reading, "STREAM_BATCH_ROWS", 1000)
     sensors = tmp_path / "sensors.json"
     sensors.write_text(json.dumps(SENSOR_FILE))
     short, long = tmp_path / "short.csv", tmp_path / "long.csv"
@@ -64,7 +69,7 @@ def test_streamed_reading_memory_is_flat_in_the_recording_length(tmp_path, monke
     # the whole-recording reader holds every row: its peak grows with the length
     tracemalloc.start()
     try:
-        loaded = cli.load(long, sensors)
+        loaded = reading.load(long, sensors)
         _, whole = tracemalloc.get_traced_memory()
         assert len(loaded.rows) == n_long
     finally:
@@ -86,7 +91,7 @@ def _asterix(path, aircraft: int) -> int:
 def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monkeypatch):
     """An ASTERIX file is memory-mapped and decoded unit by unit: the reading of a recording
     6x as long peaks as high (it was read whole: the peak grew with the file)."""
-    monkeypatch.setattr(cli, "STREAM_CHUNK_BYTES", 1 << 12)
+    monkeypatch.setattr(reading, "STREAM_CHUNK_BYTES", 1 << 12)
     sensors = tmp_path / "sensors.json"
     sensors.write_text(json.dumps(SENSOR_FILE))
     short, long = tmp_path / "short.ast", tmp_path / "long.ast"
@@ -102,7 +107,7 @@ def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monke
 
 def _stub_task(key, table, config, time_limit_s, figures_dir=None, filters=(),
                filter_gate=None, times_of_day=False, samples=False):
-    """What :func:`solver.cli.assess_track` returns, without the reconstruction: the
+    """What :func:`solver.track_task.assess_track` returns, without the reconstruction: the
     track's rows and its sensor's statistics."""
     import pyarrow as pa
 
@@ -118,8 +123,8 @@ def _stub_task(key, table, config, time_limit_s, figures_dir=None, filters=(),
     report = {"id": "ADSB", "kind": "position", "plots": n, "plots_gated": 0,
               "range_residual_mean_m": None, "position_residual_rms_m": 10.0 + n % 7,
               "range_bias_m": None, "span_s": float(np.ptp(table.t)), "median_step_s": 1.0}
-    return cli.AssessedTrack(key, "done", n, 0.0, None, [], pa.table(cols),
-                             pa.table(segments), sensors=[report])
+    return AssessedTrack(key, "done", n, 0.0, None, [], pa.table(cols),
+                         pa.table(segments), sensors=[report])
 
 
 def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
@@ -138,7 +143,7 @@ def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
     t = np.arange(200.0)
     lat, lon = frame.to_geodetic(-20_000.0 + 200.0 * t, np.zeros_like(t))
     table = PlotTable.build([adsb], t, np.zeros(t.size, int), lat_deg=lat, lon_deg=lon)
-    loaded = cli.Streamed(SENSORS, cli.Problems(), (TrackProblem(f"A{k:05d}", table)
+    loaded = reading.Streamed(SENSORS, Problems(), (TrackProblem(f"A{k:05d}", table)
                                                     for k in range(tracks)))
     args = argparse.Namespace(method="refined", no_progress=True, figures=False,
                               time_limit=None, retry_failed=False)
@@ -147,7 +152,7 @@ def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
     tracemalloc.start()
     try:
         before, _ = tracemalloc.get_traced_memory()
-        summary, _ = cli._reconstruct(args, cli.RunSettings(), out, loaded, client,
+        summary, _ = cli._reconstruct(args, RunSettings(), out, loaded, client,
                                       time.perf_counter())
         del loaded
         gc.collect()
@@ -155,8 +160,8 @@ def _retained_by_the_run(tmp_path, tracks: int, client) -> int:
     finally:
         tracemalloc.stop()
     assert summary.done == tracks
-    stats = cli.SensorStats(SENSORS, {})
-    for reports in cli._iter_stats(out / "sensor_stats.jsonl"):
+    stats = sensor_stats.SensorStats(SENSORS, {})
+    for reports in sensor_stats.iter_stats(out / "sensor_stats.jsonl"):
         stats.add(reports)
     row = {r["sensor"]: r for r in stats.rows()}["ADSB"]
     assert row["tracks"] == tracks and row["plots"] == 200 * tracks
@@ -190,9 +195,9 @@ def test_sensor_statistics_are_exact_below_their_sample_and_bounded_above(monkey
     """SensorStats pools the tracks' reports in fixed-size accumulators: with no more tracks
     than its median sample the medians and rates are the exact ones; beyond, what it holds
     stays at the sample's size."""
-    monkeypatch.setattr(cli, "MEDIAN_SAMPLE", 8)
+    monkeypatch.setattr(sensor_stats, "MEDIAN_SAMPLE", 8)
     reports = [_radar_report(k) for k in range(8)]
-    stats = cli.SensorStats(SENSORS, {})
+    stats = sensor_stats.SensorStats(SENSORS, {})
     for r in reports:
         stats.add([r])
     row = {r["sensor"]: r for r in stats.rows()}["R1"]
@@ -223,6 +228,6 @@ def test_statistics_file_is_read_one_track_at_a_time_last_line_wins(tmp_path):
              {"aircraft": "B", "sensors": [_radar_report(2)]},
              {"aircraft": "A", "sensors": [_radar_report(3)]}]
     path.write_text("".join(json.dumps(x) + "\n" for x in lines) + '{"aircraft": "C", "se')
-    got = list(cli._iter_stats(path))
+    got = list(sensor_stats.iter_stats(path))
     assert got == [[_radar_report(2)], [_radar_report(3)]]
-    assert list(cli._iter_stats(tmp_path / "none.jsonl")) == []
+    assert list(sensor_stats.iter_stats(tmp_path / "none.jsonl")) == []

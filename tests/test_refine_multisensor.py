@@ -981,8 +981,8 @@ def test_the_sensors_sigmas_are_estimated_from_the_residuals_degrees_of_freedom(
     track's covariance) the estimate is the sigma within 3 %; the ADS-B beside it alike."""
     from dataclasses import asdict
 
-    from solver.cli import SensorStats
     from solver.io.sensors_file import parse_sensors
+    from solver.sensor_stats import SensorStats
 
     ssr = replace(SSR_A, range_sigma_m=60.0, azimuth_sigma_rad=np.deg2rad(0.06))
     adsb = PositionSensor("ADSB", position_sigma_m=15.0)
@@ -1013,8 +1013,8 @@ def test_two_radars_registered_alone_have_their_sigmas_estimated():
     recording: 89 m for 50). Now from the covariance of each plot's predicted position."""
     from dataclasses import asdict
 
-    from solver.cli import SensorStats
     from solver.io.sensors_file import parse_sensors
+    from solver.sensor_stats import SensorStats
 
     a, b = replace(SSR_A, estimate_bias=True), replace(SSR_B, estimate_bias=True)
     spec = [{"id": s.id, "kind": "radar", "lat_deg": s.site.lat_deg, "lon_deg": s.site.lon_deg,

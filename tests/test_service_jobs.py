@@ -622,7 +622,7 @@ def test_a_jobs_sensors_carry_every_field_of_its_sensors_json(client):
     same values, and the model lists the command line's columns, so a later one cannot be
     dropped silently. The job's `summary.json` has the command line's rate fields."""
     from service.job_models import SensorSummaryOut
-    from solver.cli import SENSOR_COLUMNS
+    from solver.sensor_stats import SENSOR_COLUMNS
 
     assert list(SensorSummaryOut.model_fields) == list(SENSOR_COLUMNS)
     sensors, tracks = json_tracks(encode_recording(duration=40.0))

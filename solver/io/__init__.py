@@ -1,5 +1,6 @@
 """Ingest of whole recordings: the sensor file, ASTERIX (raw and pcap), plot tables (CSV,
-Parquet), and the split of a recording into one :class:`solver.plots.PlotTable` per aircraft.
+Parquet), the split of a recording into one :class:`solver.plots.PlotTable` per aircraft, and
+a recording read so for a run, whole or as it goes (:mod:`solver.io.reading`).
 Pure computation (no web imports); formats in ``solver/io/README.md``.
 
 The ASTERIX names are imported on first use: libasterix's generated specifications take over a

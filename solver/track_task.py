@@ -1,0 +1,62 @@
+"""The per-track task of a run, on a worker (the command line's, and a service job's by
+``service.jobs.job_track``): a track reconstructed (:func:`solver.batch.solve_track`) with
+its sensors' statistics (:mod:`solver.sensor_stats`) and, where asked, its figure.
+
+Submitted by reference (``solver.track_task.assess_track``): a worker imports this module,
+and what it imports, not the command line's.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .batch import TrackOutcome, solve_track
+from .config import FILTER_GATE_SIGMA, ReconstructionConfig
+from .plots import PlotTable
+from .results import Reconstruction
+from .sensor_stats import sensor_spans
+
+
+@dataclass
+class AssessedTrack(TrackOutcome):
+    """A track's outcome with its sensors' statistics (:class:`solver.results.SensorReport`
+    as dicts, plus each sensor's plot times span and median interval for the detection
+    rate)."""
+
+    sensors: list[dict[str, Any]] = field(default_factory=list)
+
+
+def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None,
+                 time_limit_s: float | None, figures_dir: str | None = None,
+                 filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
+                 times_of_day: bool = False, samples: bool = False,
+                 max_samples: int | None = None) -> AssessedTrack:
+    """:func:`solver.batch.solve_track` (with its keyword arguments) plus the
+    per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the
+    worker)."""
+    spans = sensor_spans(table)
+
+    def extras(rec: Reconstruction) -> dict[str, Any]:
+        if figures_dir is not None:
+            from .figures import save, track_figure
+
+            save(track_figure(table, rec, title=key, times_of_day=times_of_day),
+                 Path(figures_dir) / f"{track_file_name(key)}.png")
+        return {"sensors": [{**asdict(r), **spans.get(r.id, {})} for r in rec.sensors]}
+
+    out = solve_track(key, table, config, time_limit_s, extras=extras, filters=filters,
+                      filter_gate=filter_gate, times_of_day=times_of_day, samples=samples,
+                      max_samples=max_samples)
+    return AssessedTrack(**{k: v for k, v in vars(out).items() if k != "extras"},
+                         sensors=out.extras.get("sensors", []))
+
+
+def track_file_name(key: str) -> str:
+    """A file name for a track's key: a gap piece's ``#n`` and another aircraft's ``~n``
+    apart (both became ``_n``: one figure over the other, a reviewer's)."""
+    key = key.replace("#", "-gap").replace("~", "-apart")
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", key)[:120]
