@@ -38,7 +38,9 @@ from .io.split import recording_frame
 from .io.tables import PlotRows
 from .sensors import RadarSensor
 
-MAP_POINTS_PER_TRACK = 200  # a recording map draws each track with at most this many points
+MAP_POINTS_PER_TRACK = 200
+"""A recording map draws every k-th point of a track, k its points // this (at most twice this
+many points)."""
 WARNING_EXAMPLES = 20  # tracks whose warnings summary.json repeats (warnings.csv has all)
 
 
