@@ -88,6 +88,53 @@ from .tables import DAY_S, FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
 NM_M = 1852.0
 DEFAULT_EDITIONS: dict[int, Any] = {48: ast.Cat_048_1_32, 21: ast.Cat_021_2_7,
                                     34: ast.Cat_034_1_29}
+
+
+def _edition_name(spec: Any) -> str:
+    """A libasterix edition class's edition, e.g. ``"0.26"``."""
+    major, minor = spec.cv_edition
+    return f"{major}.{minor}"
+
+
+EDITIONS: dict[int, dict[str, Any]] = {
+    cat: {_edition_name(spec): spec for spec in sorted(ast.manifest["CATS"][cat],
+                                                        key=lambda spec: spec.cv_edition)}
+    for cat in sorted(DEFAULT_EDITIONS)}
+"""The editions libasterix has of each decoded category, by name (``EDITIONS[21]["0.26"]``:
+``ast.Cat_021_0_26``), oldest first: what ``editions=`` may choose."""
+
+
+def edition_choices() -> str:
+    """The editions that can be chosen, for messages: ``CAT021 0.23, ..., 2.7 (default
+    2.7); ...``."""
+    return "; ".join(f"CAT{cat:03d} {', '.join(names)} (default "
+                     f"{_edition_name(DEFAULT_EDITIONS[cat])})" for cat, names in EDITIONS.items())
+
+
+def parse_edition(text: str) -> tuple[int, str]:
+    """``"21=0.26"`` (also ``021=0.26``, ``CAT021=0.26``) -> ``(21, "0.26")``, checked against
+    :data:`EDITIONS`; ``ValueError`` listing the choices."""
+    cat_text, sep, name = text.partition("=")
+    cat_text = cat_text.strip().upper().removeprefix("CAT")
+    cat = int(cat_text) if sep and cat_text.isdigit() else None
+    name = name.strip()
+    if cat not in EDITIONS or name not in EDITIONS[cat]:
+        what = (f"{text!r}: give CATEGORY=EDITION (e.g. 21=0.26)" if cat is None else
+                f"{text!r}: CAT{cat:03d} is not decoded" if cat not in EDITIONS else
+                f"{text!r}: libasterix has no CAT{cat:03d} edition {name!r}")
+        raise ValueError(f"{what}; the choices: {edition_choices()}")
+    return cat, name
+
+
+def editions_named(names: Mapping[int, str]) -> dict[int, Any]:
+    """The decoder's ``editions=`` for the editions named per category (e.g. ``{21: "0.26"}``),
+    the other categories at :data:`DEFAULT_EDITIONS`; ``ValueError`` listing the choices."""
+    out = dict(DEFAULT_EDITIONS)
+    for cat, name in names.items():
+        out[cat] = EDITIONS[parse_edition(f"{cat}={name}")[0]][name]
+    return out
+
+
 REF_048 = ast.Ref_048_1_13
 """CAT048's Reserved Expansion field (read for the extended range, ERR)."""
 KNOWN_CATEGORIES = frozenset(ast.manifest["CATS"]) | {30, 31, 32, 252}
@@ -943,11 +990,18 @@ class _Decoder:
                 v = i090.variation
                 fl = self._memo[memo_key] = (
                     _INVALID if v.get_item("V").as_uint() or v.get_item("G").as_uint()
-                    else v.get_item("FL").variation.content.as_quantity("FL"))
+                    else self._flight_level(v.get_item("FL")))
             if fl is _INVALID:
                 self.problems.add("invalid_code", f"byte {at}", f"CAT048 flight level of "
                                   f"{sensor!r} not validated or garbled: not used",
                                   key=f"{sensor}/fl")
+                fl = np.nan
+            elif isinstance(fl, tuple):
+                self.problems.add("bad_value", f"byte {at}", f"CAT048 flight level of "
+                                  f"{sensor!r} reads {fl[0]:g} FL through CAT048 "
+                                  f"{_edition_name(self.editions[48])}, whose definition "
+                                  "takes I048/090 unsigned (1.32's, two's complement, reads a "
+                                  "negative FL): not used", key=f"{sensor}/fl-unsigned")
                 fl = np.nan
         i220 = get("220")
         trn = self._track_number(get("161"), "161/48", "TRN")
@@ -957,6 +1011,15 @@ class _Decoder:
                 fl * FL_M, fl, NO_INT if i220 is None else int(i220.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 48), trn, at, ground)
 
+    def _flight_level(self, rule: Any) -> float | tuple[float]:
+        """I048/090's FL (``rule``: its group's FL sub-item). libasterix's CAT048 1.27-1.31
+        define it unsigned, 1.32 two's complement: through the former a negative FL (on the
+        ground at a sea-level airport in high pressure) reads 4,096 FL too high, so a reading
+        of 2,048 FL or more through an unsigned definition is returned as ``(value,)``, not
+        used."""
+        fl = rule.variation.content.as_quantity("FL")
+        return (fl,) if fl >= 2048 and self._lsb(rule) is not None else fl
+
     def _cat021(self, rec: Any, at: int) -> tuple | None:
         sensor = self._sensor(rec, 21, at, PositionSensor)
         if sensor is None:
@@ -965,13 +1028,17 @@ class _Decoder:
         i040 = get("040")
         if self._flagged(i040, ("SIM", "TST", "RAB"), sensor, at, 21):
             return None
-        time = get("071") or get("073")
+        # 2.x: time of applicability I071, else of reception I073; 0.2x: time of day I030
+        time = get("071") or get("073") or get("030")
         if time is None:
-            return self._missing(21, "071", sensor, at)
+            return self._missing(21, "071" if "071" in type(rec).cv_items_dict else "030",
+                                 sensor, at)
         tod = self._time_of_day(time, 21, sensor, at)
         if tod is None:
             return None
-        pos = get("131") or get("130")
+        # 2.x: I131 high resolution, else I130; 0.24-0.26: I130 (32-bit, 0.26's I131 is the
+        # signal amplitude); 0.23: I130 (24-bit). The LSB is libasterix's for the edition.
+        pos = self._position(get("131")) or self._position(get("130"))
         if pos is None:
             return self._missing(21, "130", sensor, at)
         lat = pos.variation.get_item("LAT").variation.content.as_quantity("°")
@@ -989,6 +1056,18 @@ class _Decoder:
         return (tod, sensor, np.nan, np.nan, lat, lon, alt, fl,
                 NO_INT if i080 is None else int(i080.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 21), trn, at, ground)
+
+    def _position(self, item: Any) -> Any:
+        """``item`` if it is a position (a group with LAT and LON: CAT021 0.26's I131 is the
+        signal amplitude, 2.x's the high-resolution position), else None; its structure is
+        looked at once per libasterix class."""
+        if item is None:
+            return None
+        memo_key = ("latlon", type(item))
+        is_position = self._memo.get(memo_key)
+        if is_position is None:
+            is_position = self._memo[memo_key] = {"LAT", "LON"} <= _names(item.variation)
+        return item if is_position else None
 
     def _time_of_day(self, item: Any, cat: int, sensor: str, at: int) -> float | None:
         """The record's time of day (s), or None with a problem when it is not within a day
