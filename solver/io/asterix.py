@@ -126,6 +126,13 @@ def parse_edition(text: str) -> tuple[int, str]:
     return cat, name
 
 
+def _with_defaults(editions: Mapping[int, Any] | None) -> dict[int, Any]:
+    """``editions=`` over :data:`DEFAULT_EDITIONS`: the categories not named keep their
+    default (``editions={21: ast.Cat_021_0_26}`` once left CAT048 and CAT034 undecoded, every
+    block an ``unknown_category``)."""
+    return {**DEFAULT_EDITIONS, **(editions or {})}
+
+
 def editions_named(names: Mapping[int, str]) -> dict[int, Any]:
     """The decoder's ``editions=`` for the editions named per category (e.g. ``{21: "0.26"}``),
     the other categories at :data:`DEFAULT_EDITIONS`; ``ValueError`` listing the choices."""
@@ -206,6 +213,9 @@ MAX_CHECKED_RECORD_BYTES = 1024
 """Bytes given to that check beyond its budget (a record longer than this fails it)."""
 CHUNK_BYTES = 1 << 20
 """Size of the units a recording is decoded in (in parallel with ``executor=``)."""
+OTHER_EDITION_BLOCKS = 4
+"""Data blocks of a category that stop parsing before their end (and half its blocks, in a
+unit) taken for data of another edition (:meth:`_Decoder._other_edition`)."""
 
 
 def read_recording(source: str | Path | bytes, sensors: SensorSet, *,
@@ -247,7 +257,7 @@ def _iter_data(data: bytes | mmap.mmap, sensors: SensorSet, editions: Mapping[in
                executor: Any, chunk_bytes: int, ahead: int) -> Iterator[Recording]:
     """:func:`iter_recording` of the recording's bytes, or of the file memory-mapped (its
     pages released behind the reading: the memory does not grow with the file)."""
-    eds = dict(editions or DEFAULT_EDITIONS)
+    eds = _with_defaults(editions)
     previous = np.nan
 
     def finish(part: Recording, walk: Problems, packets: int) -> Recording:
@@ -347,7 +357,7 @@ def decode_datagrams(datagrams: list[tuple[int, bytes]], sensors: SensorSet, *,
     """Decode ``(file offset, bytes)`` pieces, each a sequence of whole data blocks (a UDP
     payload, or a stretch of a raw file); byte offsets are the file's. The cyclic garbage
     collector is paused meanwhile (:func:`cyclic_gc_paused`)."""
-    decoder = _Decoder(sensors, editions or DEFAULT_EDITIONS)
+    decoder = _Decoder(sensors, _with_defaults(editions))
     with cyclic_gc_paused():
         for offset, payload in datagrams:
             decoder.feed(payload, offset)
@@ -408,7 +418,7 @@ def time_disorder_s(source: str | Path | bytes, sensors: SensorSet, *,
 
 def _time_disorder_s(data: bytes | mmap.mmap, sensors: SensorSet,
                      editions: Mapping[int, Any] | None, every_bytes: int) -> float:
-    decoder = _Decoder(sensors, dict(editions or DEFAULT_EDITIONS))
+    decoder = _Decoder(sensors, _with_defaults(editions))
     due = 0
     for offset, buf, a, b in _sampled_blocks(data):
         if offset < due or buf[a] not in decoder.editions:
@@ -547,6 +557,8 @@ class _Decoder:
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
         self.records = 0
+        # whole blocks whose records stopped parsing early: (category, file offset, rows)
+        self._failed_blocks: list[tuple[int, int, int, int]] = []
 
     # ------------------------------------------------------------------ block walking
 
@@ -744,7 +756,10 @@ class _Decoder:
                 continue
             if not fits:
                 records, err = self._parse(cat, data, pos + 3, stop)
-            self._handle(cat, records, pos, base, stop - pos)
+            # a whole block whose records stop parsing before its end: damage, or the data
+            # of another edition (counted, see finish)
+            self._handle(cat, records, pos, base, stop - pos,
+                         failed=fits and err is not None and not err[2])
             if nxt > end:
                 problems.add("truncated_block", f"byte {base + pos}", f"CAT{cat:03d} block "
                              f"declares {length} bytes, only {end - pos} remain; "
@@ -764,10 +779,12 @@ class _Decoder:
             pos = q
 
     def _handle(self, cat: int, records: list[tuple[Any, int]], pos: int, base: int,
-                size: int) -> None:
+                size: int, failed: bool = False) -> None:
         """Rows from parsed records (``pos``: the block's offset in ``data``, ``size`` its bytes
-        read)."""
+        read; ``failed``: a whole block whose records stop parsing before its end, its rows
+        noted for :meth:`_other_edition`)."""
         self.blocks[cat] = self.blocks.get(cat, 0) + 1
+        first = len(self.rows)
         if cat not in self.editions:
             self.problems.add("unknown_category", f"byte {base + pos}",
                               f"CAT{cat:03d} data block(s) skipped (decoded: "
@@ -787,6 +804,8 @@ class _Decoder:
                 continue
             if row is not None:
                 self.rows.append(row)
+        if failed:
+            self._failed_blocks.append((cat, base + pos, first, len(self.rows)))
 
     # ------------------------------------------------------------------ records
     #
@@ -1096,7 +1115,36 @@ class _Decoder:
 
     # ------------------------------------------------------------------ result
 
+    def _other_edition(self) -> None:
+        """Where at least :data:`OTHER_EDITION_BLOCKS` data blocks of a category and half of
+        its blocks stop parsing before their end, the data are of another edition than the
+        one read (damage spoils a block here and there): the rows read from those blocks are
+        garbage, left out (``other_edition``, naming the choices). Read as 2.7, CAT021 0.26
+        reports gave a row each, times up to 10 h and positions up to 25,000 km off, beside
+        a ``bad_record`` problem per block."""
+        drop: list[tuple[int, int]] = []
+        for cat in sorted({b[0] for b in self._failed_blocks}):
+            failed = [b for b in self._failed_blocks if b[0] == cat]
+            if len(failed) < OTHER_EDITION_BLOCKS or 2 * len(failed) < self.blocks[cat]:
+                continue
+            rows = sum(b[3] - b[2] for b in failed)
+            drop += [(b[2], b[3]) for b in failed]
+            name = _edition_name(self.editions[cat])
+            self.problems.add(
+                "other_edition", f"byte {failed[0][1]}", f"{len(failed)} of "
+                f"{self.blocks[cat]} CAT{cat:03d} data blocks do not parse to their end as "
+                f"CAT{cat:03d} {name}: the recording's CAT{cat:03d} is likely of another "
+                f"edition (libasterix has {', '.join(EDITIONS[cat])}; choose with the command "
+                f"line's --edition {cat}=EDITION or a job's options.editions); the {rows} "
+                "plots read from those blocks are left out", key=str(cat), dropped=rows)
+        if drop:
+            gone = np.zeros(len(self.rows), dtype=bool)
+            for a, b in drop:
+                gone[a:b] = True
+            self.rows = [row for row, g in zip(self.rows, gone.tolist(), strict=True) if not g]
+
     def finish(self, size: int) -> Recording:
+        self._other_edition()
         n = len(self.rows)
         cols = list(zip(*self.rows, strict=True)) if n else [()] * len(_COLUMNS)
         c = dict(zip(_COLUMNS, cols, strict=True))
