@@ -16,7 +16,8 @@ Containers (:func:`read_recording` tells them apart by the first bytes):
   payload over IPv4/IPv6 is a datagram of data blocks; IP fragments are reported, not
   reassembled.
 
-Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=`` picks others):
+Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=`` picks others,
+below):
 
 - CAT048 target reports: I010 SAC/SIC -> sensor (sensor file), I140 time of day, I040 measured
   slant range (1/256 NM -> m; beyond 256 NM, where I020 ERR is set, the Reserved Expansion
@@ -28,17 +29,39 @@ Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=``
   whose I230 flight status (STAT 1 or 3, the aircraft's Mode S downlink) says on the ground get
   ``on_ground`` (the split ends the aircraft's track there and leaves them out, counted).
 - CAT021 ADS-B: I010 SAC/SIC (ground station) -> sensor, time of applicability for position
-  I071 (else time of message reception I073), position I131 (high resolution) or I130,
-  geometric height I140 (ft -> m) for ``altitude_m``, else the flight level I145 as the
-  pressure altitude (I145 always gives ``flight_level``),
-  target address I080, Mode 3/A I070, track number I161. I040 SIM/TST/RAB flagged reports
-  are left out (``not_aircraft``); I040 GBS (ground bit set) gives ``on_ground``.
+  I071 (else time of message reception I073; 0.2x: the time of day I030), position I131 (high
+  resolution) or I130 (whichever is a LAT/LON group: 0.26's I131 is the signal amplitude; the
+  LSB is libasterix's for the edition, 180/2^30 deg for 2.x's I131, 180/2^25 for 0.24-0.26's
+  I130, 180/2^23 for 0.23's), geometric height I140 (ft -> m) for ``altitude_m``, else the
+  flight level I145 as the pressure altitude (I145 always gives ``flight_level``),
+  target address I080, Mode 3/A I070 (0.26's V/G flags checked), track number I161 (none in
+  0.2x). I040 SIM/TST/RAB flagged reports are left out (``not_aircraft``); I040 GBS (ground
+  bit set) gives ``on_ground`` (2.x: in I040's first extension; 0.2x: a fixed two octets).
 - CAT034 service messages: per sensor the count of messages, north markers and sector
   crossings and the antenna rotation period I041 (:class:`ServiceStats`).
 
 Times: the time of day (1/128 s) becomes ``t``, seconds since the UTC midnight before the
 first record, monotonic across midnight (:func:`solver.io.tables.unwrap_time_of_day`, in
 recording order); ``time_of_day_s`` keeps the recorded value.
+
+Editions: ASTERIX data carry none, and a category's editions differ: CAT021 0.23-0.26 (older
+ADS-B ground stations) have another UAP than 2.x. ``editions=`` maps a category to a libasterix
+edition class (:data:`EDITIONS` lists libasterix's: CAT021 0.23-0.26 and 2.1-2.7, CAT034
+1.27-1.29, CAT048 1.27-1.32; :func:`parse_edition` reads ``"21=0.26"``, :func:`editions_named`
+gives the mapping for names, the command line's ``--edition 21=0.26`` and a job's
+``options.editions``); the categories it does not name keep their default. Read as another
+edition, records parse as garbage or not at all: CAT021 0.26 read as 2.7 gave a row per
+report, its time up to 10 h and its position up to 25,000 km off, beside a ``bad_record``
+per block. So where at least :data:`OTHER_EDITION_BLOCKS` data blocks of a category, and half
+of its blocks in a unit, stop parsing before their end, one ``other_edition`` problem says so
+(naming the edition read and the choices) and those blocks' rows are left out; a damaged block
+here and there keeps the rows before its damage. A recording whose records happen to parse
+to their blocks' ends as the wrong edition is not caught. CAT048 keeps its UAP from 1.27 to
+1.32, and 1.27 data read as 1.32 (the default) give the same plots; libasterix's 1.27-1.31
+take I090's FL unsigned (1.32 two's complement), so through them a negative FL would read
+4,096 FL too high: a reading of 2,048 FL or more through an unsigned definition is a
+``bad_value``, no altitude. 1.32 records with I020's later extensions (1.31 on) do not parse
+as 1.27.
 
 Damage: every problem is recorded (:class:`solver.io.problems.Problems`) with its byte offset
 in the file and the rest is still read: a truncated block (its declared length runs past the
@@ -48,9 +71,7 @@ of its block is skipped), unrecognised bytes between blocks, a category that is 
 (CAT062 ...), an unknown SAC/SIC, a record without position or time. The work spent on
 damage is limited (:data:`WASTE_FACTOR`): past it, the rest of the unit is read by block headers
 alone (``damaged_stretch``), so good data after a long damaged stretch are still read, in time
-linear in the bytes. ASTERIX data carry no
-edition: data of another edition (e.g. CAT021 0.26, whose UAP differs from 2.x) show as
-``bad_record`` / ``missing_item`` problems; pass ``editions=`` to match them.
+linear in the bytes.
 
 Reading: :func:`read_recording` (the whole recording), :func:`iter_recording` (in order, unit
 by unit, for :func:`solver.io.split.split_stream`); both decode units of ``chunk_bytes`` cut at
