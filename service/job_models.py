@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import ConfigDict, Field, StringConstraints
+from pydantic import AfterValidator, ConfigDict, Field, StringConstraints
+
+from solver.io.asterix import edition_choices, parse_edition
 
 from .models import (
     BoundsIn,
@@ -56,6 +58,17 @@ _SAMPLES_DOC = ("Keep every track's state every this many seconds (s, > 0; from 
                 "or more keeps none, with a warning. Default: none kept.")
 
 
+EditionCategory = Literal["21", "34", "48"]
+
+
+def _known_editions(editions: dict[str, str]) -> dict[str, str]:
+    """``options.editions``: each an edition libasterix has of its category (else a 422
+    listing them)."""
+    for cat, name in editions.items():
+        parse_edition(f"{cat}={name}")
+    return editions
+
+
 class JobOptions(_In):
     """How every track of a job is reconstructed: the optional `options` part of an upload (a
     JSON text), the same fields in a JSON body of tracks."""
@@ -78,6 +91,14 @@ class JobOptions(_In):
               "`3C6DD4` in either case; a key takes its later pieces `KEY#2` ... too): an "
               "incident's aircraft out of a long recording. A key the recording does not hold "
               "is an `aircraft_not_found` problem of the job. Default: every aircraft.")
+    editions: Annotated[dict[EditionCategory, str], AfterValidator(_known_editions)] = Field(
+        default_factory=dict, examples=[{"21": "0.26"}], description="The ASTERIX edition a "
+        "category of the recording is read as, by category number (the command line's "
+        "`--edition 21=0.26`): ASTERIX data do not say their edition, and a category's "
+        "editions differ (CAT021 0.2x, from older ADS-B ground stations, has another layout "
+        "than 2.x): read as another edition, records come out garbage or not at all (the "
+        "job's `other_edition`, `bad_record`, `missing_item` problems). libasterix's: "
+        f"{edition_choices()}. Categories not named: their default. A plot table ignores it.")
 
 
 class JobTracksRequest(_In):
@@ -135,6 +156,9 @@ class JobOptionsOut(_Out):
                                         "kept (null: none).")
     aircraft: list[str] | None = Field(None, description="The aircraft asked for (null: "
                                        "every aircraft).")
+    editions: dict[str, str] = Field(default_factory=dict, description="The ASTERIX editions "
+                                     "chosen other than the defaults, by category (e.g. "
+                                     "`{\"21\": \"0.26\"}`; empty: the defaults).")
 
 
 class JobStatus(_Out):

@@ -719,7 +719,8 @@ class JobRunner:
         d = self.job_dir(job_id)
         recording = next((d / "inputs").glob("recording.*"))
         loaded = load(recording, d / "inputs" / "sensors.json",
-                      max_speed=settings.config().bounds.v[1])
+                      max_speed=settings.config().bounds.v[1],
+                      editions=settings.asterix_editions())
         chosen = Selection(self.aircraft(job_id))
         tracks = list(chosen.filter(loaded.tracks))
         for key in chosen.missing():

@@ -291,7 +291,9 @@ def _params(options: JobOptions | JobTracksRequest, aircraft: list[str] | None =
                            filter_gate_sigma=options.filter_gate_sigma,
                            sample_step_s=options.sample_step_s,
                            window_plots=RunSettings.window_plots if w.plots is None else w.plots,
-                           trial_step_s=w.trial_step_s, criterion=options.criterion)
+                           trial_step_s=w.trial_step_s, criterion=options.criterion,
+                           editions=tuple((int(cat), name) for cat, name in
+                                          getattr(options, "editions", {}).items()))
     settings.config().validate()
     doc = settings.as_json()
     if aircraft:

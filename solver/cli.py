@@ -2,7 +2,8 @@
 
     trajrecon reconstruct RECORDING --sensors SENSORS.json --out DIR [--scheduler ADDRESS]
         [--workers N] [--method refined|sliding] [--bounds NAME=MIN,MAX ...]
-        [--filters NAME ...] [--samples STEP] [--aircraft KEY ...] [--figures] ...
+        [--filters NAME ...] [--samples STEP] [--aircraft KEY ...] [--edition CAT=EDITION ...]
+        [--figures] ...
     trajrecon plot RECORDING --sensors SENSORS.json --out DIR [--aircraft KEY ...] [--map]
 
 (``trajrecon RECORDING ...`` is ``trajrecon reconstruct RECORDING ...``.) ``reconstruct`` reads a
@@ -20,8 +21,9 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 - ``sensors.json`` and ``sensors.csv``: per sensor, against the reconstruction
   (SASS-C/TRES-style assessment, :mod:`solver.sensor_stats`): plots, detection rate, wild
   plots, bias and sigma of the range and azimuth residuals, estimated offsets where asked;
-- ``run.json``: the method, bounds, filters and sample step; a rerun resumes only a run with
-  the same (:mod:`solver.run_settings`);
+- ``run.json``: the method, bounds, filters, sample step and ASTERIX editions chosen
+  (``--edition 21=0.26``); a rerun resumes only a run with the same
+  (:mod:`solver.run_settings`);
 - ``sensors.png``: each radar's range and azimuth residuals over range and azimuth
   (:mod:`solver.assessment`);
 - ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
@@ -42,6 +44,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import ExitStack, contextmanager
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -59,6 +62,7 @@ from .batch import (
 from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .inputs import Bounds, InputError
 from .io.altitudes import offsets_summary
+from .io.asterix import edition_choices, parse_edition
 from .io.reading import Selection, Streamed, check_recording, normal_key, stream
 from .io.sensors_file import load_sensors
 from .outputs import output_state, write_csv_and_geojson, write_manoeuvres, write_map
@@ -109,7 +113,8 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
         on_cluster = args.decode == "cluster" or (args.decode == "auto" and workers > 1)
         loaded = stream(Path(args.recording), Path(args.sensors),
                         executor=client if on_cluster else None,
-                        max_speed=settings.config().bounds.v[1])
+                        max_speed=settings.config().bounds.v[1],
+                        editions=settings.asterix_editions())
         chosen = Selection(getattr(args, "aircraft", None))
         loaded.tracks = chosen.filter(loaded.tracks)
         summary, first_result_s = _reconstruct(args, settings, out, loaded, client, started)
@@ -126,7 +131,7 @@ def _settings(args: argparse.Namespace) -> RunSettings:
                          "them out")
     return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters),
                        args.samples, **_windows(args, RunSettings()),
-                       filter_gate_sigma=args.filter_gate)
+                       filter_gate_sigma=args.filter_gate, editions=tuple(args.edition or ()))
 
 
 def _check_out(out: Path, sensors: Path) -> None:
@@ -350,6 +355,7 @@ def parser() -> argparse.ArgumentParser:
                      "on the cluster when it has more than one worker")
     _method(rec, "refined")
     _bounds(rec, [])
+    _edition(rec, "")
     rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
                      metavar="FILTER", help="recursive filters run beside the reconstruction "
                      f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")
@@ -384,6 +390,7 @@ def parser() -> argparse.ArgumentParser:
                       "from --out's tracks")
     _method(plot, None)
     _bounds(plot, None)
+    _edition(plot, "; default: the run's in --out")
     return ap
 
 
@@ -459,6 +466,23 @@ def _windows(args: argparse.Namespace, run: RunSettings) -> dict[str, Any]:
     return out
 
 
+def _edition(ap: argparse.ArgumentParser, run: str) -> None:
+    """``--edition CAT=EDITION`` (repeatable): the ASTERIX edition a category is read as."""
+    ap.add_argument("--edition", action="append", type=_edition_arg, default=None,
+                    metavar="CAT=EDITION", help="read the recording's ASTERIX category CAT as "
+                    "this edition (repeatable; e.g. --edition 21=0.26 for an older ADS-B "
+                    "ground station: ASTERIX data do not say their edition, and another "
+                    "edition's records read as garbage or not at all, reported in problems.txt)"
+                    f": {edition_choices()}{run}")
+
+
+def _edition_arg(text: str) -> tuple[int, str]:
+    try:
+        return parse_edition(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def _bounds(ap: argparse.ArgumentParser, default: list[str] | None) -> None:
     d = Bounds()
     ap.add_argument("--bounds", nargs="+", default=default, metavar="NAME=MIN,MAX",
@@ -483,8 +507,11 @@ def plot(args: argparse.Namespace) -> list[Path]:
     wanted = {normal_key(k) for k in args.aircraft}  # a Mode S address in either case
     run = stored_settings(out) or RunSettings()
     bounds = run.bounds if args.bounds is None else parse_bounds(args.bounds)
+    if args.edition is not None:
+        run = replace(run, editions=tuple(args.edition))
     # its plane: after the first part; its aircraft told apart as the run's
-    loaded = stream(Path(args.recording), Path(args.sensors), max_speed=bounds.v[1])
+    loaded = stream(Path(args.recording), Path(args.sensors), max_speed=bounds.v[1],
+                    editions=run.asterix_editions())
     if wanted:
         config = RunSettings(args.method or run.method, bounds, **_windows(args, run)).config()
         for track in loaded.tracks:

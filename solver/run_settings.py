@@ -31,7 +31,11 @@ class RunSettings:
     None; the sliding windows' ``window_plots``, ``trial_step_s`` and ``criterion`` (the
     defaults of :class:`solver.config.ReconstructionConfig`; the refined method does not use
     them); ``filter_gate_sigma``: the filters' validation gate (sigmas; None: no gate,
-    :mod:`solver.estimation.gating`)."""
+    :mod:`solver.estimation.gating`); ``editions``: the ASTERIX editions chosen per category
+    other than the decoder's defaults, as ``((21, "0.26"), ...)`` (sorted, defaults left out:
+    a run that names the default edition is the default run;
+    :data:`solver.io.asterix.EDITIONS`), in ``run.json`` as ``{"21": "0.26"}``: a rerun
+    reading the recording as another edition is another run."""
 
     method: str = "refined"
     bounds: Bounds = field(default_factory=Bounds)
@@ -41,12 +45,23 @@ class RunSettings:
     trial_step_s: float = ReconstructionConfig.trial_step_s
     criterion: str = ReconstructionConfig.criterion
     filter_gate_sigma: float | None = FILTER_GATE_SIGMA
+    editions: tuple[tuple[int, str], ...] = ()
 
     def __post_init__(self) -> None:
         try:
             check_filter_gate(self.filter_gate_sigma)
         except ValueError as e:
             raise InputError(("filter_gate_sigma",), str(e)) from None
+        if self.editions:
+            object.__setattr__(self, "editions", _chosen_editions(self.editions))
+
+    def asterix_editions(self) -> dict[int, Any] | None:
+        """The decoder's ``editions=`` (None: the defaults)."""
+        if not self.editions:
+            return None
+        from .io.asterix import editions_named
+
+        return editions_named(dict(self.editions))
 
     def config(self) -> ReconstructionConfig:
         more = {} if self.sample_step_s is None else {"sample_step_s": self.sample_step_s}
@@ -60,7 +75,8 @@ class RunSettings:
                 "bounds": {k: list(getattr(self.bounds, k)) for k in ("u", "w", "v")},
                 "sample_step_s": self.sample_step_s,
                 "window": {"plots": self.window_plots, "trial_step_s": self.trial_step_s},
-                "criterion": self.criterion, "filter_gate_sigma": self.filter_gate_sigma}
+                "criterion": self.criterion, "filter_gate_sigma": self.filter_gate_sigma,
+                "editions": {str(cat): name for cat, name in self.editions}}
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> RunSettings:
@@ -78,7 +94,27 @@ class RunSettings:
                    int(w.get("plots", cls.window_plots)),
                    float(w.get("trial_step_s", cls.trial_step_s)),
                    str(doc.get("criterion", cls.criterion)),
-                   None if gate is None else float(gate))
+                   None if gate is None else float(gate),
+                   tuple((int(k), str(v)) for k, v in (doc.get("editions") or {}).items()))
+
+
+def _chosen_editions(editions: Sequence[tuple[int, str]]) -> tuple[tuple[int, str], ...]:
+    """``editions`` checked against libasterix's (:class:`InputError` at ``editions``, listing
+    the choices; a category named twice too), sorted, the defaults left out."""
+    from .io.asterix import DEFAULT_EDITIONS, EDITIONS, parse_edition
+
+    chosen: dict[int, str] = {}
+    for cat, name in editions:
+        try:
+            cat, name = parse_edition(f"{cat}={name}")
+        except ValueError as e:
+            raise InputError(("editions",), str(e)) from None
+        if chosen.get(cat, name) != name:
+            raise InputError(("editions",), f"CAT{cat:03d} is given two editions, "
+                             f"{chosen[cat]} and {name}: give one")
+        chosen[cat] = name
+    return tuple((cat, name) for cat, name in sorted(chosen.items())
+                 if EDITIONS[cat][name] is not DEFAULT_EDITIONS[cat])
 
 
 def parse_bounds(items: Sequence[str]) -> Bounds:

@@ -273,7 +273,7 @@ def test_job_options_run_the_filters_on_every_track(client):
                                  "sample_step_s": 5.0, "aircraft": None,
                                  "method": "refined", "criterion": "R2",
                                  "window": {"plots": 3, "trial_step_s": 5.0},
-                                 "filter_gate_sigma": 4.0}
+                                 "filter_gate_sigma": 4.0, "editions": {}}
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
@@ -351,7 +351,7 @@ def test_job_options_run_the_filters_on_every_track(client):
         "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
         "filters": ["imm_smoother"], "sample_step_s": 1e-4, "aircraft": None,
         "method": "refined", "criterion": "R2", "window": {"plots": 3, "trial_step_s": 5.0},
-        "filter_gate_sigma": 6.0}
+        "filter_gate_sigma": 6.0, "editions": {}}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
@@ -724,6 +724,10 @@ def test_a_json_body_of_tracks_has_its_own_smaller_limit(tmp_path):
         ('{"criterion": "R3"}', "options.criterion"),
         ('{"aircraft": []}', "options.aircraft"),
         ('{"aircraft": [""]}', "options.aircraft[0]"),
+        ('{"editions": {"21": "0.27"}}', "options.editions: Value error, '21=0.27': "
+         "libasterix has no CAT021 edition '0.27'; the choices: CAT021 0.23, 0.24"),
+        ('{"editions": {"62": "1.19"}}', "options.editions.62"),
+        ('{"editions": ["21=0.26"]}', "options.editions"),
         ('{"filters": [', "options is not valid JSON"))),
 ])
 def test_bad_upload_is_422_naming_the_part(client, files, field):
@@ -1159,3 +1163,36 @@ def test_a_job_resumed_by_other_software_redoes_its_finished_tracks(client, monk
     assert json.loads((runner.job_dir(job_id) / "out" / "software.json").read_text()) \
         == upgraded
     assert client.delete(loc).status_code == 204
+
+
+def test_a_recordings_cat021_edition_is_a_job_option(client):
+    """`options.editions` `{"21": "0.26"}`: a recording whose CAT021 is of edition 0.26 gives
+    the tracks (every state at every plot) the same reports in 2.7 give by default, and the
+    job's options echo it; without it, the ADS-B reports are an `other_edition` problem and
+    the radar's tracks alone are made."""
+    from test_asterix_editions import recording
+
+    jobs = {}
+    for name, data, options in (("new", recording("2.7"), None),
+                                ("old", recording("0.26"), {"editions": {"21": "0.26"}}),
+                                ("default", recording("0.26"), {})):
+        r = client.post("/v1/jobs", files={"recording": ("day.ast", data),
+                                           "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                        data={} if options is None else {"options": json.dumps(options)})
+        assert r.status_code == 202, r.text
+        jobs[name] = (r.headers["location"], wait(client, r.headers["location"]))
+    (new_loc, new), (old_loc, old), (_, default) = jobs.values()
+    assert old["state"] == new["state"] == "done" and old["problems"]["counts"] == {}
+    assert old["options"]["editions"] == {"21": "0.26"} and new["options"]["editions"] == {}
+    assert old["rows"] == new["rows"] == 120 and old["tracks_done"] == len(FLIGHTS)
+    for t in client.get(new_loc + "/tracks").json():
+        a, b = (client.get(f"{loc}/tracks/{t['aircraft']}").json()["trajectory"]["at_plots"]
+                for loc in (old_loc, new_loc))
+        assert len(a) == len(b) == t["plots"]
+        for field in ("t", "lat_deg", "lon_deg", "speed", "sensor"):
+            assert [s[field] for s in a] == [s[field] for s in b], field
+    assert default["state"] == "done" and default["rows"] == 40, default
+    assert default["problems"]["counts"]["other_edition"] == 1
+    assert default["problems"]["dropped"]["other_edition"] == 80
+    for loc, _ in jobs.values():
+        assert client.delete(loc).status_code == 204

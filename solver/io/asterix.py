@@ -16,7 +16,8 @@ Containers (:func:`read_recording` tells them apart by the first bytes):
   payload over IPv4/IPv6 is a datagram of data blocks; IP fragments are reported, not
   reassembled.
 
-Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=`` picks others):
+Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=`` picks others,
+below):
 
 - CAT048 target reports: I010 SAC/SIC -> sensor (sensor file), I140 time of day, I040 measured
   slant range (1/256 NM -> m; beyond 256 NM, where I020 ERR is set, the Reserved Expansion
@@ -28,17 +29,39 @@ Items read (default editions CAT048 1.32, CAT021 2.7, CAT034 1.29; ``editions=``
   whose I230 flight status (STAT 1 or 3, the aircraft's Mode S downlink) says on the ground get
   ``on_ground`` (the split ends the aircraft's track there and leaves them out, counted).
 - CAT021 ADS-B: I010 SAC/SIC (ground station) -> sensor, time of applicability for position
-  I071 (else time of message reception I073), position I131 (high resolution) or I130,
-  geometric height I140 (ft -> m) for ``altitude_m``, else the flight level I145 as the
-  pressure altitude (I145 always gives ``flight_level``),
-  target address I080, Mode 3/A I070, track number I161. I040 SIM/TST/RAB flagged reports
-  are left out (``not_aircraft``); I040 GBS (ground bit set) gives ``on_ground``.
+  I071 (else time of message reception I073; 0.2x: the time of day I030), position I131 (high
+  resolution) or I130 (whichever is a LAT/LON group: 0.26's I131 is the signal amplitude; the
+  LSB is libasterix's for the edition, 180/2^30 deg for 2.x's I131, 180/2^25 for 0.24-0.26's
+  I130, 180/2^23 for 0.23's), geometric height I140 (ft -> m) for ``altitude_m``, else the
+  flight level I145 as the pressure altitude (I145 always gives ``flight_level``),
+  target address I080, Mode 3/A I070 (0.26's V/G flags checked), track number I161 (none in
+  0.2x). I040 SIM/TST/RAB flagged reports are left out (``not_aircraft``); I040 GBS (ground
+  bit set) gives ``on_ground`` (2.x: in I040's first extension; 0.2x: a fixed two octets).
 - CAT034 service messages: per sensor the count of messages, north markers and sector
   crossings and the antenna rotation period I041 (:class:`ServiceStats`).
 
 Times: the time of day (1/128 s) becomes ``t``, seconds since the UTC midnight before the
 first record, monotonic across midnight (:func:`solver.io.tables.unwrap_time_of_day`, in
 recording order); ``time_of_day_s`` keeps the recorded value.
+
+Editions: ASTERIX data carry none, and a category's editions differ: CAT021 0.23-0.26 (older
+ADS-B ground stations) have another UAP than 2.x. ``editions=`` maps a category to a libasterix
+edition class (:data:`EDITIONS` lists libasterix's: CAT021 0.23-0.26 and 2.1-2.7, CAT034
+1.27-1.29, CAT048 1.27-1.32; :func:`parse_edition` reads ``"21=0.26"``, :func:`editions_named`
+gives the mapping for names, the command line's ``--edition 21=0.26`` and a job's
+``options.editions``); the categories it does not name keep their default. Read as another
+edition, records parse as garbage or not at all: CAT021 0.26 read as 2.7 gave a row per
+report, its time up to 10 h and its position up to 25,000 km off, beside a ``bad_record``
+per block. So where at least :data:`OTHER_EDITION_BLOCKS` data blocks of a category, and half
+of its blocks in a unit, stop parsing before their end, one ``other_edition`` problem says so
+(naming the edition read and the choices) and those blocks' rows are left out; a damaged block
+here and there keeps the rows before its damage. A recording whose records happen to parse
+to their blocks' ends as the wrong edition is not caught. CAT048 keeps its UAP from 1.27 to
+1.32, and 1.27 data read as 1.32 (the default) give the same plots; libasterix's 1.27-1.31
+take I090's FL unsigned (1.32 two's complement), so through them a negative FL would read
+4,096 FL too high: a reading of 2,048 FL or more through an unsigned definition is a
+``bad_value``, no altitude. 1.32 records with I020's later extensions (1.31 on) do not parse
+as 1.27.
 
 Damage: every problem is recorded (:class:`solver.io.problems.Problems`) with its byte offset
 in the file and the rest is still read: a truncated block (its declared length runs past the
@@ -48,9 +71,7 @@ of its block is skipped), unrecognised bytes between blocks, a category that is 
 (CAT062 ...), an unknown SAC/SIC, a record without position or time. The work spent on
 damage is limited (:data:`WASTE_FACTOR`): past it, the rest of the unit is read by block headers
 alone (``damaged_stretch``), so good data after a long damaged stretch are still read, in time
-linear in the bytes. ASTERIX data carry no
-edition: data of another edition (e.g. CAT021 0.26, whose UAP differs from 2.x) show as
-``bad_record`` / ``missing_item`` problems; pass ``editions=`` to match them.
+linear in the bytes.
 
 Reading: :func:`read_recording` (the whole recording), :func:`iter_recording` (in order, unit
 by unit, for :func:`solver.io.split.split_stream`); both decode units of ``chunk_bytes`` cut at
@@ -88,6 +109,60 @@ from .tables import DAY_S, FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
 NM_M = 1852.0
 DEFAULT_EDITIONS: dict[int, Any] = {48: ast.Cat_048_1_32, 21: ast.Cat_021_2_7,
                                     34: ast.Cat_034_1_29}
+
+
+def _edition_name(spec: Any) -> str:
+    """A libasterix edition class's edition, e.g. ``"0.26"``."""
+    major, minor = spec.cv_edition
+    return f"{major}.{minor}"
+
+
+EDITIONS: dict[int, dict[str, Any]] = {
+    cat: {_edition_name(spec): spec for spec in sorted(ast.manifest["CATS"][cat],
+                                                        key=lambda spec: spec.cv_edition)}
+    for cat in sorted(DEFAULT_EDITIONS)}
+"""The editions libasterix has of each decoded category, by name (``EDITIONS[21]["0.26"]``:
+``ast.Cat_021_0_26``), oldest first: what ``editions=`` may choose."""
+
+
+def edition_choices() -> str:
+    """The editions that can be chosen, for messages: ``CAT021 0.23, ..., 2.7 (default
+    2.7); ...``."""
+    return "; ".join(f"CAT{cat:03d} {', '.join(names)} (default "
+                     f"{_edition_name(DEFAULT_EDITIONS[cat])})" for cat, names in EDITIONS.items())
+
+
+def parse_edition(text: str) -> tuple[int, str]:
+    """``"21=0.26"`` (also ``021=0.26``, ``CAT021=0.26``) -> ``(21, "0.26")``, checked against
+    :data:`EDITIONS`; ``ValueError`` listing the choices."""
+    cat_text, sep, name = text.partition("=")
+    cat_text = cat_text.strip().upper().removeprefix("CAT")
+    cat = int(cat_text) if sep and cat_text.isdigit() else None
+    name = name.strip()
+    if cat not in EDITIONS or name not in EDITIONS[cat]:
+        what = (f"{text!r}: give CATEGORY=EDITION (e.g. 21=0.26)" if cat is None else
+                f"{text!r}: CAT{cat:03d} is not decoded" if cat not in EDITIONS else
+                f"{text!r}: libasterix has no CAT{cat:03d} edition {name!r}")
+        raise ValueError(f"{what}; the choices: {edition_choices()}")
+    return cat, name
+
+
+def _with_defaults(editions: Mapping[int, Any] | None) -> dict[int, Any]:
+    """``editions=`` over :data:`DEFAULT_EDITIONS`: the categories not named keep their
+    default (``editions={21: ast.Cat_021_0_26}`` once left CAT048 and CAT034 undecoded, every
+    block an ``unknown_category``)."""
+    return {**DEFAULT_EDITIONS, **(editions or {})}
+
+
+def editions_named(names: Mapping[int, str]) -> dict[int, Any]:
+    """The decoder's ``editions=`` for the editions named per category (e.g. ``{21: "0.26"}``),
+    the other categories at :data:`DEFAULT_EDITIONS`; ``ValueError`` listing the choices."""
+    out = dict(DEFAULT_EDITIONS)
+    for cat, name in names.items():
+        out[cat] = EDITIONS[parse_edition(f"{cat}={name}")[0]][name]
+    return out
+
+
 REF_048 = ast.Ref_048_1_13
 """CAT048's Reserved Expansion field (read for the extended range, ERR)."""
 KNOWN_CATEGORIES = frozenset(ast.manifest["CATS"]) | {30, 31, 32, 252}
@@ -159,6 +234,9 @@ MAX_CHECKED_RECORD_BYTES = 1024
 """Bytes given to that check beyond its budget (a record longer than this fails it)."""
 CHUNK_BYTES = 1 << 20
 """Size of the units a recording is decoded in (in parallel with ``executor=``)."""
+OTHER_EDITION_BLOCKS = 4
+"""Data blocks of a category that stop parsing before their end (and half its blocks, in a
+unit) taken for data of another edition (:meth:`_Decoder._other_edition`)."""
 
 
 def read_recording(source: str | Path | bytes, sensors: SensorSet, *,
@@ -200,7 +278,7 @@ def _iter_data(data: bytes | mmap.mmap, sensors: SensorSet, editions: Mapping[in
                executor: Any, chunk_bytes: int, ahead: int) -> Iterator[Recording]:
     """:func:`iter_recording` of the recording's bytes, or of the file memory-mapped (its
     pages released behind the reading: the memory does not grow with the file)."""
-    eds = dict(editions or DEFAULT_EDITIONS)
+    eds = _with_defaults(editions)
     previous = np.nan
 
     def finish(part: Recording, walk: Problems, packets: int) -> Recording:
@@ -300,7 +378,7 @@ def decode_datagrams(datagrams: list[tuple[int, bytes]], sensors: SensorSet, *,
     """Decode ``(file offset, bytes)`` pieces, each a sequence of whole data blocks (a UDP
     payload, or a stretch of a raw file); byte offsets are the file's. The cyclic garbage
     collector is paused meanwhile (:func:`cyclic_gc_paused`)."""
-    decoder = _Decoder(sensors, editions or DEFAULT_EDITIONS)
+    decoder = _Decoder(sensors, _with_defaults(editions))
     with cyclic_gc_paused():
         for offset, payload in datagrams:
             decoder.feed(payload, offset)
@@ -361,7 +439,7 @@ def time_disorder_s(source: str | Path | bytes, sensors: SensorSet, *,
 
 def _time_disorder_s(data: bytes | mmap.mmap, sensors: SensorSet,
                      editions: Mapping[int, Any] | None, every_bytes: int) -> float:
-    decoder = _Decoder(sensors, dict(editions or DEFAULT_EDITIONS))
+    decoder = _Decoder(sensors, _with_defaults(editions))
     due = 0
     for offset, buf, a, b in _sampled_blocks(data):
         if offset < due or buf[a] not in decoder.editions:
@@ -500,6 +578,8 @@ class _Decoder:
         self.service: dict[str, ServiceStats] = {}
         self.blocks: dict[int, int] = {}
         self.records = 0
+        # whole blocks whose records stopped parsing early: (category, file offset, rows)
+        self._failed_blocks: list[tuple[int, int, int, int]] = []
 
     # ------------------------------------------------------------------ block walking
 
@@ -697,7 +777,10 @@ class _Decoder:
                 continue
             if not fits:
                 records, err = self._parse(cat, data, pos + 3, stop)
-            self._handle(cat, records, pos, base, stop - pos)
+            # a whole block whose records stop parsing before its end: damage, or the data
+            # of another edition (counted, see finish)
+            self._handle(cat, records, pos, base, stop - pos,
+                         failed=fits and err is not None and not err[2])
             if nxt > end:
                 problems.add("truncated_block", f"byte {base + pos}", f"CAT{cat:03d} block "
                              f"declares {length} bytes, only {end - pos} remain; "
@@ -717,10 +800,12 @@ class _Decoder:
             pos = q
 
     def _handle(self, cat: int, records: list[tuple[Any, int]], pos: int, base: int,
-                size: int) -> None:
+                size: int, failed: bool = False) -> None:
         """Rows from parsed records (``pos``: the block's offset in ``data``, ``size`` its bytes
-        read)."""
+        read; ``failed``: a whole block whose records stop parsing before its end, its rows
+        noted for :meth:`_other_edition`)."""
         self.blocks[cat] = self.blocks.get(cat, 0) + 1
+        first = len(self.rows)
         if cat not in self.editions:
             self.problems.add("unknown_category", f"byte {base + pos}",
                               f"CAT{cat:03d} data block(s) skipped (decoded: "
@@ -740,6 +825,8 @@ class _Decoder:
                 continue
             if row is not None:
                 self.rows.append(row)
+        if failed:
+            self._failed_blocks.append((cat, base + pos, first, len(self.rows)))
 
     # ------------------------------------------------------------------ records
     #
@@ -943,11 +1030,18 @@ class _Decoder:
                 v = i090.variation
                 fl = self._memo[memo_key] = (
                     _INVALID if v.get_item("V").as_uint() or v.get_item("G").as_uint()
-                    else v.get_item("FL").variation.content.as_quantity("FL"))
+                    else self._flight_level(v.get_item("FL")))
             if fl is _INVALID:
                 self.problems.add("invalid_code", f"byte {at}", f"CAT048 flight level of "
                                   f"{sensor!r} not validated or garbled: not used",
                                   key=f"{sensor}/fl")
+                fl = np.nan
+            elif isinstance(fl, tuple):
+                self.problems.add("bad_value", f"byte {at}", f"CAT048 flight level of "
+                                  f"{sensor!r} reads {fl[0]:g} FL through CAT048 "
+                                  f"{_edition_name(self.editions[48])}, whose definition "
+                                  "takes I048/090 unsigned (1.32's, two's complement, reads a "
+                                  "negative FL): not used", key=f"{sensor}/fl-unsigned")
                 fl = np.nan
         i220 = get("220")
         trn = self._track_number(get("161"), "161/48", "TRN")
@@ -957,6 +1051,15 @@ class _Decoder:
                 fl * FL_M, fl, NO_INT if i220 is None else int(i220.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 48), trn, at, ground)
 
+    def _flight_level(self, rule: Any) -> float | tuple[float]:
+        """I048/090's FL (``rule``: its group's FL sub-item). libasterix's CAT048 1.27-1.31
+        define it unsigned, 1.32 two's complement: through the former a negative FL (on the
+        ground at a sea-level airport in high pressure) reads 4,096 FL too high, so a reading
+        of 2,048 FL or more through an unsigned definition is returned as ``(value,)``, not
+        used."""
+        fl = rule.variation.content.as_quantity("FL")
+        return (fl,) if fl >= 2048 and self._lsb(rule) is not None else fl
+
     def _cat021(self, rec: Any, at: int) -> tuple | None:
         sensor = self._sensor(rec, 21, at, PositionSensor)
         if sensor is None:
@@ -965,13 +1068,17 @@ class _Decoder:
         i040 = get("040")
         if self._flagged(i040, ("SIM", "TST", "RAB"), sensor, at, 21):
             return None
-        time = get("071") or get("073")
+        # 2.x: time of applicability I071, else of reception I073; 0.2x: time of day I030
+        time = get("071") or get("073") or get("030")
         if time is None:
-            return self._missing(21, "071", sensor, at)
+            return self._missing(21, "071" if "071" in type(rec).cv_items_dict else "030",
+                                 sensor, at)
         tod = self._time_of_day(time, 21, sensor, at)
         if tod is None:
             return None
-        pos = get("131") or get("130")
+        # 2.x: I131 high resolution, else I130; 0.24-0.26: I130 (32-bit, 0.26's I131 is the
+        # signal amplitude); 0.23: I130 (24-bit). The LSB is libasterix's for the edition.
+        pos = self._position(get("131")) or self._position(get("130"))
         if pos is None:
             return self._missing(21, "130", sensor, at)
         lat = pos.variation.get_item("LAT").variation.content.as_quantity("°")
@@ -989,6 +1096,18 @@ class _Decoder:
         return (tod, sensor, np.nan, np.nan, lat, lon, alt, fl,
                 NO_INT if i080 is None else int(i080.as_uint()),
                 self._code(get("070"), "MODE3A", sensor, at, 21), trn, at, ground)
+
+    def _position(self, item: Any) -> Any:
+        """``item`` if it is a position (a group with LAT and LON: CAT021 0.26's I131 is the
+        signal amplitude, 2.x's the high-resolution position), else None; its structure is
+        looked at once per libasterix class."""
+        if item is None:
+            return None
+        memo_key = ("latlon", type(item))
+        is_position = self._memo.get(memo_key)
+        if is_position is None:
+            is_position = self._memo[memo_key] = {"LAT", "LON"} <= _names(item.variation)
+        return item if is_position else None
 
     def _time_of_day(self, item: Any, cat: int, sensor: str, at: int) -> float | None:
         """The record's time of day (s), or None with a problem when it is not within a day
@@ -1017,7 +1136,36 @@ class _Decoder:
 
     # ------------------------------------------------------------------ result
 
+    def _other_edition(self) -> None:
+        """Where at least :data:`OTHER_EDITION_BLOCKS` data blocks of a category and half of
+        its blocks stop parsing before their end, the data are of another edition than the
+        one read (damage spoils a block here and there): the rows read from those blocks are
+        garbage, left out (``other_edition``, naming the choices). Read as 2.7, CAT021 0.26
+        reports gave a row each, times up to 10 h and positions up to 25,000 km off, beside
+        a ``bad_record`` problem per block."""
+        drop: list[tuple[int, int]] = []
+        for cat in sorted({b[0] for b in self._failed_blocks}):
+            failed = [b for b in self._failed_blocks if b[0] == cat]
+            if len(failed) < OTHER_EDITION_BLOCKS or 2 * len(failed) < self.blocks[cat]:
+                continue
+            rows = sum(b[3] - b[2] for b in failed)
+            drop += [(b[2], b[3]) for b in failed]
+            name = _edition_name(self.editions[cat])
+            self.problems.add(
+                "other_edition", f"byte {failed[0][1]}", f"{len(failed)} of "
+                f"{self.blocks[cat]} CAT{cat:03d} data blocks do not parse to their end as "
+                f"CAT{cat:03d} {name}: the recording's CAT{cat:03d} is likely of another "
+                f"edition (libasterix has {', '.join(EDITIONS[cat])}; choose with the command "
+                f"line's --edition {cat}=EDITION or a job's options.editions); the {rows} "
+                "plots read from those blocks are left out", key=str(cat), dropped=rows)
+        if drop:
+            gone = np.zeros(len(self.rows), dtype=bool)
+            for a, b in drop:
+                gone[a:b] = True
+            self.rows = [row for row, g in zip(self.rows, gone.tolist(), strict=True) if not g]
+
     def finish(self, size: int) -> Recording:
+        self._other_edition()
         n = len(self.rows)
         cols = list(zip(*self.rows, strict=True)) if n else [()] * len(_COLUMNS)
         c = dict(zip(_COLUMNS, cols, strict=True))

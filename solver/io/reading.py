@@ -11,7 +11,7 @@ from __future__ import annotations
 import queue
 import re
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,16 +53,18 @@ class Loaded:
     times_of_day: bool = False  # t counts from a UTC midnight (counts_from_midnight)
 
 
-def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS) -> Loaded:
+def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS, *,
+         editions: Mapping[int, Any] | None = None) -> Loaded:
     """Read the sensor file and the whole recording (by suffix: a table, else ASTERIX/pcap)
     into memory; :func:`stream` reads it in parts instead. ``max_speed``: the run's fastest
-    ground speed (m/s), by which a key's plots are told apart into aircraft."""
+    ground speed (m/s), by which a key's plots are told apart into aircraft; ``editions``:
+    the ASTERIX editions (:func:`solver.io.asterix.read_recording`; None: the defaults)."""
     sensors = load_sensors(sensors_path)
     periods: dict[str, float] = {}
     if recording.suffix.lower() in TABLE_SUFFIXES:
         rows, problems = read_table(recording)
     else:
-        rec = read_recording(recording, sensors)
+        rec = read_recording(recording, sensors, editions=editions)
         rows, problems = rec.rows, rec.problems
         periods = {sid: st.rotation_period_s for sid, st in rec.service.items()
                    if st.rotation_period_s}
@@ -100,7 +102,8 @@ class Streamed:
 
 
 def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_TRACKS,
-           executor: Any = None, max_speed: float = MAX_SPEED_MS) -> Streamed:
+           executor: Any = None, max_speed: float = MAX_SPEED_MS,
+           editions: Mapping[int, Any] | None = None) -> Streamed:
     """The sensor file read and the recording opened for :func:`solver.io.split.split_stream`
     (by suffix: a table read in batches, else ASTERIX/pcap decoded in units): memory holds
     the aircraft in the air, not the recording's rows. A thread reads, decodes and splits up
@@ -108,10 +111,11 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     reconstruction); with ``executor`` (a Dask client) ASTERIX units are decoded on it
     (:func:`solver.io.asterix.iter_recording`). What makes the whole input unusable (a
     sensor file or table header it cannot use, a capture of a link type not read) raises
-    here, before any track is taken."""
+    here, before any track is taken. ``editions``: the ASTERIX editions
+    (:func:`solver.io.asterix.read_recording`; None: the defaults)."""
     sensors = load_sensors(sensors_path)
     out = Streamed(sensors, Problems(), iter(()))
-    parts = _row_parts(recording, out, executor)
+    parts = _row_parts(recording, out, executor, editions)
     try:
         first = next(parts, None)  # the whole input's errors raise now
     except InputError as e:
@@ -133,7 +137,8 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     return out
 
 
-def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator[PlotRows]:
+def _row_parts(recording: Path, out: Streamed, executor: Any = None,
+               editions: Mapping[int, Any] | None = None) -> Iterator[PlotRows]:
     if recording.suffix.lower() in TABLE_SUFFIXES:
         back = time_disorder_s(recording)
         if back <= DISORDER_S:
@@ -150,9 +155,9 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
     with open(recording, "rb") as f:
         check_recording_head(f.read(RECORDING_HEAD_BYTES))
     out.times_of_day = True  # ASTERIX: times of day, t from the midnight before the first
-    back = asterix_time_disorder_s(recording, out.sensors)
+    back = asterix_time_disorder_s(recording, out.sensors, editions=editions)
     if back > DISORDER_S:  # e.g. two recordings concatenated: read whole, sorted
-        rec = read_recording(recording, out.sensors, executor=executor,
+        rec = read_recording(recording, out.sensors, executor=executor, editions=editions,
                              chunk_bytes=STREAM_CHUNK_BYTES)
         out.problems.extend(rec.problems)
         out.scan_periods.update({sid: st.rotation_period_s for sid, st in rec.service.items()
@@ -161,7 +166,7 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None) -> Iterator
                                  f"reports {back:.0f} s or more", "a recording")
         return
     for part in iter_recording(recording, out.sensors, chunk_bytes=STREAM_CHUNK_BYTES,
-                               executor=executor):
+                               executor=executor, editions=editions):
         out.problems.extend(part.problems)
         for sid, st in part.service.items():
             if st.rotation_period_s:
