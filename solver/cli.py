@@ -348,11 +348,13 @@ def parser() -> argparse.ArgumentParser:
                      "processes (default: the usable cores)")
     rec.add_argument("--time-limit", type=partial(_seconds, zero=True), default=300.0,
                      help="per-track limit (s; 0: none)")
-    rec.add_argument("--decode", choices=("local", "cluster", "auto"), default="local",
+    rec.add_argument("--decode", choices=("local", "cluster", "auto"), default="auto",
                      help="where ASTERIX is decoded: in this process, a reading thread "
-                     "overlapping the reconstruction (default; the faster on one machine, "
-                     "benchmarks/results/recording.md), on the cluster's workers, or auto: "
-                     "on the cluster when it has more than one worker")
+                     "overlapping the reconstruction; on the cluster's workers; or auto "
+                     "(default): on the cluster when it has more than one worker, else here "
+                     "(a lone worker leaves this process a core; with two on two cores, "
+                     "decoding on them took 33 s against 40: benchmarks/results/"
+                     "cli_overhead.md)")
     _method(rec, "refined")
     _bounds(rec, [])
     _edition(rec, "")
