@@ -943,3 +943,25 @@ def test_the_cyclic_collector_is_paused_while_decoding_and_back_after():
         gc.enable()
     enc = encode_recording(duration=20.0)
     assert len(read_recording(enc.data, SENSORS).rows) > 0 and gc.isenabled()
+
+
+def test_nested_undecoded_blocks_declaring_one_end_cost_linear_time():
+    """Undecoded blocks nested in one another, each declaring the same end over a tail of
+    bytes that look like CAT048 marks, had every one look through the tail again for blocks
+    it swallowed: 57 KB in 23 s, 420 s a MiB (a reviewer's). The looking counts toward the
+    work limit now."""
+    import time
+
+    tail = (b"\x30\x00\x00" * 10_001)[:30_000]
+    parts, length = [bytes([62, (3 + len(tail)) >> 8, (3 + len(tail)) & 0xFF]) + tail], 3 + 30_000
+    inner = bytes([34, 0, 6, 0x80, 0x19, 0xC9])
+    for _ in range(3000):
+        length += 3 + len(inner)
+        if length > 0xFFFF:
+            break
+        parts.append(bytes([62, length >> 8, length & 0xFF]) + inner)
+    data = b"".join(reversed(parts))
+    started = time.process_time()
+    rec = decode_blocks(data, SENSORS)
+    assert time.process_time() - started < 3.0  # 0.02 s here; 23 s before
+    assert rec.problems.counts.get("unknown_category", 0) >= 1

@@ -100,7 +100,7 @@ import numpy as np
 from asterix.base import Bits, ParsingMode, Unsigned
 
 from ..sensors import PositionSensor, RadarSensor
-from .framing import frame_header_bytes, is_framed, iter_frames
+from .framing import KNOWN_CATEGORIES, frame_header_bytes, is_framed, iter_frames
 from .pcap import is_capture, iter_udp_payloads
 from .problems import Problems
 from .sensors_file import SensorSet
@@ -165,12 +165,7 @@ def editions_named(names: Mapping[int, str]) -> dict[int, Any]:
 
 REF_048 = ast.Ref_048_1_13
 """CAT048's Reserved Expansion field (read for the extended range, ERR)."""
-KNOWN_CATEGORIES = frozenset(ast.manifest["CATS"]) | {30, 31, 32, 252}
-"""Categories whose block headers are recognised (when resynchronising, and in the chain of
-headers an undecoded block is trusted by): libasterix's and those of ARTAS and other systems
-it does not define (CAT030, CAT031, CAT032, CAT252), skipped as ``unknown_category``. A sound
-CAT020 block followed by a CAT030 one was distrusted: the reader resynchronised inside it and
-read nine CAT034 records of its bytes (a tester's, on jASTERIX's samples)."""
+
 
 @dataclass
 class ServiceStats:
@@ -658,7 +653,11 @@ class _Decoder:
         within ``data[start:stop]`` to exactly ``stop``: an undecoded block's declared length
         then runs over blocks that follow it (a flipped length bit landing on a later block's
         start; inside a sound block a header chain landing exactly on its end is rare). Each
-        offset is followed once (``ends``: whether the chain from it ends at ``stop``)."""
+        offset is followed once (``ends``: whether the chain from it ends at ``stop``). The
+        bytes looked through count toward the work limit (past it the check is not made):
+        nested blocks declaring one end had every one look through the same tail again
+        (a reviewer's: 420 s a MiB)."""
+        self._wasted += stop - start
         ends: dict[int, bool] = {}
         for cat in self.editions:
             mark = bytes([cat])
@@ -743,7 +742,9 @@ class _Decoder:
             # candidate's declared block first made damaged stretches quadratic
             fits = nxt <= end and (nxt == end or _fits(data, nxt))
             if fits and cat not in self.editions:  # its records cannot be checked
-                fits = _chain_holds(data, nxt) and not self._swallows_blocks(data, pos + 3, nxt)
+                fits = _chain_holds(data, nxt) and (
+                    self._headers_only or self._over_limit()
+                    or not self._swallows_blocks(data, pos + 3, nxt))
             records, err = self._parse(cat, data, pos + 3, stop) if fits else ([], None)
             if fits and err is None:
                 self._handle(cat, records, pos, base, nxt - pos)  # the usual case
