@@ -67,6 +67,7 @@ def reconstruct(plots: Plots | PlotTable, radar: Radar | None = None,
             result = refine_table(table, config, deadline=deadline)
         _warn_heights_not_estimated(table, result)
         _warn_mirrored_heights(table, result)
+        _warn_one_instant(table, result)
     if table.frame is not None:
         result.frame = table.frame
         for s in (result.at_plots, result.samples):
@@ -95,6 +96,18 @@ def _warn_heights_not_estimated(table: PlotTable, result: Reconstruction) -> Non
             "range is too long by about h^2 / 2d + h d / 2R for an aircraft at height h and "
             "distance d (R the earth's radius: 1.05 km at 50 km and 10 km, 400 m at 250 km); "
             "give their Mode C altitude or a second sensor")
+
+
+def _warn_one_instant(table: PlotTable, result: Reconstruction) -> None:
+    """Plots of several sensors all at one instant fix a position, not a motion: the heading
+    and speed then come from the start of the solve, not the plots (a tester's three sensors'
+    plots at one time came back at the bounds' lowest speed, heading 0, without a word), as
+    the sliding windows say for one plot."""
+    said = any(w.startswith("only one plot") for w in result.diagnostics.warnings)
+    if len(table) and np.all(table.t == table.t[0]) and not said:
+        result.diagnostics.warnings.append(
+            f"every plot is at the same time ({float(table.t[0]):.3f} s): a position, no "
+            "motion; the heading and speed are not estimated from the plots")
 
 
 MIRROR_CHI2 = 9.0

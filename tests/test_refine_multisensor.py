@@ -678,6 +678,14 @@ def test_sliding_fuses_plots_of_one_instant():
         assert rec.at_plots.x.shape == (len(rows),) and np.isfinite(rec.at_plots.x).all()
         assert [r.plots for r in rec.sensors] == [len(rows) // 3] * 3
         assert any(w.startswith(warning) for w in rec.diagnostics.warnings)
+    # the default (refined) says it too: its heading and speed came from no plot (a tester's
+    # three sensors' plots of one time: the bounds' lowest speed, heading 0, no warning)
+    one = PlotTable.build(noisy.sensors, noisy.t[[0, 100, 200]], noisy.sensor[[0, 100, 200]],
+                          noisy.range_m[[0, 100, 200]], noisy.azimuth_rad[[0, 100, 200]],
+                          noisy.lat_deg[[0, 100, 200]], noisy.lon_deg[[0, 100, 200]],
+                          noisy.altitude_m[[0, 100, 200]], reference=FRAME)
+    said = reconstruct(one).diagnostics.warnings
+    assert sum(w.startswith("every plot is at the same time") for w in said) == 1, said
 
 
 def test_short_tables_are_refused():
