@@ -21,6 +21,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Res
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.exceptions import HTTPException
 from starlette.middleware.gzip import GZipMiddleware
+from starlette.requests import ClientDisconnect
 from starlette.routing import BaseRoute, Match
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -35,7 +36,7 @@ from .logs import LOGGER, setup_logging
 from .metrics import Metrics
 from .models import ErrorResponse, Health, ReconstructionRequest, ReconstructionResponse
 from .pool import Busy, SolverPool
-from .routes_jobs import JobsBodyLimit, install_jobs
+from .routes_jobs import JOBS_PATH, JobsBodyLimit, install_jobs
 from .settings import Settings, get_settings
 from .workers import Outcome, SolveError
 
@@ -424,6 +425,28 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         LOGGER.error("job store error", exc_info=exc)
         return _error(503, f"the job store cannot be written now ({exc}): free room on its "
                       "disk or retry later", headers={"Retry-After": str(settings.retry_after_s)})
+
+    @app.exception_handler(ClientDisconnect)
+    async def client_gone(request: Request, exc: ClientDisconnect) -> Response:
+        """A client that closed its connection mid-upload: nobody reads an answer (499, as
+        the single-track route; it was logged as an unhandled error and counted a 500)."""
+        LOGGER.info("client disconnected", extra={"fields": {"path": request.url.path}})
+        return Response(status_code=499)
+
+    @app.exception_handler(FileNotFoundError)
+    async def file_gone(request: Request, exc: FileNotFoundError) -> JSONResponse:
+        """A job's file gone while it was read because the job was deleted meanwhile (a DELETE
+        racing reads gave 500s): 404; any other missing file is an internal error."""
+        job_id = request.path_params.get("job_id")
+        jobs = getattr(request.app.state, "jobs", None)
+        try:
+            gone = job_id is not None and jobs is not None and jobs.get(job_id) is None
+        except Exception:  # the store closed (stopping): not known to be gone
+            gone = False
+        if request.url.path.startswith(JOBS_PATH + "/") and gone:
+            return _error(404, f"job {job_id} not found: it was deleted while this was read")
+        LOGGER.error("unhandled error", exc_info=exc)
+        return _error(500, f"internal error: {type(exc).__name__}")
 
     @app.exception_handler(Exception)
     async def internal_error(request: Request, exc: Exception) -> JSONResponse:

@@ -96,6 +96,10 @@ class Settings(BaseSettings):
         "jobs_max_upload_bytes); larger ones get 413. Validating JSON takes about 14 times its "
         "size in the server's memory (a 99-MB body: 1.5 GB); send more plots as a CSV or "
         "Parquet table.")
+    jobs_max_tracks: int = Field(50_000, ge=1, description="Most tracks one job may hold: a "
+                                 "recording read into more fails at once with the reason, a "
+                                 "JSON body of more gets 422 (a job's cost is then bounded by "
+                                 "this times jobs_track_time_limit_s).")
     jobs_track_time_limit_s: float = Field(300.0, ge=0, description="Longest one track of a "
                                            "job may be solved (s); then it fails. 0 = none.")
     jobs_track_figures: bool = Field(True, description="Draw every job track's figure on the "
