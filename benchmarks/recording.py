@@ -611,6 +611,16 @@ def _log(msg: str) -> None:
 # ------------------------------------------------------------------------------ report
 
 
+def deadline_epoch(hh_mm: str, now: float | None = None) -> float:
+    """The next time (epoch s) the UTC clock reads ``HH:MM``: tomorrow's when today's has
+    passed (a run started at 23:52 with 00:40 stopped at once, today's 00:40 being past)."""
+    now = time.time() if now is None else now
+    hh, mm = (int(x) for x in hh_mm.split(":"))
+    t = time.gmtime(now)
+    at = now + ((hh * 60 + mm) - (t.tm_hour * 60 + t.tm_min)) * 60.0 - t.tm_sec
+    return at if at > now else at + 86_400.0
+
+
 def decode_rate(recording: Path, max_bytes: int = 2 << 20,
                 chunk_bytes: int | None = None) -> dict[str, Any]:
     """Plots per second (wall and CPU) of decoding the recording's first ``max_bytes`` in
@@ -838,10 +848,7 @@ def main(argv: list[str] | None = None) -> int:
     save = out.with_name(out.name + ".partial.json")
     deadline = None
     if args.deadline_utc:
-        hh, mm = (int(x) for x in args.deadline_utc.split(":"))
-        now = time.gmtime()
-        deadline = time.time() + ((hh * 60 + mm) - (now.tm_hour * 60 + now.tm_min)) * 60.0 \
-            - now.tm_sec
+        deadline = deadline_epoch(args.deadline_utc)
     if args.work:
         work = Path(args.work)
         work.mkdir(parents=True, exist_ok=True)

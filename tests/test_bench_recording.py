@@ -5,6 +5,7 @@ time-shifted real trajectories still physically valid."""
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import fields
 
 import numpy as np
@@ -17,6 +18,7 @@ from benchmarks.recording import (
     RecordingSpec,
     aircraft_truths,
     build,
+    deadline_epoch,
     in_task_rate,
     pooled_in_process,
     real_truths,
@@ -160,3 +162,13 @@ def test_a_sample_recording_for_the_command_line(tmp_path, capsys):
     assert len(rec.rows) > 100 and not rec.problems
     assert sorted(p.name for p in tmp_path.iterdir()) == ["built.json", "recording.ast",
                                                           "sensors.json"]
+
+
+def test_the_deadline_is_the_next_time_the_clock_reads_it():
+    """A run started at 23:52 UTC with --deadline-utc 00:40 stopped at once: today's 00:40 had
+    passed. The deadline is the next 00:40."""
+    at_2352 = 1_764_287_520.0  # 2025-11-27 23:52:00 UTC
+    assert time.gmtime(at_2352)[3:5] == (23, 52)
+    assert deadline_epoch("00:40", at_2352) == at_2352 + 48 * 60
+    assert deadline_epoch("23:58", at_2352) == at_2352 + 6 * 60
+    assert deadline_epoch("23:52", at_2352 + 30) == at_2352 + 86_400
