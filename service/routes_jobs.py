@@ -373,9 +373,9 @@ def _save_tracks(body: bytes, inputs: Path, max_tracks: int) -> None:
             # merged into "B1" with no word (a hostile-client tester's)
             raise InputError(("tracks", key[:40]), "is not a track name: it may not begin or "
                              "end with white space (it would be the track without it)")
-        if key in (".", ".."):  # clients normalise such path segments away
-            raise InputError(("tracks", key), "is not a track name: '.' and '..' are path "
-                             "segments clients resolve before sending the track's URL")
+        if {".", ".."} & set(key.split("/")):  # clients normalise such path segments away
+            raise InputError(("tracks", key[:40]), "is not a track name: '.' and '..' are "
+                             "path segments clients resolve before sending the track's URL")
         if key.endswith("/figure.png"):  # its URL would be another track's figure
             raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
                              "/figure.png (the track figure's path)")
@@ -543,7 +543,7 @@ def delete_job(job_id: str, request: Request) -> Response:
 
 @router.get(JOBS_PATH + "/{job_id}/tracks", response_model=list[JobTrack],
             responses=_NOT_FOUND, summary="A job's tracks with their status")
-def list_job_tracks(job_id: str, request: Request,
+def list_job_tracks(job_id: str, request: Request, response: Response,
                     offset: Annotated[int, Query(ge=0, description="Tracks to pass over "
                                                  "first.")] = 0,
                     limit: Annotated[int, Query(ge=1, le=MAX_LISTED_TRACKS, description=(
@@ -553,7 +553,9 @@ def list_job_tracks(job_id: str, request: Request,
     plot: pending, done or failed (with the reason); ``offset`` and ``limit`` page through a
     job of many (a tester's 300,000 tracks made one answer of 29 MB in 5.5 s)."""
     runner = _runner(request)
-    unfinished = "cancelled" if _job(runner, job_id).state == "cancelled" else "pending"
+    job = _job(runner, job_id)
+    unfinished = "cancelled" if job.state == "cancelled" else "pending"
+    response.headers["X-Total-Count"] = str(job.tracks_total or 0)  # a page says it is one
     entries = runner.progress(job_id).entries
     out = []
     for key, plots in runner.tracks(job_id, offset, limit):
