@@ -80,6 +80,7 @@ APART_NAME = re.compile(r"~\d+$")
 
 FLOAT_COLUMNS = ("range_m", "azimuth_deg", "lat_deg", "lon_deg", "altitude_m", "flight_level")
 INT_COLUMNS = ("mode_s", "mode_3a", "track_number")
+_META = ("origin_unit", "date")  # PlotRows' fields of the whole table, not columns
 STR_COLUMNS = ("sensor", "aircraft")
 
 
@@ -92,7 +93,9 @@ class PlotRows:
     missing, ``mode_s`` / ``mode_3a`` / ``track_number`` -1 (``mode_3a`` holds the code's
     value, ``0o7000``), ``aircraft`` ``""``. ``origin`` locates each row in its source:
     ``origin_unit`` ``"byte"`` (offset of the row's ASTERIX record in the file) or ``"row"``
-    (1-based data row of a table).
+    (1-based data row of a table). ``date``: the UTC date (``YYYY-MM-DD``) of the midnight
+    ``t`` counts from, where the source gives it (a capture's packet times, a table's
+    ``timestamp``; :mod:`solver.io.dates`), else None.
     """
 
     t: FloatArray
@@ -111,13 +114,15 @@ class PlotRows:
     origin: np.ndarray  # int64
     on_ground: np.ndarray  # int8: 1 on the ground, 0 airborne, -1 not said
     origin_unit: str = "row"
+    date: str | None = None
 
     @classmethod
-    def from_columns(cls, n: int, origin_unit: str = "row", **cols: object) -> PlotRows:
+    def from_columns(cls, n: int, origin_unit: str = "row", date: str | None = None,
+                     **cols: object) -> PlotRows:
         """Rows from column arrays; absent columns are missing values."""
         out: dict[str, object] = {}
         for f in fields(cls):
-            if f.name == "origin_unit":
+            if f.name in _META:
                 continue
             v = cols.pop(f.name, None)
             if f.name == "on_ground":
@@ -137,7 +142,7 @@ class PlotRows:
             out[f.name] = arr
         if cols:
             raise TypeError(f"unknown columns {sorted(cols)}")
-        return cls(origin_unit=origin_unit, **out)  # type: ignore[arg-type]
+        return cls(origin_unit=origin_unit, date=date, **out)  # type: ignore[arg-type]
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -145,18 +150,21 @@ class PlotRows:
     def take(self, idx: np.ndarray) -> PlotRows:
         """The rows ``idx`` (indexes or a boolean mask)."""
         return replace(self, **{f.name: getattr(self, f.name)[idx] for f in fields(self)
-                                if f.name != "origin_unit"})
+                                if f.name not in _META})
 
     @staticmethod
     def concat(parts: Sequence[PlotRows]) -> PlotRows:
-        """Rows of several parts (same ``origin_unit``) one after the other."""
+        """Rows of several parts (same ``origin_unit``) one after the other (the first
+        ``date`` known: the parts of one recording share it)."""
         if not parts:
             return PlotRows.from_columns(0)
         units = {p.origin_unit for p in parts}
         if len(units) > 1:
             raise ValueError(f"cannot concatenate rows of origins {sorted(units)}")
-        return replace(parts[0], **{f.name: np.concatenate([getattr(p, f.name) for p in parts])
-                                    for f in fields(PlotRows) if f.name != "origin_unit"})
+        date = next((p.date for p in parts if p.date is not None), None)
+        return replace(parts[0], date=date, **{
+            f.name: np.concatenate([getattr(p, f.name) for p in parts])
+            for f in fields(PlotRows) if f.name not in _META})
 
     def where(self, i: int) -> str:
         """Where row ``i`` came from, in the user's terms (``"byte 1234"``, ``"row 17"``)."""
