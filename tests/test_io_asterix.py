@@ -210,7 +210,7 @@ def pcap(payloads: list[bytes], *, nanoseconds: bool = False, big_endian: bool =
                          bytes([10, 0, 0, 1]), bytes([239, 1, 1, 1]))
         frame = bytes(6) + bytes([2, 0, 0, 0, 0, 1]) + struct.pack(">H", 0x0800) + ip + udp
         sec = int(np.floor(times[k]))
-        sub = int(round((times[k] - sec) * (1e9 if nanoseconds else 1e6)))
+        sub = round((times[k] - sec) * (1e9 if nanoseconds else 1e6))
         out.append(struct.pack(e + "IIII", sec, sub, len(frame), len(frame)))
         out.append(frame)
     return b"".join(out)

@@ -101,9 +101,9 @@ from asterix.base import Bits, ParsingMode, Unsigned
 
 from ..inputs import FloatArray
 from ..sensors import PositionSensor, RadarSensor
+from .dates import CaptureClock
 from .framing import KNOWN_CATEGORIES, frame_header_bytes, is_framed, iter_frames
 from .pcap import is_capture, iter_udp_packets
-from .dates import CaptureClock
 from .problems import Problems
 from .sensors_file import SensorSet
 from .tables import DAY_S, FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
