@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, ConfigDict, Field, StringConstraints
 
+from solver.inputs import InputError
 from solver.io.asterix import edition_choices, parse_edition
 from solver.io.dates import parse_date
 
@@ -64,7 +65,10 @@ EditionCategory = Literal["21", "34", "48"]
 
 def _real_date(text: str) -> str:
     """``options.date``: a calendar day ``YYYY-MM-DD`` (else a 422 naming it)."""
-    return parse_date(text)
+    try:
+        return parse_date(text)
+    except InputError as e:
+        raise ValueError(e.message) from None
 
 
 _DATE_DOC = ("The UTC date (`YYYY-MM-DD`) of the midnight the recording's times of day count "
