@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
@@ -58,11 +58,6 @@ def parse_date(text: str, loc: tuple[str | int, ...] = ("date",)) -> str:
         raise InputError(loc, f"{text!r} is not a date YYYY-MM-DD (the UTC date of the "
                          "midnight the recording's times of day count from)")
     return text
-
-
-def date_of(midnight_s: float) -> str:
-    """The UTC date of the epoch second ``midnight_s`` (its day)."""
-    return str(np.datetime64(int(np.floor(midnight_s)), "s").astype("datetime64[D]"))
 
 
 def utc_times(t: FloatArray, date: str | None) -> pa.Array:
@@ -107,49 +102,53 @@ class CaptureClock:
 
     date: str | None = None
     decided: bool = False
-    days: dict[str, int] = field(default_factory=dict)
 
     def add(self, t: FloatArray, received_s: FloatArray, where: Callable[[int], str],
             problems: Problems) -> None:
         """Rows' ``t`` and packet times (NaN: none; a time on 1970-01-01, a clock never set, as
-        dpkt's writer's default 0, counts as none);
-        ``where(i)``: where row ``i`` is (for the problems)."""
+        dpkt's writer's default 0, counts as none); ``where(i)``: where row ``i`` is (for the
+        problems). Vectorised but for one ``Problems.add`` per disagreeing row (its count)."""
         t = np.asarray(t, float)
         p = np.asarray(received_s, float)
         timed = np.isfinite(t) & np.isfinite(p) & (p >= DAY_S)
         if not timed.any():
             return
-        off = p[timed] - t[timed]
+        idx = np.flatnonzero(timed)
+        off = p[idx] - t[idx]
         day = np.round(off / DAY_S)
         err = off - day * DAY_S
         agree = np.abs(err) <= CLOCK_TOLERANCE_S
-        idx = np.flatnonzero(timed)
         bad = np.flatnonzero(~agree)
-        for k in bad.tolist():
-            problems.add("clock_disagreement", where(int(idx[k])), "the packet time is "
-                         f"{err[k]:+.1f} s off the report's time of day (more than "
-                         f"{CLOCK_TOLERANCE_S:g} s): a replayed capture, or the capturing host's "
-                         "clock is wrong; its packet times give no date where they disagree",
-                         key="clock")
-        dates = [date_of(float(d) * DAY_S) for d in day[agree].tolist()]
-        for d in dates:
-            self.days[d] = self.days.get(d, 0) + 1
+        if bad.size:
+            at, message = where(int(idx[bad[0]])), (
+                f"the packet time is {err[bad[0]]:+.1f} s off the report's time of day (more "
+                f"than {CLOCK_TOLERANCE_S:g} s): a replayed capture, or the capturing host's "
+                "clock is wrong; its packet times give no date where they disagree")
+            for _ in range(bad.size):  # one per row: the count is the rows'
+                problems.add("clock_disagreement", at, message, key="clock")
+        days, votes = np.unique(day[agree].astype(np.int64), return_counts=True)
+        names = [str(d) for d in days.astype("datetime64[D]")]
         if not self.decided:
             self.decided = True
-            if dates and 2 * len(dates) > off.size:
-                self.date = max(set(dates), key=dates.count)
+            if 2 * int(votes.sum()) > off.size:
+                self.date = names[int(np.argmax(votes))]
             else:
                 problems.add("clock_disagreement", "capture", f"{bad.size} of the first "
                              f"{off.size} packet-timed reports disagree with their packet "
                              "times: the capture gives no date (give it: --date, a job's "
                              "options.date)", key="no date")
-        others = {d for d in dates if d != self.date} if self.date is not None else set()
-        for d in sorted(others):
-            problems.add("date_disagreement",
-                         where(int(idx[np.flatnonzero(agree)[dates.index(d)]])),
-                         f"packet times put this report on a day counted from {d}, the "
-                         f"capture's is {self.date}: its times of day do not count from one "
-                         "midnight (captures of several days joined?)", key=d)
+        if self.date is None:
+            return
+        for d, name in zip(days.tolist(), names, strict=True):
+            if name == self.date:
+                continue
+            rows = idx[np.flatnonzero(agree & (day == d))]
+            at = where(int(rows[0]))
+            message = (f"packet times put this report on a day counted from {name}, the "
+                       f"capture's is {self.date}: its times of day do not count from one "
+                       "midnight (captures of several days joined?)")
+            for _ in range(rows.size):
+                problems.add("date_disagreement", at, message, key=name)
 
 
 def resolve_date(own: str | None, given: str | None, what: str) -> str | None:
