@@ -3,7 +3,7 @@
     trajrecon reconstruct RECORDING --sensors SENSORS.json --out DIR [--scheduler ADDRESS]
         [--workers N] [--method refined|sliding] [--bounds NAME=MIN,MAX ...]
         [--filters NAME ...] [--samples STEP] [--aircraft KEY ...] [--edition CAT=EDITION ...]
-        [--figures] ...
+        [--date YYYY-MM-DD] [--figures] ...
     trajrecon plot RECORDING --sensors SENSORS.json --out DIR [--aircraft KEY ...] [--map]
 
 (``trajrecon RECORDING ...`` is ``trajrecon reconstruct RECORDING ...``.) ``reconstruct`` reads a
@@ -13,6 +13,8 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 ``LocalCluster`` sized to the cores, or the cluster at ``--scheduler``; the task:
 :mod:`solver.track_task`) with a progress bar, and writes into ``DIR``:
 
+- with the recording's date (a capture's packet times, a table's ``timestamp``, else
+  ``--date``: :mod:`solver.io.dates`) ``time_utc`` beside ``t`` in every output;
 - ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
   with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
   resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and

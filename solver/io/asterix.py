@@ -42,7 +42,10 @@ below):
 
 Times: the time of day (1/128 s) becomes ``t``, seconds since the UTC midnight before the
 first record, monotonic across midnight (:func:`solver.io.tables.unwrap_time_of_day`, in
-recording order); ``time_of_day_s`` keeps the recorded value.
+recording order); ``time_of_day_s`` keeps the recorded value. A capture's packet times give
+the date of that midnight (``rows.date``; :class:`solver.io.dates.CaptureClock`: decided by
+the first unit with packet-timed rows, disagreements reported); a raw or IOSS recording has
+none.
 
 Editions: ASTERIX data carry none, and a category's editions differ: CAT021 0.23-0.26 (older
 ADS-B ground stations) have another UAP than 2.x. ``editions=`` maps a category to a libasterix

@@ -15,6 +15,8 @@ used instead of dropping it silently.
   BSD loopback.
 - IP fragments are reported, not reassembled; packets cut by the capture's snap length and a
   file cut inside a packet are reported (``truncated_packet``).
+- Each packet's capture time (epoch seconds; :func:`iter_udp_packets`) gives the recording's
+  date (:mod:`solver.io.dates`).
 """
 
 from __future__ import annotations

@@ -16,6 +16,11 @@ column              meaning
                     order (:func:`unwrap_time_of_day`); ``t`` is then seconds since the UTC
                     midnight before the first row (with both, ``t`` is used and
                     ``time_of_day_s`` kept beside it, as :func:`write_table` writes them)
+``timestamp``       or instead a UTC time (ISO 8601 text with ``Z``, an offset or none:
+                    UTC; epoch seconds; a Parquet timestamp): ``t`` is then seconds since the
+                    UTC midnight before the first row, ``time_of_day_s`` its time of day,
+                    and that midnight's date :attr:`PlotRows.date`; a ``t`` or
+                    ``time_of_day_s`` beside it must agree within 1 ms (else a bad value)
 ``sensor``          sensor id (of the sensor file), required
 ``range_m``         slant range (m) and ...
 ``azimuth_deg``     ... azimuth (degrees clockwise from true north): a radar plot, or
