@@ -116,6 +116,32 @@ def test_a_clock_that_disagrees_is_reported_and_gives_no_date():
         assert (rec.rows.date is None) == reported
 
 
+def test_a_streamed_capture_whose_first_unit_has_no_plot_dates_its_tracks(tmp_path,
+                                                                         monkeypatch):
+    """Streamed in 512-byte units as the command line reads, a capture that starts with 1 KB
+    of CAT034 service messages (no plot): the date is known when the first track comes out
+    (the command line hands it to every track's task then), and a date given that contradicts
+    it raises before any track, naming the file."""
+    import json
+
+    import solver.io.reading as reading
+    from test_io_asterix import SENSOR_FILE
+
+    monkeypatch.setattr(reading, "STREAM_CHUNK_BYTES", 512)
+    enc = encode_recording(tod0=36_000.0, duration=20.0)
+    service = [b for b in enc.blocks if b[0] == 34][:1] * 100
+    assert sum(map(len, service)) > 1024
+    payloads = service + enc.blocks
+    path = tmp_path / "day.pcap"
+    path.write_bytes(pcap(payloads))
+    (tmp_path / "sensors.json").write_text(json.dumps(SENSOR_FILE))
+    read = reading.stream(path, tmp_path / "sensors.json")
+    assert read.date == CAPTURE_DAY
+    assert len(list(read.tracks)) == 2 and not read.problems
+    with pytest.raises(InputError, match=r"2023-11-13 contradicts .* \(in .*day.pcap\)"):
+        reading.stream(path, tmp_path / "sensors.json", date="2023-11-13")
+
+
 def test_table_timestamps_across_midnight_and_a_given_date():
     """A table timed by ISO 8601 text (Z, an offset, none: UTC) and epoch seconds: t from the
     midnight before the first row, growing across midnight, its date; the UTC times are the

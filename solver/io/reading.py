@@ -142,8 +142,11 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     sensors = load_sensors(sensors_path)
     out = Streamed(sensors, Problems(), iter(()), given_date=date, date=date)
     parts = _row_parts(recording, out, executor, editions)
+    # read up to the first part with rows (those before hold none): the whole input's errors
+    # raise now, a date it contradicts too, and the tracks' date is known before the first
+    first = None
     try:
-        first = next(parts, None)  # the whole input's errors raise now
+        first = next((part for part in parts if len(part)), None)
     except InputError as e:
         raise InputError(e.loc, f"{e.message} (in {recording})") from None
 
