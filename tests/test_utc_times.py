@@ -124,8 +124,9 @@ def test_a_streamed_capture_whose_first_unit_has_no_plot_dates_its_tracks(tmp_pa
     it raises before any track, naming the file."""
     import json
 
-    import solver.io.reading as reading
     from test_io_asterix import SENSOR_FILE
+
+    import solver.io.reading as reading
 
     monkeypatch.setattr(reading, "STREAM_CHUNK_BYTES", 512)
     enc = encode_recording(tod0=36_000.0, duration=20.0)
