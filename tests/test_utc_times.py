@@ -65,6 +65,27 @@ def test_pcap_capture_across_midnight_gives_utc_times_on_both_days():
                 == pytest.approx(tod, abs=1e-6)
 
 
+def test_a_dated_recording_written_as_a_table_reads_back_with_its_date(tmp_path):
+    """A capture's rows across midnight written as a plot table (CSV, Parquet) carry a
+    timestamp column beside t and time_of_day_s: read back, the same t, time of day and date
+    (nothing of the date lost on the way)."""
+    from solver.io.tables import read_table, write_table
+
+    enc = encode_recording(tod0=86_390.0, duration=20.0)
+    rows = read_recording(pcap(enc.blocks), SENSORS).rows
+    assert rows.date == CAPTURE_DAY
+    for name in ("rows.csv", "rows.parquet"):
+        write_table(rows, tmp_path / name)
+        back, problems = read_table(tmp_path / name)
+        assert not problems, problems.summary()
+        assert back.date == CAPTURE_DAY
+        np.testing.assert_allclose(back.t, rows.t, atol=1e-6)
+        np.testing.assert_allclose(back.time_of_day_s, rows.time_of_day_s, atol=1e-6)
+    text = (tmp_path / "rows.csv").read_text().splitlines()
+    assert text[0].startswith('"t","time_of_day_s","timestamp"')
+    assert ',"2023-11-14T23:59:50.296875Z",' in text[1]
+
+
 def test_pcapng_time_units_and_offset():
     """pcapng packet times in the interface's units (if_tsresol 10^-9) plus its if_tsoffset:
     the capture's date comes out; a simple packet block (no time) gives none, and no

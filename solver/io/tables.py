@@ -72,6 +72,7 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
 from ..inputs import MAX_AZIMUTH_DEG, FloatArray, InputError
+from .dates import iso_utc, utc_times
 from .problems import Problems
 
 DAY_S = 86_400.0
@@ -182,7 +183,8 @@ class PlotRows:
     # ------------------------------------------------------------------------ arrow
 
     def to_arrow(self) -> pa.Table:
-        """The documented table: ``t``, ``time_of_day_s`` (when known), measurements, and the
+        """The documented table: ``t``, ``time_of_day_s`` (when known), ``timestamp`` (UTC, when
+        the date is known), measurements, and the
         keys with nulls where missing (``mode_s`` hex, ``mode_3a`` octal strings)."""
         def floats(a: FloatArray) -> pa.Array:
             return pa.array(a, type=pa.float64(), from_pandas=True)  # NaN -> null
@@ -193,6 +195,8 @@ class PlotRows:
         cols: dict[str, pa.Array] = {"t": pa.array(self.t, pa.float64())}
         if np.isfinite(self.time_of_day_s).any():
             cols["time_of_day_s"] = floats(self.time_of_day_s)
+        if self.date is not None:  # read back, it gives the date again
+            cols["timestamp"] = utc_times(self.t, self.date)
         cols["sensor"] = pa.array(self.sensor.tolist(), pa.string())
         for name in FLOAT_COLUMNS:
             cols[name] = floats(getattr(self, name))
@@ -984,4 +988,7 @@ def write_table(rows: PlotRows, path: str | Path) -> None:
     if path.suffix.lower() in (".parquet", ".pq"):
         pq.write_table(table, path)
     else:
+        if "timestamp" in table.column_names:  # ISO 8601 with T and Z
+            table = table.set_column(table.column_names.index("timestamp"), "timestamp",
+                                     iso_utc(table.column("timestamp")))
         pacsv.write_csv(table, path, pacsv.WriteOptions(quoting_style="needed"))
