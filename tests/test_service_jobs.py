@@ -906,8 +906,9 @@ def test_unreadable_recording_is_accepted_and_fails_with_the_reason(client):
     status = wait(client, r.headers["location"])
     assert status["state"] == "failed", status
     # columns of its own are read past; what it lacks is named, with what it has
-    assert status["error"].startswith("t is missing: the table needs a `t` or a "
-                                      "`time_of_day_s` column (columns: a, b)"), status
+    assert status["error"].startswith("t is missing: the table needs a `t`, a "
+                                      "`time_of_day_s` or a `timestamp` column (columns: a, "
+                                      "b)"), status
     assert client.get(r.headers["location"] + "/results/tracks.csv").status_code == 409
 
     # bytes that are no recording at all (random, a JSON file sent as the recording): refused
