@@ -744,9 +744,14 @@ class JobRunner:
         and not found is a problem of the recording's)."""
         d = self.job_dir(job_id)
         recording = next((d / "inputs").glob("recording.*"))
-        loaded = load(recording, d / "inputs" / "sensors.json",
-                      max_speed=settings.config().bounds.v[1],
-                      editions=settings.asterix_editions(), date=settings.date)
+        try:
+            loaded = load(recording, d / "inputs" / "sensors.json",
+                          max_speed=settings.config().bounds.v[1],
+                          editions=settings.asterix_editions(), date=settings.date)
+        except InputError as e:  # the job's date is its option
+            if e.loc != ("date",):
+                raise
+            raise InputError(("options", "date"), e.message) from None
         chosen = Selection(self.aircraft(job_id))
         tracks = list(chosen.filter(loaded.tracks))
         for key in chosen.missing():

@@ -135,8 +135,9 @@ def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
     assert r.status_code == 202, r.text
     status = wait(client, r.headers["location"])
     assert status["state"] == "failed", status
-    assert status["error"].startswith("date 2023-11-15 contradicts the recording's own date "
-                                      "2023-11-14 (from its capture's packet times)"), status
+    assert status["error"].startswith("options.date 2023-11-15 contradicts the recording's "
+                                      "own date 2023-11-14 (from its capture's packet times)"
+                                      ), status
 
 
 def test_an_ioss_recording_job_runs_to_done(client):
