@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from ..inputs import FloatArray, InputError
 from .problems import Problems
@@ -75,16 +76,7 @@ def utc_times(t: FloatArray, date: str | None) -> pa.Array:
 def iso_utc(times: pa.Array | pa.ChunkedArray) -> pa.Array | pa.ChunkedArray:
     """UTC times as ISO 8601 text ending in ``Z`` (``2024-03-09T10:00:00.007812Z``; null where
     null)."""
-    import pyarrow.compute as pc
-
     return pc.strftime(times.cast(UTC), format="%Y-%m-%dT%H:%M:%SZ")
-
-
-def iso_utc_one(t: float, date: str | None) -> str | None:
-    """One time ``t`` of ``date`` as :func:`iso_utc` text (None without a date)."""
-    if date is None or not np.isfinite(t):
-        return None
-    return iso_utc(utc_times(np.array([t]), date))[0].as_py()
 
 
 @dataclass
