@@ -7,6 +7,7 @@ given that contradicts the recording's own. The reference times are Python's ``d
 from __future__ import annotations
 
 import datetime as dt
+import io
 
 import numpy as np
 import pyarrow as pa
@@ -88,9 +89,12 @@ def test_a_dated_recording_written_as_a_table_reads_back_with_its_date(tmp_path)
 
 def test_pcapng_time_units_and_offset():
     """pcapng packet times in the interface's units (if_tsresol 10^-9) plus its if_tsoffset:
-    the capture's date comes out; a simple packet block (no time) gives none, and no
-    problem."""
+    the capture's date comes out, and every packet's time is dpkt's reader's."""
+    from dpkt import pcap as dpkt_pcap
     from dpkt import pcapng as ng
+
+    from solver.io.pcap import iter_udp_packets
+    from solver.io.problems import Problems
 
     enc = encode_recording(tod0=36_000.0, duration=20.0)
     times = capture_times(enc.blocks)
@@ -106,9 +110,18 @@ def test_pcapng_time_units_and_offset():
         blocks.append(bytes(ng.EnhancedPacketBlockLE(
             iface_id=0, pkt_data=dpkt_frame(payload, 1), ts_high=ns >> 32,
             ts_low=ns & 0xFFFFFFFF)))
-    rec = read_recording(b"".join(blocks), SENSORS)
+    data = b"".join(blocks)
+    rec = read_recording(data, SENSORS)
     assert not rec.problems, rec.problems.summary()
     assert rec.rows.date == CAPTURE_DAY
+    # the packet times as dpkt's own readers give them (its pcapng reader: the first
+    # interface's units and offset), classic pcap in nanoseconds, big-endian, too
+    classic = pcap(enc.blocks, times=times, nanoseconds=True, big_endian=True)
+    for capture, reader in ((data, ng.Reader), (classic, dpkt_pcap.Reader)):
+        got = [w for _, _, w in iter_udp_packets(capture, Problems())]
+        want = [float(ts) for ts, _ in reader(io.BytesIO(capture))]
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(got, times, rtol=0, atol=1e-6)
     assert utc_times(rec.rows.t[:1], rec.rows.date).to_pylist()[0] == \
         MIDNIGHT + dt.timedelta(seconds=float(rec.rows.time_of_day_s[0]))
 
