@@ -824,6 +824,10 @@ EPOCH_S_RANGE = (86_400.0, 4_102_444_800.0)
 time: a time of day or a millisecond count put in the column)."""
 _NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"
 _ZONED = r"(Z|z|[+-]\d\d(:?\d\d)?)$"
+ISO_CHUNK_ROWS = 1 << 14
+"""ISO 8601 text is cast in chunks of this many rows, one by one only in a chunk holding a bad
+one (about 1.7 us a row): a 200,000-row CSV with one bad time read in 0.51-0.57 s, 0.71 s one by
+one over all rows, 0.29 s without it (the rest: numbering the CSV's lines for the report)."""
 TIME_AGREEMENT_S = 1e-3
 """A ``t`` or ``time_of_day_s`` beside a ``timestamp`` must agree with it this closely (s)."""
 
@@ -871,23 +875,22 @@ def timestamp_ns(col: pa.ChunkedArray | pa.Array,
                        .to_numpy(zero_copy_only=False), dtype=bool)
     for mask, kind in ((present & ~numeric & zoned, pa.timestamp("ns", tz="UTC")),
                        (present & ~numeric & ~zoned, pa.timestamp("ns"))):
-        idx = np.flatnonzero(mask)
-        if not idx.size:
-            continue
-        part = text.take(pa.array(idx))
-        try:
-            got = np.asarray(pc.cast(part, kind).cast(pa.int64())
-                             .to_numpy(zero_copy_only=False), dtype=np.int64)
-            out[idx] = got
-            continue
-        except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
-            pass
-        for i, v in zip(idx.tolist(), part.to_pylist(), strict=True):  # find the bad ones
+        every = np.flatnonzero(mask)
+        for start in range(0, every.size, ISO_CHUNK_ROWS):
+            idx = every[start:start + ISO_CHUNK_ROWS]
+            part = text.take(pa.array(idx))
             try:
-                out[i] = pa.scalar(v).cast(kind).cast(pa.int64()).as_py()
+                out[idx] = np.asarray(pc.cast(part, kind).cast(pa.int64())
+                                      .to_numpy(zero_copy_only=False), dtype=np.int64)
+                continue
             except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
-                report(np.array([i]), "timestamp", f"{v!r} is not a time (ISO 8601, e.g. "
-                       "2024-03-09T10:00:00.5Z, or epoch seconds)")
+                pass
+            for i, v in zip(idx.tolist(), part.to_pylist(), strict=True):  # the bad ones
+                try:
+                    out[i] = pa.scalar(v).cast(kind).cast(pa.int64()).as_py()
+                except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+                    report(np.array([i]), "timestamp", f"{v!r} is not a time (ISO 8601, e.g. "
+                           "2024-03-09T10:00:00.5Z, or epoch seconds)")
     return out
 
 
