@@ -7,7 +7,9 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, ConfigDict, Field, StringConstraints
 
+from solver.inputs import InputError
 from solver.io.asterix import edition_choices, parse_edition
+from solver.io.dates import parse_date
 
 from .models import (
     BoundsIn,
@@ -61,6 +63,25 @@ _SAMPLES_DOC = ("Keep every track's state every this many seconds (s, > 0; from 
 EditionCategory = Literal["21", "34", "48"]
 
 
+def _real_date(text: str) -> str:
+    """``options.date``: a calendar day ``YYYY-MM-DD`` (else a 422 naming it)."""
+    try:
+        return parse_date(text)
+    except InputError as e:
+        raise ValueError(e.message) from None
+
+
+_DATE_DOC = ("The UTC date (`YYYY-MM-DD`) of the midnight the recording's times of day count "
+             "from (its first plot's day; the command line's `--date`), which gives every "
+             "state its `time_utc`. A raw ASTERIX or IOSS recording does not carry it; a pcap "
+             "capture's packet times and a plot table's `timestamp` column do, and a date that "
+             "contradicts them fails the job, naming both. Default: the recording's own, if "
+             "any (else `time_utc` is null).")
+_TIME_UTC_DOC = ("`t` as a UTC time, ISO 8601 ending in `Z` (`2024-03-09T10:00:00.007812Z`), "
+                 "where the recording's date is known (its capture's packet times, its table's "
+                 "`timestamp`, or the job's `options.date`); null otherwise.")
+
+
 def _known_editions(editions: dict[str, str]) -> dict[str, str]:
     """``options.editions``: each an edition libasterix has of its category (else a 422
     listing them)."""
@@ -99,6 +120,9 @@ class JobOptions(_In):
         "than 2.x): read as another edition, records come out garbage or not at all (the "
         "job's `other_edition`, `bad_record`, `missing_item` problems). libasterix's: "
         f"{edition_choices()}. Categories not named: their default. A plot table ignores it.")
+    date: Annotated[str, StringConstraints(pattern=r"^\d{4}-\d{2}-\d{2}$"),
+                    AfterValidator(_real_date)] | None = Field(
+        None, examples=["2024-03-09"], description=_DATE_DOC)
 
 
 class JobTracksRequest(_In):
@@ -159,6 +183,8 @@ class JobOptionsOut(_Out):
     editions: dict[str, str] = Field(default_factory=dict, description="The ASTERIX editions "
                                      "chosen other than the defaults, by category (e.g. "
                                      "`{\"21\": \"0.26\"}`; empty: the defaults).")
+    date: str | None = Field(None, description="The recording's date given (`options.date`; "
+                             "null: its own, if any).")
 
 
 class JobStatus(_Out):
@@ -207,8 +233,32 @@ class JobTrack(_Out):
     warnings: list[str] = Field(default_factory=list, description="Non-fatal remarks.")
 
 
+class JobSampleOut(StateOut):
+    """A job track's state at one time."""
+
+    time_utc: str | None = Field(None, description=_TIME_UTC_DOC)
+
+
+class JobSegmentOut(SegmentOut):
+    """A job track's constant-control piece."""
+
+    time_utc_start: str | None = Field(None, description="`t_start` as a UTC time (as "
+                                       "`at_plots[].time_utc`; null without the date).")
+    time_utc_end: str | None = Field(None, description="`t_end` as a UTC time.")
+
+
+class JobManoeuvreOut(ManoeuvreOut):
+    """A job track's turn or speed change."""
+
+    time_utc_start: str | None = Field(None, description="`t_start` as a UTC time (as "
+                                       "`at_plots[].time_utc`; null without the date).")
+    time_utc_end: str | None = Field(None, description="`t_end` as a UTC time.")
+
+
 class JobStateOut(PlotStateOut):
     """The state at one plot of a job's track."""
+
+    time_utc: str | None = Field(None, description=_TIME_UTC_DOC)
 
     plot: int = Field(description="Index of the plot in the track (time order).")
     source: str | None = _optional(
@@ -226,8 +276,8 @@ class JobTrajectoryOut(_Out):
     """A job track's trajectory: the segments, the state at every plot and, when the job
     keeps them, the regular samples."""
 
-    segments: list[SegmentOut] = Field(description="Constant-control pieces in time order.")
-    manoeuvres: list[ManoeuvreOut] = Field(
+    segments: list[JobSegmentOut] = Field(description="Constant-control pieces in time order.")
+    manoeuvres: list[JobManoeuvreOut] = Field(
         default_factory=list, description="Turns and speed changes, by start time.")
     at_plots: list[JobStateOut] = Field(description="State at every plot, in time order.")
     altitude_m: float | None = _optional(
@@ -235,7 +285,7 @@ class JobTrajectoryOut(_Out):
         "above the ellipsoid (m); per state in `altitude_m`. Absent otherwise (sensors.md), as "
         "in the single-track answer.")
     altitude_sigma_m: float | None = _optional("Its standard deviation (m); absent with it.")
-    samples: list[StateOut] = Field(
+    samples: list[JobSampleOut] = Field(
         default_factory=list, description="States every `sample_step_s` of the job's options "
         "over the track (empty when the job keeps none).")
 

@@ -360,15 +360,15 @@ def job_track(key: str, table: Any, config: ReconstructionConfig | None,
               time_limit_s: float | None, figures_root: str | None = None,
               times_of_day: bool = False, filters: tuple[str, ...] = (),
               filter_gate: float | None = FILTER_GATE_SIGMA, samples: bool = False,
-              max_samples: int | None = None) -> AssessedTrack:
+              max_samples: int | None = None, date: str | None = None) -> AssessedTrack:
     """The per-track task of a job (on a worker): :func:`solver.track_task.assess_track` (with the
-    job's ``filters`` and samples), the figure in a directory of its own per key
-    (:func:`figure_dir`)."""
+    job's ``filters``, samples and recording's ``date``), the figure in a directory of its own
+    per key (:func:`figure_dir`)."""
     figures = None if figures_root is None else str(figure_dir(Path(figures_root), key))
     return assess_track(key, table, config, time_limit_s, figures_dir=figures,
                         filters=filters, filter_gate=filter_gate,
                         times_of_day=times_of_day, samples=samples,
-                        max_samples=max_samples)
+                        max_samples=max_samples, date=date)
 
 
 def json_sources(rows: PlotRows) -> Callable[[Any], pa.Array]:
@@ -714,7 +714,8 @@ class JobRunner:
                 time_limit_s=s.jobs_track_time_limit_s or None, flush_tracks=8, flush_s=1.0,
                 on_outcome=on_outcome,
                 task=partial(job_track, figures_root=figures, times_of_day=loaded.times_of_day,
-                             filters=settings.filters, filter_gate=settings.filter_gate_sigma,
+                             date=loaded.date, filters=settings.filters,
+                             filter_gate=settings.filter_gate_sigma,
                              samples=settings.sample_step_s is not None,
                              max_samples=s.max_samples),
                 sources=json_sources(loaded.rows) if job.kind == "tracks" else None)
@@ -743,9 +744,14 @@ class JobRunner:
         and not found is a problem of the recording's)."""
         d = self.job_dir(job_id)
         recording = next((d / "inputs").glob("recording.*"))
-        loaded = load(recording, d / "inputs" / "sensors.json",
-                      max_speed=settings.config().bounds.v[1],
-                      editions=settings.asterix_editions())
+        try:
+            loaded = load(recording, d / "inputs" / "sensors.json",
+                          max_speed=settings.config().bounds.v[1],
+                          editions=settings.asterix_editions(), date=settings.date)
+        except InputError as e:  # the job's date is its option
+            if e.loc != ("date",):
+                raise
+            raise InputError(("options", "date"), e.message) from None
         chosen = Selection(self.aircraft(job_id))
         tracks = list(chosen.filter(loaded.tracks))
         for key in chosen.missing():
@@ -858,7 +864,7 @@ class JobRunner:
         write_sensor_csv(out, sensor_rows)  # as the command line's outputs (a walkthrough)
         csv_rows, geo_tracks = write_csv_and_geojson(out)
         frame = recording_frame(loaded.sensors, loaded.rows)
-        manoeuvres = write_manoeuvres(out, frame)
+        manoeuvres = write_manoeuvres(out, frame, loaded.date)
         write_map(out, loaded.sensors, frame=frame)
         write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
         (out / "problems.txt").write_text(loaded.problems.summary() + "\n", encoding="utf-8")
@@ -872,7 +878,7 @@ class JobRunner:
         settings = self.options(job_id)
         summary = {"tracks": len(progress.entries), "done": progress.done,
                    "failed": progress.failed, "plots": progress.plots_done,
-                   "rows_in_recording": len(loaded.rows),
+                   "rows_in_recording": len(loaded.rows), "recording_date": loaded.date,
                    **({} if rates is None else {
                        "elapsed_s": time.monotonic() - rates[0], "reconstruct_s": rates[1],
                        "plots_per_s": rates[2]}),

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
+import pyarrow as pa
 from fastapi import APIRouter, FastAPI, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
@@ -23,6 +24,7 @@ from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from solver.inputs import Bounds, InputError
+from solver.io.dates import UTC, iso_utc
 from solver.io.reading import RECORDING_HEAD_BYTES, check_recording_head
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
@@ -295,7 +297,8 @@ def _params(options: JobOptions | JobTracksRequest, aircraft: list[str] | None =
                            window_plots=RunSettings.window_plots if w.plots is None else w.plots,
                            trial_step_s=w.trial_step_s, criterion=options.criterion,
                            editions=tuple((int(cat), name) for cat, name in
-                                          getattr(options, "editions", {}).items()))
+                                          getattr(options, "editions", {}).items()),
+                           date=getattr(options, "date", None))
     settings.config().validate()
     doc = settings.as_json()
     if aircraft:
@@ -622,16 +625,42 @@ def get_job_track(job_id: str, aircraft: str, request: Request,
         raise HTTPException(409, f"track {key!r} has no stored rows")
     states, segments, filtered, sampled = got
     cov = "covariances" not in omit
+    midnight = _midnight_us(states)
     return JobTrackResult.model_validate({
         "aircraft": key,
-        "trajectory": {"segments": _segment_rows(segments),
-                       "manoeuvres": [m.as_dict() for m in from_segment_rows(segments)],
+        "trajectory": {"segments": _with_utc(_segment_rows(segments), midnight),
+                       "manoeuvres": _with_utc([m.as_dict() for m in
+                                                from_segment_rows(segments)], midnight),
                        "at_plots": _state_rows(states, cov),
                        "samples": [] if sampled is None else _sample_rows(sampled, cov),
                        **_altitude(entry.get("altitude"))},
         "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, key)],
         "filters": _filter_rows(filtered, cov),
         "diagnostics": _track_diagnostics(entry)})
+
+
+def _midnight_us(states: Any) -> int | None:
+    """The UTC time (epoch us) ``t`` counts from, off a track's states (``time_utc - t`` of
+    one that has it; None where none has: the recording's date is not known, or the track was
+    stored before the column)."""
+    if "time_utc" not in states.column_names:
+        return None
+    utc = states.column("time_utc").cast(UTC).cast(pa.int64()).to_pylist()
+    t = states.column("t").to_pylist()
+    return next((u - round(s * 1e6) for u, s in zip(utc, t, strict=True)
+                 if u is not None and s is not None and np.isfinite(s)), None)
+
+
+def _with_utc(rows: list[dict[str, Any]], midnight: int | None) -> list[dict[str, Any]]:
+    """Segments or manoeuvres with ``time_utc_start`` / ``time_utc_end`` beside ``t_start`` /
+    ``t_end`` (null without the date)."""
+    for end in ("start", "end"):
+        stamps = None if midnight is None or not rows else iso_utc(pa.array(
+            [midnight + round(r[f"t_{end}"] * 1e6) for r in rows], pa.int64()).cast(UTC)
+        ).to_pylist()
+        for i, r in enumerate(rows):
+            r[f"time_utc_{end}"] = None if stamps is None else stamps[i]
+    return rows
 
 
 def _altitude(got: dict[str, float] | None) -> dict[str, float]:
@@ -667,10 +696,13 @@ def _sample_rows(t: Any, cov: bool = True, cols: dict[str, list[Any]] | None = N
     columns already read): kinematics, the covariance unless ``cov`` is false, the height
     where it was estimated."""
     cols = t.to_pydict() if cols is None else cols
+    utc = (iso_utc(t.column("time_utc")).to_pylist() if "time_utc" in t.column_names
+           else [None] * t.num_rows)  # a part stored before the column: null
     out = []
     for i in range(t.num_rows):
         row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "speed", "heading_deg",
                                        "lat_deg", "lon_deg")}
+        row["time_utc"] = utc[i]
         row["heading_deg"] = row["heading_deg"] % 360.0
         row["cov"] = _cov(cols, i) if cov else None
         if cols["h_m"][i] is not None and cols["h_sigma_m"][i] is not None:

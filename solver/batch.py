@@ -50,6 +50,7 @@ import pyarrow.parquet as pq
 
 from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .inputs import FloatArray
+from .io.dates import UTC, utc_times
 from .plots import PlotTable
 from .results import PlotResiduals, StateSeries, full_turn, non_finite_part
 from .stopping import STOP_SIGNALS
@@ -59,19 +60,21 @@ COV_COLUMNS = ("cov_x_x", "cov_x_z", "cov_x_vx", "cov_x_vz", "cov_z_z", "cov_z_v
 RESIDUAL_COLUMNS = ("plot_range_m", "plot_azimuth_deg", "plot_altitude_m", "range_residual_m",
                     "azimuth_residual_deg", "position_residual_m", "along_track_residual_m",
                     "cross_track_residual_m", "gated", "wild", "no_reference")
-TRACK_COLUMNS = ("aircraft", "plot", "source", "sensor", "t", "time_of_day_s", "x", "z", "lat_deg",
-                 "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m",
-                 *RESIDUAL_COLUMNS)
+TRACK_COLUMNS = ("aircraft", "plot", "source", "sensor", "t", "time_of_day_s", "time_utc", "x",
+                 "z", "lat_deg", "lon_deg", "vx", "vz", "speed", "heading_deg", *COV_COLUMNS,
+                 "h_m", "h_sigma_m", *RESIDUAL_COLUMNS)
 """Columns of ``tracks.parquet``: one row per plot (``plot``: its index in the track's table, time
 order; ``source``: where the plot is in the input, as the problems name places: ``byte 1234`` of
 an ASTERIX file or capture, ``row 17`` of a plot table, ``tracks.A[3]`` of a job's JSON body;
 null when the input has no such place), ``t`` (s; from the UTC midnight before the recording's
 first plot when the recording is timed by time of day, as ASTERIX is) and ``time_of_day_s``
-(``t`` modulo a day then, else null), positions in the recording's plane (m; ``x`` north, ``z``
-east) and on WGS-84, velocity in the plane (m/s), speed over the ground (m/s) and heading from
-true north (deg clockwise; :meth:`solver.results.StateSeries.heading_deg_and_speed`), the
-covariance over ``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where
-it was estimated (else null), and the plot against the state, as the sensors' statistics take it
+(``t`` modulo a day then, else null), ``time_utc`` (``t`` as a UTC time, timestamp[us, UTC],
+where the recording's date is known: :mod:`solver.io.dates`; else null), positions in the
+recording's plane (m; ``x`` north, ``z`` east) and on WGS-84, velocity in the plane (m/s),
+speed over the ground (m/s) and heading from true north (deg clockwise;
+:meth:`solver.results.StateSeries.heading_deg_and_speed`), the covariance over
+``(x, z, vx, vz)`` (upper triangle), the estimated height with its sigma where it was
+estimated (else null), and the plot against the state, as the sensors' statistics take it
 (:func:`solver.refine.output.plot_residuals`): a radar plot's measured slant range and azimuth
 (``plot_range_m``, ``plot_azimuth_deg``), the altitude a plot was placed at
 (``plot_altitude_m``: Mode C made geometric by the aircraft's ADS-B where it could be,
@@ -86,20 +89,20 @@ own residuals' spread (a radar's, :func:`solver.refine.output.statistics_wild`; 
 sensor's gated plots); ``no_reference``: in a stretch the aircraft's bounds bend the track off,
 where it is no reference for the sensors (:func:`solver.refine.output.no_reference_mask`). The
 sensors' statistics (``sensors.json``, ``sensors.png``) leave out both."""
-FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "x", "z",
-                  "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS, "gated")
+FILTER_COLUMNS = ("aircraft", "filter", "plot", "sensor", "t", "time_of_day_s", "time_utc", "x",
+                  "z", "lat_deg", "lon_deg", "vx", "vz", *COV_COLUMNS, "gated")
 """Columns of ``filters.parquet``: each recursive filter's state after every plot (the names of
 :data:`solver.estimation.FILTER_NAMES`), as ``tracks.parquet``; ``gated``: the filter left the
 plot out, far from its prediction (:mod:`solver.estimation.gating`)."""
-SAMPLE_COLUMNS = ("aircraft", "t", "time_of_day_s", "x", "z", "lat_deg", "lon_deg", "vx", "vz",
-                  "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m")
+SAMPLE_COLUMNS = ("aircraft", "t", "time_of_day_s", "time_utc", "x", "z", "lat_deg", "lon_deg",
+                  "vx", "vz", "speed", "heading_deg", *COV_COLUMNS, "h_m", "h_sigma_m")
 """Columns of ``samples.parquet``: the reconstructed state every ``sample_step_s`` from the
 track's first plot to its last (the last plot's time always included), propagated from the
 solution with its covariance, as the single-track answer's ``trajectory.samples``."""
 SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
 _TYPES = {"aircraft": pa.string(), "sensor": pa.string(), "filter": pa.string(),
           "source": pa.string(), "plot": pa.int32(), "gated": pa.bool_(),
-          "wild": pa.bool_(), "no_reference": pa.bool_()}  # others: float64
+          "wild": pa.bool_(), "no_reference": pa.bool_(), "time_utc": UTC}  # others: float64
 
 
 def read_part(path: Path, names: Sequence[str] = TRACK_COLUMNS) -> pa.Table:
@@ -187,7 +190,7 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
                 extras: Callable[[Any], dict[str, Any]] | None = None, *,
                 filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
                 times_of_day: bool = False, samples: bool = False,
-                max_samples: int | None = None) -> TrackOutcome:
+                max_samples: int | None = None, date: str | None = None) -> TrackOutcome:
     """Reconstruct one track (runs on a worker). Any ``Exception`` of the track (bad input,
     solver failure, the deadline ``time_limit_s`` after the start) is returned as a failed
     outcome naming it; the result's rows come back as Arrow tables. ``extras(reconstruction)``
@@ -195,7 +198,8 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
     ``filters``: recursive filters run beside (:data:`FILTER_COLUMNS`); one that cannot run on
     this track (e.g. a two-sensor fusion on one sensor) is a warning, not a failure;
     ``filter_gate``: their validation gate (sigmas; None: none, :mod:`solver.estimation.gating`).
-    ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled).
+    ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled);
+    ``date``: that midnight's UTC date (``time_utc`` is filled; :mod:`solver.io.dates`).
     ``samples``: keep the states every ``config.sample_step_s`` (:data:`SAMPLE_COLUMNS`);
     a track that would have ``max_samples`` or more keeps none, with a warning."""
     from .reconstruct import reconstruct
@@ -218,13 +222,14 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
             raise ArithmeticError(f"the result is not finite ({bad} holds NaN or infinity): "
                                   "the bounds, sensor errors or plots are too extreme for a "
                                   "numerical solution")
-        states = _states_table(key, table, rec.at_plots, times_of_day, rec.residuals)
+        clock = (times_of_day, date)
+        states = _states_table(key, table, rec.at_plots, clock, rec.residuals)
         segments = _segments_table(key, rec)
-        sampled = _samples_table(key, table, rec.samples, times_of_day) if samples else None
+        sampled = _samples_table(key, table, rec.samples, clock) if samples else None
         more = extras(rec) if extras is not None else {}
         warnings += rec.diagnostics.warnings
         t_filters = time.perf_counter()
-        filtered = _filters_table(key, table, filters, times_of_day, warnings,
+        filtered = _filters_table(key, table, filters, clock, warnings,
                                   rec.at_plots.h, filter_gate, rec.no_weight)
         filters_ms = 1e3 * (time.perf_counter() - t_filters) if filters else 0.0
         diagnostics = rec.diagnostics.as_dict()
@@ -241,16 +246,20 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
                         altitude=altitude)
 
 
-def _state_columns(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
+Clock = tuple[bool, str | None]
+"""``(times_of_day, date)`` of :func:`solve_track`: how ``t`` is placed in the day."""
+
+
+def _state_columns(key: str, table: PlotTable, s: StateSeries, clock: Clock
                    ) -> dict[str, Any]:
     """The columns shared by ``tracks.parquet`` and ``filters.parquet``."""
-    cols = _kinematics(key, table, s, times_of_day)
+    cols = _kinematics(key, table, s, clock)
     cols.update(plot=pa.array(np.arange(len(s)), pa.int32()), sensor=pa.array(
         [table.sensors[k].id for k in table.sensor.tolist()], pa.string()))
     return cols
 
 
-def _kinematics(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
+def _kinematics(key: str, table: PlotTable, s: StateSeries, clock: Clock
                 ) -> dict[str, Any]:
     """Time, position (plane and WGS-84), velocity and covariance columns of ``s``."""
     n = len(s)
@@ -260,16 +269,17 @@ def _kinematics(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
         lat, lon = table.frame.to_geodetic(s.x, s.z)
     cols: dict[str, Any] = {
         "aircraft": pa.array([key] * n, pa.string()),
-        "t": s.t, "time_of_day_s": np.mod(s.t, 86_400.0) if times_of_day else None,
+        "t": s.t, "time_of_day_s": np.mod(s.t, 86_400.0) if clock[0] else None,
+        "time_utc": utc_times(s.t, clock[1] if clock[0] else None),
         "x": s.x, "z": s.z, "lat_deg": lat, "lon_deg": lon, "vx": s.vx, "vz": s.vz}
     iu = np.triu_indices(4)
     cols.update(zip(COV_COLUMNS, cov[:, iu[0], iu[1]].T, strict=True))
     return cols
 
 
-def _samples_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool
+def _samples_table(key: str, table: PlotTable, s: StateSeries, clock: Clock
                    ) -> pa.Table:
-    cols = _kinematics(key, table, s, times_of_day)
+    cols = _kinematics(key, table, s, clock)
     heading, speed = s.heading_deg_and_speed(table.frame)
     cols.update(speed=speed, heading_deg=heading, h_m=s.h, h_sigma_m=s.h_sigma)
     return _arrow(cols, SAMPLE_COLUMNS, len(s))
@@ -286,9 +296,9 @@ def _arrow(cols: dict[str, Any], names: Sequence[str], n: int) -> pa.Table:
                      pa.array(np.asarray(cols[k], float), pa.float64()) for k in names})
 
 
-def _states_table(key: str, table: PlotTable, s: StateSeries, times_of_day: bool,
+def _states_table(key: str, table: PlotTable, s: StateSeries, clock: Clock,
                   residuals: PlotResiduals | None = None) -> pa.Table:
-    cols = _state_columns(key, table, s, times_of_day)
+    cols = _state_columns(key, table, s, clock)
     heading, speed = s.heading_deg_and_speed(table.frame)
     cols.update(speed=speed, heading_deg=heading, h_m=s.h, h_sigma_m=s.h_sigma)
     n, res = len(s), residuals
@@ -323,7 +333,7 @@ def with_sources(states: pa.Table, names: pa.Array) -> pa.Table:
     return states.set_column(i, "source", names.take(states.column("plot")))
 
 
-def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_day: bool,
+def _filters_table(key: str, table: PlotTable, names: Sequence[str], clock: Clock,
                    warnings: list[str], heights: FloatArray | None = None,
                    gate: float | None = FILTER_GATE_SIGMA,
                    no_weight: np.ndarray | None = None) -> pa.Table | None:
@@ -353,7 +363,7 @@ def _filters_table(key: str, table: PlotTable, names: Sequence[str], times_of_da
             continue
         if "warning" in est.info:
             warnings.append(f"filters.{name}: {est.info['warning']}")
-        cols = _state_columns(key, table, est.states, times_of_day)
+        cols = _state_columns(key, table, est.states, clock)
         cols["filter"] = pa.array([name] * len(table), pa.string())
         left_out = np.asarray(est.info.get("gated", np.zeros(len(table), bool)), bool)
         gated[name] = np.flatnonzero(left_out).tolist()

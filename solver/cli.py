@@ -3,7 +3,7 @@
     trajrecon reconstruct RECORDING --sensors SENSORS.json --out DIR [--scheduler ADDRESS]
         [--workers N] [--method refined|sliding] [--bounds NAME=MIN,MAX ...]
         [--filters NAME ...] [--samples STEP] [--aircraft KEY ...] [--edition CAT=EDITION ...]
-        [--figures] ...
+        [--date YYYY-MM-DD] [--figures] ...
     trajrecon plot RECORDING --sensors SENSORS.json --out DIR [--aircraft KEY ...] [--map]
 
 (``trajrecon RECORDING ...`` is ``trajrecon reconstruct RECORDING ...``.) ``reconstruct`` reads a
@@ -13,6 +13,8 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 ``LocalCluster`` sized to the cores, or the cluster at ``--scheduler``; the task:
 :mod:`solver.track_task`) with a progress bar, and writes into ``DIR``:
 
+- with the recording's date (a capture's packet times, a table's ``timestamp``, else
+  ``--date``: :mod:`solver.io.dates`) ``time_utc`` beside ``t`` in every output;
 - ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
   with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
   resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
@@ -22,7 +24,7 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
   (SASS-C/TRES-style assessment, :mod:`solver.sensor_stats`): plots, detection rate, wild
   plots, bias and sigma of the range and azimuth residuals, estimated offsets where asked;
 - ``run.json``: the method, bounds, filters, sample step and ASTERIX editions chosen
-  (``--edition 21=0.26``); a rerun resumes only a run with the same
+  (``--edition 21=0.26``) and ``--date``; a rerun resumes only a run with the same
   (:mod:`solver.run_settings`);
 - ``sensors.png``: each radar's range and azimuth residuals over range and azimuth
   (:mod:`solver.assessment`);
@@ -63,6 +65,7 @@ from .config import FILTER_GATE_SIGMA, ReconstructionConfig
 from .inputs import Bounds, InputError
 from .io.altitudes import offsets_summary
 from .io.asterix import edition_choices, parse_edition
+from .io.dates import parse_date
 from .io.reading import Selection, Streamed, check_recording, normal_key, stream
 from .io.sensors_file import load_sensors
 from .outputs import output_state, write_csv_and_geojson, write_manoeuvres, write_map
@@ -114,7 +117,7 @@ def _run(args: argparse.Namespace) -> dict[str, Any]:
         loaded = stream(Path(args.recording), Path(args.sensors),
                         executor=client if on_cluster else None,
                         max_speed=settings.config().bounds.v[1],
-                        editions=settings.asterix_editions())
+                        editions=settings.asterix_editions(), date=settings.date)
         chosen = Selection(getattr(args, "aircraft", None))
         loaded.tracks = chosen.filter(loaded.tracks)
         summary, first_result_s = _reconstruct(args, settings, out, loaded, client, started)
@@ -131,7 +134,8 @@ def _settings(args: argparse.Namespace) -> RunSettings:
                          "them out")
     return RunSettings(args.method, parse_bounds(args.bounds), tuple(args.filters),
                        args.samples, **_windows(args, RunSettings()),
-                       filter_gate_sigma=args.filter_gate, editions=tuple(args.edition or ()))
+                       filter_gate_sigma=args.filter_gate, editions=tuple(args.edition or ()),
+                       date=args.date)
 
 
 def _check_out(out: Path, sensors: Path) -> None:
@@ -195,7 +199,7 @@ def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loa
 
     task = partial(assess_track, figures_dir=figures, filters=settings.filters,
                    filter_gate=settings.filter_gate_sigma,
-                   times_of_day=bool(loaded.times_of_day),
+                   times_of_day=bool(loaded.times_of_day), date=loaded.date,
                    samples=settings.sample_step_s is not None)
     summary: BatchSummary = reconstruct_many(
         loaded.tracks, out, config=config, executor=client,
@@ -220,7 +224,7 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
                                       encoding="utf-8")
     (out / "summary.json").unlink(missing_ok=True)  # stale while the files below are written
     csv_rows, geo_tracks = write_csv_and_geojson(out)
-    manoeuvres = write_manoeuvres(out, loaded.frame)
+    manoeuvres = write_manoeuvres(out, loaded.frame, loaded.date)
     state = output_state(out)
     write_map(out, loaded.sensors, frame=loaded.frame)
     write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
@@ -229,7 +233,8 @@ def _finish(args: argparse.Namespace, settings: RunSettings, out: Path, loaded: 
         "recording": str(args.recording), **settings.as_json(),
         "tracks": summary.tracks, "done": summary.done,
         "failed": summary.failed, "skipped": summary.skipped, "plots": summary.plots,
-        "rows_in_recording": loaded.rows_read, "elapsed_s": time.perf_counter() - started,
+        "rows_in_recording": loaded.rows_read, "recording_date": loaded.date,
+        "elapsed_s": time.perf_counter() - started,
         "reconstruct_s": summary.elapsed_s, "plots_per_s": summary.plots_per_s,
         "time_to_first_result_s": first_result_s,
         "mode_c_offsets": offsets_summary(loaded.mode_c_offsets),
@@ -358,6 +363,12 @@ def parser() -> argparse.ArgumentParser:
     _method(rec, "refined")
     _bounds(rec, [])
     _edition(rec, "")
+    rec.add_argument("--date", type=_date_arg, default=None, metavar="YYYY-MM-DD",
+                     help="the UTC date of the midnight the recording's times of day count "
+                     "from (its first plot's day), for the UTC times of the outputs "
+                     "(time_utc): a raw ASTERIX or IOSS recording does not carry it; a pcap "
+                     "capture's packet times and a table's timestamp column give it, and a "
+                     "date that contradicts them is an error")
     rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
                      metavar="FILTER", help="recursive filters run beside the reconstruction "
                      f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")
@@ -476,6 +487,13 @@ def _edition(ap: argparse.ArgumentParser, run: str) -> None:
                     "ground station: ASTERIX data do not say their edition, and another "
                     "edition's records read as garbage or not at all, reported in problems.txt)"
                     f": {edition_choices()}{run}")
+
+
+def _date_arg(text: str) -> str:
+    try:
+        return parse_date(text)
+    except InputError as e:
+        raise argparse.ArgumentTypeError(e.message) from None
 
 
 def _edition_arg(text: str) -> tuple[int, str]:

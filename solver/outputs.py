@@ -33,6 +33,7 @@ import pyarrow.parquet as pq
 
 from .batch import TRACK_COLUMNS, ledger_entries, read_part
 from .frames import LocalFrame
+from .io.dates import iso_utc, utc_times
 from .io.sensors_file import SensorSet
 from .io.split import recording_frame
 from .io.tables import PlotRows
@@ -69,7 +70,9 @@ def line_geometry(coords: list[list[float]]) -> dict[str, Any]:
 def write_csv_and_geojson(out: Path) -> tuple[int, int]:
     """``tracks.csv`` and ``tracks.geojsonl`` from the Parquet parts, one part at a time
     (memory bounded by a part), each written whole under another name and then renamed;
-    returns (rows, tracks)."""
+    returns (rows, tracks). ``time_utc`` is ISO 8601 text ending in ``Z`` in the CSV, and a
+    feature's ``time_utc_start`` / ``time_utc_end`` beside ``t_start`` / ``t_end`` (null
+    where the recording's date is not known)."""
     parts = sorted((out / "tracks.parquet").glob("part-*.parquet"))
     rows = tracks = 0
     writer: pacsv.CSVWriter | None = None
@@ -77,47 +80,56 @@ def write_csv_and_geojson(out: Path) -> tuple[int, int]:
     with open(geo_tmp, "w", encoding="utf-8") as geo:
         for part in parts:
             table = read_part(part)
+            text = table.set_column(table.column_names.index("time_utc"), "time_utc",
+                                    iso_utc(table.column("time_utc")))
             if writer is None:
-                writer = pacsv.CSVWriter(csv_tmp, table.schema)
-            writer.write_table(table)
+                writer = pacsv.CSVWriter(csv_tmp, text.schema)
+            writer.write_table(text)
             rows += table.num_rows
             keys = table.column("aircraft").to_numpy(zero_copy_only=False)
             lat = table.column("lat_deg").to_numpy(zero_copy_only=False).astype(float)
             lon = table.column("lon_deg").to_numpy(zero_copy_only=False).astype(float)
             t = table.column("t").to_numpy()
+            utc = iso_utc(table.column("time_utc")).to_pylist()
             for key, sel in _key_groups(keys):
                 coords = [[round(b, 7), round(a, 7)]
                           for a, b in zip(lat[sel].tolist(), lon[sel].tolist(), strict=True)
                           if math.isfinite(a) and math.isfinite(b)]
                 if len(coords) < 2:
                     continue
+                first, last = sel[np.argmin(t[sel])], sel[np.argmax(t[sel])]
                 feature = {"type": "Feature", "geometry": line_geometry(coords),
-                           "properties": {"aircraft": key, "t_start": float(t[sel].min()),
-                                          "t_end": float(t[sel].max()),
+                           "properties": {"aircraft": key, "t_start": float(t[first]),
+                                          "t_end": float(t[last]),
+                                          "time_utc_start": utc[first],
+                                          "time_utc_end": utc[last],
                                           "plots": int(sel.size)}}
                 geo.write(json.dumps(feature) + "\n")
                 tracks += 1
     if writer is None:  # no track: the header alone, as the other tables have theirs
         writer = pacsv.CSVWriter(csv_tmp, pa.schema(
-            [(n, pa.string() if n in ("aircraft", "source", "sensor") else pa.float64())
-             for n in TRACK_COLUMNS]))
+            [(n, pa.string() if n in ("aircraft", "source", "sensor", "time_utc")
+              else pa.float64()) for n in TRACK_COLUMNS]))
     writer.close()
     os.replace(csv_tmp, out / "tracks.csv")  # whole files only: a stop leaves the old ones
     os.replace(geo_tmp, out / "tracks.geojsonl")
     return rows, tracks
 
 
-def write_manoeuvres(out: Path, frame: LocalFrame | None) -> int:
+def write_manoeuvres(out: Path, frame: LocalFrame | None, date: str | None = None) -> int:
     """``manoeuvres.csv`` from the segments' Parquet parts (:mod:`solver.manoeuvres`), one part
     at a time, with latitude and longitude at both ends in the recording's plane ``frame``
-    (empty without one); returns the rows written."""
+    (empty without one) and the UTC times of both ends on ``date`` (``time_utc_start``,
+    ``time_utc_end``: ISO 8601 ending in ``Z``; empty without a date); returns the rows
+    written."""
     from .manoeuvres import Manoeuvre, from_segment_rows
 
     fields = list(Manoeuvre.__dataclass_fields__)
     schema = pa.schema([("aircraft", pa.string())] + [
         (k, pa.string() if k in ("kind", "direction") else pa.float64()) for k in fields] + [
         (k, pa.float64()) for k in ("lat_start_deg", "lon_start_deg", "lat_end_deg",
-                                    "lon_end_deg")])
+                                    "lon_end_deg")] + [
+        (k, pa.string()) for k in ("time_utc_start", "time_utc_end")])
     rows = 0
     tmp = out / ".manoeuvres.csv.tmp"
     with pacsv.CSVWriter(tmp, schema) as writer:
@@ -135,6 +147,8 @@ def write_manoeuvres(out: Path, frame: LocalFrame | None) -> int:
                 x, z = np.array(cols[f"x_{end}"]), np.array(cols[f"z_{end}"])
                 lat, lon = frame.to_geodetic(x, z) if frame is not None else (None, None)
                 cols[f"lat_{end}_deg"], cols[f"lon_{end}_deg"] = lat, lon
+                cols[f"time_utc_{end}"] = (None if date is None else iso_utc(
+                    utc_times(np.array(cols[f"t_{end}"], float), date)).to_pylist())
             writer.write_table(pa.table({f.name: pa.nulls(len(found), f.type)
                                          if cols[f.name] is None else
                                          pa.array(cols[f.name], f.type) for f in schema},

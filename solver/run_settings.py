@@ -35,7 +35,9 @@ class RunSettings:
     other than the decoder's defaults, as ``((21, "0.26"), ...)`` (sorted, defaults left out:
     a run that names the default edition is the default run;
     :data:`solver.io.asterix.EDITIONS`), in ``run.json`` as ``{"21": "0.26"}``: a rerun
-    reading the recording as another edition is another run."""
+    reading the recording as another edition is another run; ``date``: the UTC date given for
+    the recording's times of day (``YYYY-MM-DD``, :mod:`solver.io.dates`; None: its own, if
+    any): a rerun with another date would mix two days' ``time_utc``."""
 
     method: str = "refined"
     bounds: Bounds = field(default_factory=Bounds)
@@ -46,8 +48,13 @@ class RunSettings:
     criterion: str = ReconstructionConfig.criterion
     filter_gate_sigma: float | None = FILTER_GATE_SIGMA
     editions: tuple[tuple[int, str], ...] = ()
+    date: str | None = None
 
     def __post_init__(self) -> None:
+        if self.date is not None:
+            from .io.dates import parse_date
+
+            object.__setattr__(self, "date", parse_date(self.date))
         try:
             check_filter_gate(self.filter_gate_sigma)
         except ValueError as e:
@@ -76,7 +83,8 @@ class RunSettings:
                 "sample_step_s": self.sample_step_s,
                 "window": {"plots": self.window_plots, "trial_step_s": self.trial_step_s},
                 "criterion": self.criterion, "filter_gate_sigma": self.filter_gate_sigma,
-                "editions": {str(cat): name for cat, name in self.editions}}
+                "editions": {str(cat): name for cat, name in self.editions},
+                "date": self.date}
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> RunSettings:
@@ -95,7 +103,8 @@ class RunSettings:
                    float(w.get("trial_step_s", cls.trial_step_s)),
                    str(doc.get("criterion", cls.criterion)),
                    None if gate is None else float(gate),
-                   tuple((int(k), str(v)) for k, v in (doc.get("editions") or {}).items()))
+                   tuple((int(k), str(v)) for k, v in (doc.get("editions") or {}).items()),
+                   None if doc.get("date") is None else str(doc["date"]))
 
 
 def _chosen_editions(editions: Sequence[tuple[int, str]]) -> tuple[tuple[int, str], ...]:

@@ -34,7 +34,7 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
                  time_limit_s: float | None, figures_dir: str | None = None,
                  filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
                  times_of_day: bool = False, samples: bool = False,
-                 max_samples: int | None = None) -> AssessedTrack:
+                 max_samples: int | None = None, date: str | None = None) -> AssessedTrack:
     """:func:`solver.batch.solve_track` (with its keyword arguments) plus the
     per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the
     worker)."""
@@ -50,7 +50,7 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
 
     out = solve_track(key, table, config, time_limit_s, extras=extras, filters=filters,
                       filter_gate=filter_gate, times_of_day=times_of_day, samples=samples,
-                      max_samples=max_samples)
+                      max_samples=max_samples, date=date)
     return AssessedTrack(**{k: v for k, v in vars(out).items() if k != "extras"},
                          sensors=out.extras.get("sensors", []))
 

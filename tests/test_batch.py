@@ -3,6 +3,7 @@ failures isolated and reported, results streamed to Parquet parts, reruns resume
 
 from __future__ import annotations
 
+import csv
 import json
 from concurrent.futures import ThreadPoolExecutor
 
@@ -342,8 +343,11 @@ def test_parts_of_an_earlier_version_conform(tmp_path):
     new.update(aircraft=pa.array(["NEW"] * n), sensor=pa.array(["R1"] * n),
                plot=pa.array(np.arange(n, dtype=np.int32)), gated=pa.array([False] * n),
                wild=pa.array([False] * n), no_reference=pa.array([False] * n),
-               lat_deg=pa.array(np.linspace(46, 46.1, n)), lon_deg=pa.array(np.full(n, 14.0)))
-    old = {k: v for k, v in new.items() if k not in (*RESIDUAL_COLUMNS, "time_of_day_s")}
+               lat_deg=pa.array(np.linspace(46, 46.1, n)), lon_deg=pa.array(np.full(n, 14.0)),
+               time_utc=pa.array(np.arange(n) * 10**6, pa.int64()).cast(
+                   pa.timestamp("us", tz="UTC")))
+    old = {k: v for k, v in new.items() if k not in (*RESIDUAL_COLUMNS, "time_of_day_s",
+                                                     "time_utc")}
     old["aircraft"] = pa.array(["OLD"] * n)
     pq.write_table(pa.table(old), parts / "part-000001.parquet")
     pq.write_table(pa.table(new), parts / "part-000002.parquet")
@@ -358,6 +362,11 @@ def test_parts_of_an_earlier_version_conform(tmp_path):
     table = pq.read_table(combined)
     assert table.num_rows == 2 * n and table.column("gated").to_pylist() == [None] * n + [
         False] * n
+    utc = table.column("time_utc")
+    assert utc.type == pa.timestamp("us", tz="UTC") and utc.null_count == n
+    with open(tmp_path / "tracks.csv", newline="") as f:
+        text = [r["time_utc"] for r in csv.DictReader(f)]
+    assert text == [""] * n + [f"1970-01-01T00:00:0{k}.000000Z" for k in range(n)]
 
 
 def test_a_run_resumed_over_parts_of_before_a_column_keeps_it(tmp_path, tracks):

@@ -110,6 +110,9 @@ def test_recording_to_tables_statistics_and_map(recording, capsys, scheduler):
                                                                 ["coordinates"]) > 10
     csv_rows = (out / "tracks.csv").read_text().count("\n") - 1
     assert csv_rows == table.num_rows
+    # a raw recording says no date, and none was given: no UTC time
+    assert table.column("time_utc").null_count == table.num_rows
+    assert feature["properties"]["time_utc_start"] is None and summary["recording_date"] is None
     # straight, level flights: no manoeuvre (the job test has a turning track's)
     assert summary["manoeuvres"] == 0
     assert (out / "manoeuvres.csv").read_text().startswith('"aircraft","kind","direction"')
@@ -687,6 +690,58 @@ def test_known_offsets_reach_the_tracks_a_radar_sees_alone(tmp_path, capsys, sch
         tx, tz = frame.to_plane(lat, lon)
         err[run] = float(np.sqrt(np.mean((x - tx) ** 2 + (z - tz) ** 2)))
     assert err["estimated"] > 150.0 and err["known"] < 25.0, err
+
+
+def test_date_gives_the_captures_utc_times_and_a_contradicting_one_is_refused(
+        recording, tmp_path, capsys, scheduler):
+    """The recording across midnight as raw ASTERIX with ``--date`` and as a pcap capture
+    stamped by a right clock without it: the same ``time_utc`` in tracks.parquet (each row's
+    ``t`` on 2023-11-14, Python's datetime as the reference: those past midnight on the 15th),
+    in tracks.csv (ISO 8601 ending in Z), the GeoJSON lines and manoeuvres.csv's header; the
+    capture with a ``--date`` it contradicts exits 2 naming both dates, before any track."""
+    import datetime as dt
+
+    from test_io_asterix import CAPTURE_DAY, pcap
+
+    d, enc = recording
+    (tmp_path / "day.ast").write_bytes(b"".join(enc.blocks))
+    (tmp_path / "day.pcap").write_bytes(pcap(enc.blocks))
+    got = {}
+    for name, extra in (("day.ast", ["--date", CAPTURE_DAY]), ("day.pcap", [])):
+        out = tmp_path / f"out-{name}"
+        assert main([str(tmp_path / name), "--sensors", str(d / "sensors.json"), "--out",
+                     str(out), "--scheduler", scheduler, "--no-progress", *extra]) == 0
+        table = pq.read_table(out / "tracks.parquet").sort_by([("aircraft", "ascending"),
+                                                              ("t", "ascending")])
+        assert table.schema.field("time_utc").type == pa.timestamp("us", tz="UTC")
+        utc = table.column("time_utc").to_pylist()
+        midnight = dt.datetime(2023, 11, 14, tzinfo=dt.UTC)
+        assert utc == [midnight + dt.timedelta(seconds=t) for t in table.column("t").to_pylist()]
+        assert utc[0].date() == dt.date(2023, 11, 14) and utc[-1].date() == dt.date(2023, 11, 15)
+        with open(out / "tracks.csv", newline="") as f:
+            text = [r["time_utc"] for r in csv.DictReader(f)]
+        assert sorted(text) == sorted(u.strftime("%Y-%m-%dT%H:%M:%S.%fZ") for u in utc)
+        feature = json.loads((out / "tracks.geojsonl").read_text().splitlines()[0])
+        props = feature["properties"]
+        assert props["time_utc_start"] == (midnight + dt.timedelta(seconds=props["t_start"])
+                                           ).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+        assert (out / "manoeuvres.csv").read_text().splitlines()[0].endswith(
+            '"time_utc_start","time_utc_end"')
+        assert json.loads((out / "summary.json").read_text())["recording_date"] == CAPTURE_DAY
+        got[name] = (table.column("aircraft").to_pylist(), utc)
+    assert got["day.ast"] == got["day.pcap"]
+    capsys.readouterr()
+    assert main([str(tmp_path / "day.pcap"), "--sensors", str(d / "sensors.json"), "--out",
+                 str(tmp_path / "wrong"), "--scheduler", scheduler, "--no-progress",
+                 "--date", "2023-11-15"]) == 2
+    err = capsys.readouterr().err
+    assert "date 2023-11-15 contradicts the recording's own date 2023-11-14 (from its " \
+        "capture's packet times)" in err
+    assert not (tmp_path / "wrong" / "progress.jsonl").exists()
+    with pytest.raises(SystemExit):  # argparse: not a calendar day
+        main([str(tmp_path / "day.ast"), "--sensors", str(d / "sensors.json"), "--out",
+              str(tmp_path / "bad"), "--date", "2023-02-29"])
+    assert "'2023-02-29' is not a date YYYY-MM-DD" in capsys.readouterr().err
 
 
 def test_a_recording_not_in_time_order_is_sorted_not_split(recording, tmp_path, monkeypatch):

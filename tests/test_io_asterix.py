@@ -168,8 +168,39 @@ def assert_same_plots(rows, plots: list[dict]) -> None:
             assert np.isnan(rows.range_m[i]) and np.isnan(rows.azimuth_deg[i])
 
 
-def pcap(payloads: list[bytes], *, nanoseconds: bool = False, big_endian: bool = False) -> bytes:
-    """A classic pcap capture: every payload one Ethernet/IPv4/UDP packet to port 8600."""
+CAPTURE_DAY = "2023-11-14"
+CAPTURE_MIDNIGHT_S = 1_699_920_000  # 2023-11-14T00:00:00Z (date -u -d @1699920000)
+
+
+def report_times(payloads: list[bytes]) -> list[float]:
+    """Each payload's first report's time of day (s; decoded alone); a payload without one
+    (CAT034, damaged): the time before it."""
+    out, last = [], 0.0
+    for payload in payloads:
+        tod = decode_blocks(payload, SENSORS).rows.time_of_day_s
+        last = float(tod[0]) if tod.size else last
+        out.append(last)
+    return out
+
+
+def capture_times(payloads: list[bytes]) -> list[float]:
+    """A live capture's packet times (epoch s) of ``payloads`` starting on CAPTURE_DAY: their
+    reports' times of day, a day later after the clock passed midnight."""
+    out, day, before = [], 0.0, None
+    for tod in report_times(payloads):
+        if before is not None and tod < before - 43_200:
+            day += 86_400.0
+        before = tod
+        out.append(CAPTURE_MIDNIGHT_S + day + tod)
+    return out
+
+
+def pcap(payloads: list[bytes], *, nanoseconds: bool = False, big_endian: bool = False,
+         times: list[float] | None = None) -> bytes:
+    """A classic pcap capture: every payload one Ethernet/IPv4/UDP packet to port 8600, at
+    ``times`` (epoch s; default: a live capture's from CAPTURE_DAY, :func:`capture_times`)."""
+    if times is None:
+        times = capture_times(payloads)
     e = ">" if big_endian else "<"
     magic = 0xA1B23C4D if nanoseconds else 0xA1B2C3D4
     out = [struct.pack(e + "IHHiIII", magic, 2, 4, 0, 0, 65535, 1)]
@@ -178,7 +209,9 @@ def pcap(payloads: list[bytes], *, nanoseconds: bool = False, big_endian: bool =
         ip = struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), k & 0xFFFF, 0, 64, 17, 0,
                          bytes([10, 0, 0, 1]), bytes([239, 1, 1, 1]))
         frame = bytes(6) + bytes([2, 0, 0, 0, 0, 1]) + struct.pack(">H", 0x0800) + ip + udp
-        out.append(struct.pack(e + "IIII", 1_700_000_000 + k, 0, len(frame), len(frame)))
+        sec = int(np.floor(times[k]))
+        sub = round((times[k] - sec) * (1e9 if nanoseconds else 1e6))
+        out.append(struct.pack(e + "IIII", sec, sub, len(frame), len(frame)))
         out.append(frame)
     return b"".join(out)
 

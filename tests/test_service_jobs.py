@@ -98,6 +98,48 @@ def test_pcapng_capture_job_runs_to_done(client):
     assert status["plots"] == status["plots_done"] == status["rows"] > 0.95 * len(enc.plots)
 
 
+def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
+    """`options.date` on a raw recording (which says no date): every state's `time_utc` is its
+    `t` on that day (Python's datetime as the reference), the segments' and samples' too, and
+    the status says the date; a pcap capture whose packet times give 2023-11-14, with a date of
+    the 15th, fails at once naming both dates."""
+    import datetime as dt
+
+    from test_io_asterix import CAPTURE_DAY, pcap
+
+    enc = encode_recording(duration=30.0)
+    r = client.post("/v1/jobs", files={"recording": ("day.ast", enc.data),
+                                       "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                    data={"options": json.dumps({"date": CAPTURE_DAY, "sample_step_s": 10.0})})
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    status = wait(client, loc)
+    assert status["state"] == "done" and status["options"]["date"] == CAPTURE_DAY, status
+    midnight = dt.datetime(2023, 11, 14, tzinfo=dt.UTC)
+
+    def iso(t: float) -> str:
+        return (midnight + dt.timedelta(seconds=t)).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+    body = client.get(f"{loc}/tracks/{FLIGHTS[0].address:06X}").json()["trajectory"]
+    assert body["at_plots"] and all(s["time_utc"] == iso(s["t"]) for s in body["at_plots"])
+    assert body["samples"] and all(s["time_utc"] == iso(s["t"]) for s in body["samples"])
+    assert all(g["time_utc_start"] == iso(g["t_start"]) and g["time_utc_end"] == iso(g["t_end"])
+               for g in body["segments"])
+    assert body["at_plots"][0]["time_utc"].startswith("2023-11-14T10:00:")
+    summary = json.loads(client.get(loc + "/results/summary.json").content)
+    assert summary["recording_date"] == CAPTURE_DAY
+
+    r = client.post("/v1/jobs", files={"recording": ("day.pcap", pcap(enc.blocks)),
+                                       "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                    data={"options": json.dumps({"date": "2023-11-15"})})
+    assert r.status_code == 202, r.text
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "failed", status
+    assert status["error"].startswith("options.date 2023-11-15 contradicts the recording's "
+                                      "own date 2023-11-14 (from its capture's packet times)"
+                                      ), status
+
+
 def test_an_ioss_recording_job_runs_to_done(client):
     """An IOSS (FINAL) recording (frames of a recorder around the data blocks; named .ff) is a
     recording: every plot read, every track done once."""
@@ -280,7 +322,7 @@ def test_job_options_run_the_filters_on_every_track(client):
                                  "sample_step_s": 5.0, "aircraft": None,
                                  "method": "refined", "criterion": "R2",
                                  "window": {"plots": 3, "trial_step_s": 5.0},
-                                 "filter_gate_sigma": 4.0, "editions": {}}
+                                 "filter_gate_sigma": 4.0, "editions": {}, "date": None}
     for key, plots in tracks.items():
         body = client.get(f"{loc}/tracks/{key}").json()
         assert set(body["filters"]) == set(names)
@@ -358,7 +400,7 @@ def test_job_options_run_the_filters_on_every_track(client):
         "bounds": {"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [30.0, 330.0]},
         "filters": ["imm_smoother"], "sample_step_s": 1e-4, "aircraft": None,
         "method": "refined", "criterion": "R2", "window": {"plots": 3, "trial_step_s": 5.0},
-        "filter_gate_sigma": 6.0, "editions": {}}
+        "filter_gate_sigma": 6.0, "editions": {}, "date": None}
     for t in client.get(up + "/tracks").json():
         body = client.get(f"{up}/tracks/{t['aircraft']}").json()
         assert list(body["filters"]) == ["imm_smoother"]
@@ -735,6 +777,9 @@ def test_a_json_body_of_tracks_has_its_own_smaller_limit(tmp_path):
          "libasterix has no CAT021 edition '0.27'; the choices: CAT021 0.23, 0.24"),
         ('{"editions": {"62": "1.19"}}', "options.editions.62"),
         ('{"editions": ["21=0.26"]}', "options.editions"),
+        ('{"date": "2023-02-29"}', "options.date: Value error, '2023-02-29' is not a date"),
+        ('{"date": "14.11.2023"}', "options.date"),
+        ('{"date": 20231114}', "options.date"),
         ('{"filters": [', "options is not valid JSON"))),
 ])
 def test_bad_upload_is_422_naming_the_part(client, files, field):
@@ -862,8 +907,9 @@ def test_unreadable_recording_is_accepted_and_fails_with_the_reason(client):
     status = wait(client, r.headers["location"])
     assert status["state"] == "failed", status
     # columns of its own are read past; what it lacks is named, with what it has
-    assert status["error"].startswith("t is missing: the table needs a `t` or a "
-                                      "`time_of_day_s` column (columns: a, b)"), status
+    assert status["error"].startswith("t is missing: the table needs a `t`, a "
+                                      "`time_of_day_s` or a `timestamp` column (columns: a, "
+                                      "b)"), status
     assert client.get(r.headers["location"] + "/results/tracks.csv").status_code == 409
 
     # bytes that are no recording at all (random, a JSON file sent as the recording): refused
@@ -1176,6 +1222,8 @@ def test_a_jobs_track_has_the_manoeuvres_of_the_single_track_answer(client):
     got = client.get(f"{loc}/tracks/SEED").json()["trajectory"]["manoeuvres"]
     assert len(got) == len(expected)
     for g, e in zip(got, expected, strict=True):
+        # beside the single answer's fields, a job's UTC times: null, a JSON track has no date
+        assert g.pop("time_utc_start") is None and g.pop("time_utc_end") is None
         assert g == {k: v if isinstance(v, str) else pytest.approx(v, rel=1e-9, abs=1e-6)
                      for k, v in e.items()}
     table = list(csv.DictReader(io.StringIO(client.get(loc + "/results/manoeuvres.csv").text)))

@@ -42,7 +42,10 @@ below):
 
 Times: the time of day (1/128 s) becomes ``t``, seconds since the UTC midnight before the
 first record, monotonic across midnight (:func:`solver.io.tables.unwrap_time_of_day`, in
-recording order); ``time_of_day_s`` keeps the recorded value.
+recording order); ``time_of_day_s`` keeps the recorded value. A capture's packet times give
+the date of that midnight (``rows.date``; :class:`solver.io.dates.CaptureClock`: decided by
+the first unit with packet-timed rows, disagreements reported); a raw or IOSS recording has
+none.
 
 Editions: ASTERIX data carry none, and a category's editions differ: CAT021 0.23-0.26 (older
 ADS-B ground stations) have another UAP than 2.x. ``editions=`` maps a category to a libasterix
@@ -99,9 +102,11 @@ import asterix.generated as ast
 import numpy as np
 from asterix.base import Bits, ParsingMode, Unsigned
 
+from ..inputs import FloatArray
 from ..sensors import PositionSensor, RadarSensor
+from .dates import CaptureClock
 from .framing import KNOWN_CATEGORIES, frame_header_bytes, is_framed, iter_frames
-from .pcap import is_capture, iter_udp_payloads
+from .pcap import is_capture, iter_udp_packets
 from .problems import Problems
 from .sensors_file import SensorSet
 from .tables import DAY_S, FL_M, FT_M, NO_INT, PlotRows, unwrap_time_of_day
@@ -275,50 +280,57 @@ def _iter_data(data: bytes | mmap.mmap, sensors: SensorSet, editions: Mapping[in
     pages released behind the reading: the memory does not grow with the file)."""
     eds = _with_defaults(editions)
     previous = np.nan
+    clock = CaptureClock()  # a capture's date, from its packet times
 
-    def finish(part: Recording, walk: Problems, packets: int) -> Recording:
+    def finish(part: Recording, walk: Problems, unit: list[tuple[int, bytes]],
+               times: list[float], packed: bool) -> Recording:
         nonlocal previous
         walk.extend(part.problems)
         t = unwrap_time_of_day(part.rows.time_of_day_s, previous)
         if np.isfinite(t).any():
             previous = float(t[np.isfinite(t)][-1])
-        return Recording(replace(part.rows, t=t), walk, part.service, part.blocks,
-                         part.records, part.bytes, packets)
+        rows = replace(part.rows, t=t)
+        clock.add(t, _received(rows, unit, times), rows.where, walk)
+        return Recording(replace(rows, date=clock.date), walk, part.service, part.blocks,
+                         part.records, part.bytes, len(unit) if packed else 0)
 
     units = _units(data, chunk_bytes)
     packed = _pieces(data, Problems()) is not None  # a capture's packets or frames are counted
     if executor is None:
-        for unit, walk in units:
-            yield finish(decode_datagrams(unit, sensors, editions=eds), walk,
-                         len(unit) if packed else 0)
+        for unit, walk, times in units:
+            yield finish(decode_datagrams(unit, sensors, editions=eds), walk, unit, times,
+                         packed)
         return
-    pending: deque[tuple[Any, Problems, int]] = deque()
-    for unit, walk in units:
+    pending: deque[tuple[Any, Problems, list[tuple[int, bytes]], list[float]]] = deque()
+    for unit, walk, times in units:
         pending.append((executor.submit(decode_datagrams, unit, sensors, editions=eds), walk,
-                        len(unit) if packed else 0))
+                        unit, times))
         if len(pending) >= ahead:
-            fut, w, k = pending.popleft()
-            yield finish(fut.result(), w, k)
+            fut, w, u, k = pending.popleft()
+            yield finish(fut.result(), w, u, k, packed)
     while pending:
-        fut, w, k = pending.popleft()
-        yield finish(fut.result(), w, k)
+        fut, w, u, k = pending.popleft()
+        yield finish(fut.result(), w, u, k, packed)
 
 
 def _pieces(data: bytes | mmap.mmap, problems: Problems
-            ) -> Iterator[tuple[int, bytes]] | None:
+            ) -> Iterator[tuple[int, bytes, float]] | None:
     """A capture's UDP payloads or an IOSS recording's frames' data blocks, as ``(file offset,
-    data blocks)`` (what cannot be read of the container goes to ``problems``); None for a raw
-    recording."""
+    data blocks, capture time)`` (epoch s, a capture's packet time; NaN for a frame: its day
+    byte is no date, :mod:`solver.io.dates`); what cannot be read of the container goes to
+    ``problems``; None for a raw recording."""
     if is_capture(data):
-        return iter_udp_payloads(data, problems)
+        return iter_udp_packets(data, problems)
     header = frame_header_bytes(data)
-    return None if header is None else iter_frames(data, problems, header)
+    return None if header is None else ((a, b, np.nan) for a, b in
+                                        iter_frames(data, problems, header))
 
 
 def _units(data: bytes | mmap.mmap, chunk_bytes: int
-           ) -> Iterator[tuple[list[tuple[int, bytes]], Problems]]:
+           ) -> Iterator[tuple[list[tuple[int, bytes]], Problems, list[float]]]:
     """The decoding units of a recording (copies of its bytes) with the container's problems
-    met on the way; a memory-mapped file's pages are released behind the units."""
+    met on the way and each piece's capture time (:func:`_pieces`; none for a raw file); a
+    memory-mapped file's pages are released behind the units."""
     release = _Release(data)
     walk = Problems()  # filled by a container's walk, drained into each unit
     pieces = _pieces(data, walk)
@@ -326,19 +338,31 @@ def _units(data: bytes | mmap.mmap, chunk_bytes: int
         for a, b in _block_cuts(data, chunk_bytes):
             unit = data[a:b]
             release.upto(b)
-            yield [(a, unit)], Problems()
+            yield [(a, unit)], Problems(), []
         return
     units: list[tuple[int, bytes]] = []
+    times: list[float] = []
     size = 0
-    for offset, payload in pieces:
+    for offset, payload, when in pieces:
         units.append((offset, payload))
+        times.append(when)
         size += len(payload)
         if size >= chunk_bytes:
             release.upto(offset)
-            yield units, walk.drain()
-            units, size = [], 0
+            yield units, walk.drain(), times
+            units, times, size = [], [], 0
     if units or walk:
-        yield units, walk.drain()
+        yield units, walk.drain(), times
+
+
+def _received(rows: PlotRows, unit: list[tuple[int, bytes]], times: list[float]) -> FloatArray:
+    """Each row's capture time: its record's packet's (the last piece starting at or before
+    the record's byte offset); NaN without one."""
+    if not times or not len(rows):
+        return np.full(len(rows), np.nan)
+    starts = np.array([a for a, _ in unit], dtype=np.int64)
+    k = np.searchsorted(starts, rows.origin, side="right") - 1
+    return np.where(k >= 0, np.asarray(times, dtype=float)[np.maximum(k, 0)], np.nan)
 
 
 RELEASE_STEP = 1 << 20
@@ -455,7 +479,7 @@ def _sampled_blocks(data: bytes | mmap.mmap) -> Iterator[tuple[int, Any, int, in
     datagram (an IOSS recording's of each frame)."""
     pieces = _pieces(data, Problems())
     if pieces is not None:
-        for offset, payload in pieces:
+        for offset, payload, _ in pieces:
             if _fits(payload, 0):
                 yield offset, payload, 0, (payload[1] << 8) | payload[2]
         return

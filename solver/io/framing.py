@@ -10,7 +10,9 @@ jASTERIX's ``definitions/framings/ioss.json``)::
 
 so a frame of ``length`` bytes holds ``length - 12`` bytes of data blocks from its 9th byte
 (none in an empty frame); and its variant with a 4-byte sequence number after the length
-(``ioss_seq.json``: a 12-byte header, ``length - 16`` bytes of data blocks).
+(``ioss_seq.json``: a 12-byte header, ``length - 16`` bytes of data blocks). The recording
+day byte is no date (no month or year; 0 in jASTERIX's samples): not read
+(:mod:`solver.io.dates`).
 A file is taken for IOSS when its first frames check out (:func:`frame_header_bytes`); else it is
 a raw file or a capture (:mod:`solver.io.asterix`, :mod:`solver.io.pcap`). The data blocks of
 each frame are decoded as a capture's datagrams are, with their offsets in the file (problems

@@ -15,6 +15,8 @@ used instead of dropping it silently.
   BSD loopback.
 - IP fragments are reported, not reassembled; packets cut by the capture's snap length and a
   file cut inside a packet are reported (``truncated_packet``).
+- Each packet's capture time (epoch seconds; :func:`iter_udp_packets`) gives the recording's
+  date (:mod:`solver.io.dates`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ _PCAP: dict[bytes, tuple[type, type]] = {
     struct.pack("<I", pcap.TCPDUMP_MAGIC): (pcap.LEFileHdr, pcap.LEPktHdr),
     struct.pack("<I", pcap.TCPDUMP_MAGIC_NANO): (pcap.LEFileHdr, pcap.LEPktHdr),
 }
+_NANO = {struct.pack(">I", pcap.TCPDUMP_MAGIC_NANO), struct.pack("<I", pcap.TCPDUMP_MAGIC_NANO)}
 _PCAPNG = struct.pack(">I", pcapng.PCAPNG_BT_SHB)  # the same bytes in either byte order
 _PCAPNG_ORDER = {struct.pack("<I", pcapng.BYTE_ORDER_MAGIC): "<",
                  struct.pack(">I", pcapng.BYTE_ORDER_MAGIC): ">"}
@@ -65,16 +68,26 @@ def iter_udp_payloads(data: Any, problems: Problems) -> Iterator[tuple[int, byte
     """``(byte offset in the file, payload)`` of every UDP datagram of a capture (``data``:
     bytes or a memory map); what is not one (other protocols, fragments, packets cut short)
     is added to ``problems`` with its packet number and byte offset."""
+    for offset, payload, _ in iter_udp_packets(data, problems):
+        yield offset, payload
+
+
+def iter_udp_packets(data: Any, problems: Problems) -> Iterator[tuple[int, bytes, float]]:
+    """:func:`iter_udp_payloads` with each packet's capture time (epoch seconds, UTC; NaN for
+    a pcapng simple packet block, which has none): classic pcap's seconds and micro- or
+    nanoseconds, pcapng's 64-bit count in its interface's ``if_tsresol`` units (default
+    microseconds) plus its ``if_tsoffset`` seconds."""
     if bytes(data[:4]) == _PCAPNG:
         yield from _pcapng(data, problems)
     else:
         yield from _pcap(data, problems)
 
 
-def _pcap(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
+def _pcap(data: Any, problems: Problems) -> Iterator[tuple[int, bytes, float]]:
     if len(data) < 24 or bytes(data[:4]) not in _PCAP:
         raise InputError(("recording",), "is not a pcap capture (no pcap magic number)")
     file_hdr, pkt_hdr = _PCAP[bytes(data[:4])]
+    fraction = 1e9 if bytes(data[:4]) in _NANO else 1e6
     linktype = file_hdr(data[:24]).linktype & 0x0FFFFFFF  # the upper bits: FCS information
     if linktype not in LINK_TYPES:
         raise InputError(("recording",), f"pcap link type {linktype} is not read (Ethernet, "
@@ -96,13 +109,28 @@ def _pcap(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
         found = _packet(data, start - 16, start, hdr.caplen, hdr.len, linktype,
                         f"pcap packet {number}", problems)
         if found is not None:
-            yield found
+            yield (*found, hdr.tv_sec + hdr.tv_usec / fraction)
 
 
-def _pcapng(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
+def _time_units(idb: Any, order: str) -> tuple[float, float]:
+    """A pcapng interface's (timestamp units per second, offset in seconds): its
+    ``if_tsresol`` (a power of 10, or of 2 with the top bit set; default 10^6) and
+    ``if_tsoffset`` options."""
+    per_s, offset = 1e6, 0.0
+    for opt in getattr(idb, "opts", ()):
+        if opt.code == pcapng.PCAPNG_OPT_IF_TSRESOL and len(opt.data) >= 1:
+            v = opt.data[0]
+            per_s = float(2 ** (v & 0x7F) if v & 0x80 else 10 ** (v & 0x7F))
+        elif opt.code == pcapng.PCAPNG_OPT_IF_TSOFFSET and len(opt.data) >= 8:
+            offset = float(struct.unpack(order + "q", opt.data[:8])[0])
+    return per_s, offset
+
+
+def _pcapng(data: Any, problems: Problems) -> Iterator[tuple[int, bytes, float]]:
     pos, number = 0, 0
     order = "<"
-    links: list[tuple[int, int]] = []  # (link type, snap length) of the section's interfaces
+    # (link type, snap length, time units per second, time offset) of the section's interfaces
+    links: list[tuple[int, int, float, float]] = []
     while pos < len(data):
         if len(data) - pos < 12:
             problems.add("truncated_packet", f"byte {pos}", f"pcapng: {len(data) - pos} bytes "
@@ -137,7 +165,7 @@ def _pcapng(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
                 blocks["shb"](block)
             elif btype == pcapng.PCAPNG_BT_IDB:
                 idb = blocks["idb"](block)
-                links.append((idb.linktype, idb.snaplen))
+                links.append((idb.linktype, idb.snaplen, *_time_units(idb, order)))
             elif btype in (pcapng.PCAPNG_BT_EPB, pcapng.PCAPNG_BT_PB):
                 number += 1
                 pkt = blocks[btype](block)
@@ -152,10 +180,11 @@ def _pcapng(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
                                  "skipped", key="bad block")
                     continue
                 # the packet data follow the block's fixed header (dpkt's pkt_data)
+                link = links[pkt.iface_id]
                 found = _packet(data, at, at + blocks[btype].__hdr_len__ - 4, pkt.caplen,
-                                pkt.pkt_len, links[pkt.iface_id][0], where, problems)
+                                pkt.pkt_len, link[0], where, problems)
                 if found is not None:
-                    yield found
+                    yield (*found, ((pkt.ts_high << 32) | pkt.ts_low) / link[2] + link[3])
             elif btype == pcapng.PCAPNG_BT_SPB:  # dpkt has no class for it: 2 fields
                 number += 1
                 where = f"pcapng packet {number}"
@@ -164,11 +193,11 @@ def _pcapng(data: Any, problems: Problems) -> Iterator[tuple[int, bytes]]:
                                  "packet block before any interface", key="no interface")
                     continue
                 (origlen,) = struct.unpack_from(order + "I", data, at + 8)
-                linktype, snaplen = links[0]
+                linktype, snaplen = links[0][:2]
                 caplen = min(origlen, length - 16, snaplen or origlen)
                 found = _packet(data, at, at + 12, caplen, origlen, linktype, where, problems)
                 if found is not None:
-                    yield found
+                    yield (*found, float("nan"))  # a simple packet block has no time
         except dpkt.UnpackError as e:
             problems.add("truncated_packet", f"byte {at}", f"pcapng block of type {btype} "
                          f"does not parse ({e!r}); skipped", key="bad block")

@@ -22,6 +22,7 @@ from ..frames import LocalFrame
 from ..inputs import InputError
 from .asterix import iter_recording, looks_like_recording, read_recording
 from .asterix import time_disorder_s as asterix_time_disorder_s
+from .dates import resolve_date
 from .problems import Problems
 from .sensors_file import SensorSet, load_sensors
 from .split import (
@@ -51,14 +52,30 @@ class Loaded:
     tracks: Iterator[AircraftTrack]
     scan_periods: dict[str, float]
     times_of_day: bool = False  # t counts from a UTC midnight (counts_from_midnight)
+    date: str | None = None  # the UTC date of that midnight (recording_date)
+
+
+def recording_date(rows: PlotRows, given: str | None, times_of_day: bool) -> str | None:
+    """The UTC date of the midnight ``t`` counts from: the recording's own (``rows.date``: a
+    capture's packet times, a table's ``timestamp``), else ``given`` (``--date``, a job's
+    ``options.date``); :class:`InputError` at ``date`` when the two differ, or when a date is
+    given for times that do not count from a midnight (a table's own ``t``, any epoch)."""
+    if given is not None and not times_of_day and rows.date is None and len(rows):
+        raise InputError(("date",), f"{given} cannot place the recording's times: its `t` "
+                         "counts from no UTC midnight (a table's own t, any epoch): give the "
+                         "table a time_of_day_s or a timestamp column, or leave the date out")
+    what = ("from its timestamp column" if rows.origin_unit == "row"
+            else "from its capture's packet times")
+    return resolve_date(rows.date, given, what)
 
 
 def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS, *,
-         editions: Mapping[int, Any] | None = None) -> Loaded:
+         editions: Mapping[int, Any] | None = None, date: str | None = None) -> Loaded:
     """Read the sensor file and the whole recording (by suffix: a table, else ASTERIX/pcap)
     into memory; :func:`stream` reads it in parts instead. ``max_speed``: the run's fastest
     ground speed (m/s), by which a key's plots are told apart into aircraft; ``editions``:
-    the ASTERIX editions (:func:`solver.io.asterix.read_recording`; None: the defaults)."""
+    the ASTERIX editions (:func:`solver.io.asterix.read_recording`; None: the defaults);
+    ``date``: the date given for it (:func:`recording_date`)."""
     sensors = load_sensors(sensors_path)
     periods: dict[str, float] = {}
     if recording.suffix.lower() in TABLE_SUFFIXES:
@@ -68,10 +85,12 @@ def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS, *
         rows, problems = rec.rows, rec.problems
         periods = {sid: st.rotation_period_s for sid, st in rec.service.items()
                    if st.rotation_period_s}
+    times_of_day = counts_from_midnight(rows)
+    day = recording_date(rows, date, times_of_day)
     frame = recording_frame(sensors, rows)
     tracks = split_aircraft(rows, sensors, reference=frame, problems=problems,
                             max_speed=max_speed)
-    return Loaded(sensors, rows, problems, tracks, periods, counts_from_midnight(rows))
+    return Loaded(sensors, rows, problems, tracks, periods, times_of_day, day)
 
 
 @dataclass
@@ -81,7 +100,8 @@ class Streamed:
     fields fill as the reading goes and are complete once ``tracks`` is exhausted: the
     problems, the rows read, the radars' rotation periods (CAT034 I041) and the recording's
     plane. ``times_of_day``: whether ``t`` counts from a UTC midnight (ASTERIX; a table by
-    :func:`solver.io.tables.counts_from_midnight` of its first rows)."""
+    :func:`solver.io.tables.counts_from_midnight` of its first rows); ``date``: the UTC
+    date of that midnight (:func:`recording_date` of the first rows and ``given_date``)."""
 
     sensors: SensorSet
     problems: Problems
@@ -91,11 +111,16 @@ class Streamed:
     frame: LocalFrame | None = None
     times_of_day: bool | None = None
     mode_c_offsets: list[float] = field(default_factory=list)  # per track whose Mode C moved
+    given_date: str | None = None
+    date: str | None = None
 
     def _note(self, rows: PlotRows) -> PlotRows:
+        first = self.rows_read == 0 and len(rows) > 0
         self.rows_read += len(rows)
         if self.times_of_day is None and len(rows):
             self.times_of_day = counts_from_midnight(rows)
+        if first:  # before any track of them is taken
+            self.date = recording_date(rows, self.given_date, bool(self.times_of_day))
         if self.frame is None:  # as split_stream: the first part that gives one
             self.frame = recording_frame(self.sensors, rows)
         return rows
@@ -103,7 +128,7 @@ class Streamed:
 
 def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_TRACKS,
            executor: Any = None, max_speed: float = MAX_SPEED_MS,
-           editions: Mapping[int, Any] | None = None) -> Streamed:
+           editions: Mapping[int, Any] | None = None, date: str | None = None) -> Streamed:
     """The sensor file read and the recording opened for :func:`solver.io.split.split_stream`
     (by suffix: a table read in batches, else ASTERIX/pcap decoded in units): memory holds
     the aircraft in the air, not the recording's rows. A thread reads, decodes and splits up
@@ -112,12 +137,16 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     (:func:`solver.io.asterix.iter_recording`). What makes the whole input unusable (a
     sensor file or table header it cannot use, a capture of a link type not read) raises
     here, before any track is taken. ``editions``: the ASTERIX editions
-    (:func:`solver.io.asterix.read_recording`; None: the defaults)."""
+    (:func:`solver.io.asterix.read_recording`; None: the defaults); ``date``: the date given
+    for it (:func:`recording_date`, checked on the first rows: a contradiction raises here)."""
     sensors = load_sensors(sensors_path)
-    out = Streamed(sensors, Problems(), iter(()))
+    out = Streamed(sensors, Problems(), iter(()), given_date=date, date=date)
     parts = _row_parts(recording, out, executor, editions)
+    # read up to the first part with rows (those before hold none): the whole input's errors
+    # raise now, a date it contradicts too, and the tracks' date is known before the first
+    first = None
     try:
-        first = next(parts, None)  # the whole input's errors raise now
+        first = next((part for part in parts if len(part)), None)
     except InputError as e:
         raise InputError(e.loc, f"{e.message} (in {recording})") from None
 
