@@ -4,10 +4,11 @@ from the job's directory. Drawing every track's figure on the workers took 0.8 s
 against 63 ms to solve a three-plot track: a job of 30,000 short tracks spent most of its
 6.7 h on figures nobody asked for (a tester's).
 
-Drawing runs in the service's threads, off the event loop, at most ``jobs_figure_draws``
-figures at once (a figure asked for beyond is :class:`Busy`: 503 with Retry-After); requests
-for a figure being drawn wait for that drawing (on the event loop, holding no thread) and
-answer from the cache."""
+Drawing runs in the service's threads, off the event loop, one figure at a time
+(:data:`solver.figures.DRAWING`: matplotlib's mathtext parser is not thread-safe); at most
+``jobs_figure_draws`` figures are drawn or waiting for that at once (a figure asked for beyond
+is :class:`Busy`: 503 with Retry-After); requests for a figure being drawn wait for that
+drawing (on the event loop, holding no thread) and answer from the cache."""
 
 from __future__ import annotations
 

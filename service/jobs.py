@@ -1045,14 +1045,14 @@ class JobRunner:
         it kept nothing for it) and keep it where :meth:`figure` finds it, written whole under
         a temporary name and renamed. The job's ``out/`` is never made again: a job deleted
         meanwhile raises ``FileNotFoundError`` (answered 404) and leaves nothing behind."""
-        from solver.figures import draw_track_figure, png
+        from solver.figures import track_png
 
         began = time.perf_counter()
         got = self.figure_data(job_id, aircraft)
         if got is None:
             return None
         data, times_of_day = got
-        image = png(draw_track_figure(data, title=aircraft, times_of_day=times_of_day))
+        image = track_png(data, title=aircraft, times_of_day=times_of_day)
         figures = self.job_dir(job_id) / "out" / "figures"
         with contextlib.suppress(FileExistsError):
             figures.mkdir()  # not its parents: out/ of a deleted job stays gone

@@ -104,13 +104,13 @@ class Settings(BaseSettings):
                                            "job may be solved (s); then it fails. 0 = none.")
     jobs_track_figures: bool = Field(True, description="Keep what each job track's figure is "
                                      "drawn from (its plots' error ellipses and the "
-                                     "reconstruction's samples: some 2 KB for a three-plot "
+                                     "reconstruction's samples: about 1 KB for a three-plot "
                                      "track), so that GET /v1/jobs/{id}/tracks/{key}/figure.png "
                                      "draws it when first asked for; off: no track figures.")
-    jobs_figure_draws: int = Field(2, ge=1, description="Job track figures drawn at once (each "
-                                   "0.3-0.8 s of a core in the service's threads, when first "
-                                   "asked for); a figure asked for beyond this is answered 503 "
-                                   "with Retry-After.")
+    jobs_figure_draws: int = Field(2, ge=1, description="Job track figures being drawn (when "
+                                   "first asked for: 0.3-0.8 s each, one at a time in the "
+                                   "service's threads) or waiting to be, at once; a figure "
+                                   "asked for beyond this is answered 503 with Retry-After.")
 
     @property
     def solve_slots(self) -> int:

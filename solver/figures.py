@@ -16,6 +16,7 @@ Map axes: east to the right, north up, in km in the local plane (about the reque
 from __future__ import annotations
 
 import io
+import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -105,6 +106,19 @@ def track_figure(table: PlotTable, rec: Reconstruction, title: str = "",
     shown as clock times. :func:`draw_track_figure` of
     :func:`solver.figure_data.from_reconstruction`."""
     return draw_track_figure(from_reconstruction(table, rec), title, times_of_day)
+
+
+DRAWING = threading.Lock()
+"""Held while a track figure is drawn and rendered (:func:`track_png`): matplotlib's mathtext
+parser (the controls' ``m/s^2`` labels) is one object per process, and figures drawn at once
+in threads failed its parse (``ParseException ... at char 0``: 4 threads, 24 figures)."""
+
+
+def track_png(data: TrackFigureData, title: str = "", times_of_day: bool = False) -> bytes:
+    """:func:`draw_track_figure` as PNG bytes, one figure at a time in this process
+    (:data:`DRAWING`; drawing is Python under the GIL: threads gained nothing anyway)."""
+    with DRAWING:
+        return png(draw_track_figure(data, title, times_of_day))
 
 
 def _covariances(terms: FloatArray) -> FloatArray:

@@ -41,8 +41,8 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
     per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the
     worker); with ``figure_data``, the rows its figure is drawn from later
     (:func:`solver.figure_data.figure_rows`, the samples among them unless ``samples.parquet``
-    keeps them: a three-plot track's rows take some 2 KB where drawing its figure took 0.8 s
-    of the worker against 63 ms to solve it)."""
+    keeps them: about 1 KB for a three-plot track, where drawing its figure took 0.8 s of
+    the worker against 63 ms to solve it)."""
     spans = sensor_spans(table)
 
     def extras(rec: Reconstruction) -> dict[str, Any]:

@@ -207,3 +207,22 @@ def test_a_figure_drawn_from_a_runs_stored_rows_is_the_one_drawn_from_its_recons
             assert data.segments == [] and live.axes[1].lines[0].get_xydata().size == 0
     # another sample step draws another line: told apart
     assert difference(figures["two radars"][1], figures["samples kept"][1]) is not None
+
+
+def test_track_figures_drawn_in_threads_at_once_are_those_drawn_one_by_one():
+    """The service draws figures in threads; matplotlib's mathtext parser (the controls'
+    m/s^2 labels) is one per process, and figures drawn at once failed its parse
+    (ParseException: 4 threads, 24 figures). track_png draws one at a time: the same bytes."""
+    import concurrent.futures as cf
+
+    from solver.figure_data import from_reconstruction
+    from solver.figures import track_png
+    from solver.plots import PlotTable
+
+    t = 10.0 * np.arange(12)
+    plots = Plots.from_arrays(t, 80e3 + 200.0 * t, np.deg2rad(30.0 + 0.01 * t))
+    radar = Radar(300.0, np.deg2rad(0.5))
+    data = from_reconstruction(PlotTable.from_plots(plots, radar), reconstruct(plots, radar))
+    with cf.ThreadPoolExecutor(4) as pool:
+        drawn_at_once = list(pool.map(lambda _: track_png(data, "T"), range(4)))
+    assert drawn_at_once == [track_png(data, "T")] * 4
