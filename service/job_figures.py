@@ -8,7 +8,11 @@ Drawing runs in the service's threads, off the event loop, one figure at a time
 (:data:`solver.figures.DRAWING`: matplotlib's mathtext parser is not thread-safe); at most
 ``jobs_figure_draws`` figures are drawn or waiting for that at once (a figure asked for beyond
 is :class:`Busy`: 503 with Retry-After); requests for a figure being drawn wait for that
-drawing (on the event loop, holding no thread) and answer from the cache."""
+drawing (on the event loop, holding no thread) and answer from the cache. Measured on the real
+server, 12 figures drawn one after another: ``/healthz`` answered in 4.7-8.8 ms (median; 1.8-3
+idle), p95 15-30 ms, with single pauses of 0.4-0.9 s, the interpreter's full garbage
+collections (400-580 ms over the service's 450,000 objects), which drawing's allocations bring
+on sooner."""
 
 from __future__ import annotations
 
