@@ -35,6 +35,7 @@ from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
 from .convert import plot_table, require_fields, unsent_reference
+from .job_figures import Busy, TrackFigures
 from .job_models import (
     JobOptions,
     JobStatus,
@@ -93,6 +94,7 @@ def install_jobs(app: FastAPI, settings: Settings) -> JobRunner:
     application's lifespan."""
     runner = JobRunner(settings)
     app.state.jobs = runner
+    app.state.job_figures = TrackFigures(runner, settings.jobs_figure_draws)
     app.include_router(router)
     return runner
 
@@ -592,17 +594,27 @@ def _track_entry(runner: JobRunner, job_id: str, aircraft: str) -> tuple[str, di
 
 
 @router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft:path}/figure.png", response_class=Response,
-            responses={**_PNG, **_NOT_FOUND, **_NOT_YET}, summary="A job track's figure")
-def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> Response:
-    """The track's plots with their ellipses, the reconstruction and its controls over time
-    (drawn on the worker when the track was solved)."""
+            responses={**_PNG, **_NOT_FOUND, **_NOT_YET,
+                       503: _err("As many figures as the service draws at once are being "
+                                 "drawn; retry after `Retry-After` seconds.")},
+            summary="A job track's figure")
+async def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> Response:
+    """The track's plots with their ellipses, the reconstruction and its controls over time;
+    drawn when first asked for (as soon as the track is done, from what the job stored of
+    it), then kept with the job. A figure not drawn yet while the service draws as many as it
+    may at once (`jobs_figure_draws`) is 503 with `Retry-After`."""
     runner = _runner(request)
-    key, _ = _track_entry(runner, job_id, aircraft)
-    path = runner.figure(job_id, key)
+    key, _ = await run_in_threadpool(_track_entry, runner, job_id, aircraft)
+    figures: TrackFigures = request.app.state.job_figures
+    try:
+        path = await figures.path(job_id, key)
+    except Busy as e:
+        return _error(503, f"too many figures being drawn: {e}; retry later",
+                      headers={"Retry-After": str(runner.settings.retry_after_s)})
     if path is None:
-        raise HTTPException(404, f"no figure was drawn for track {key!r} (figures are "
-                            "off, or its worker's disk is not this service's)")
-    return _file(path, "image/png")
+        raise HTTPException(404, f"no figure of track {key!r}: its job kept nothing to draw "
+                            "it from (track figures were off: jobs_track_figures)")
+    return await run_in_threadpool(_file, path, "image/png")
 
 
 @router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft:path}", response_model=JobTrackResult,

@@ -102,8 +102,15 @@ class Settings(BaseSettings):
                                  "this times jobs_track_time_limit_s).")
     jobs_track_time_limit_s: float = Field(300.0, ge=0, description="Longest one track of a "
                                            "job may be solved (s); then it fails. 0 = none.")
-    jobs_track_figures: bool = Field(True, description="Draw every job track's figure on the "
-                                     "worker (GET /v1/jobs/{id}/tracks/{key}/figure.png).")
+    jobs_track_figures: bool = Field(True, description="Keep what each job track's figure is "
+                                     "drawn from (its plots' error ellipses and the "
+                                     "reconstruction's samples: about 1 KB for a three-plot "
+                                     "track), so that GET /v1/jobs/{id}/tracks/{key}/figure.png "
+                                     "draws it when first asked for; off: no track figures.")
+    jobs_figure_draws: int = Field(2, ge=1, description="Job track figures being drawn (when "
+                                   "first asked for: 0.3-0.8 s each, one at a time in the "
+                                   "service's threads) or waiting to be, at once; a figure "
+                                   "asked for beyond this is answered 503 with Retry-After.")
 
     @property
     def solve_slots(self) -> int:

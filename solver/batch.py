@@ -18,6 +18,9 @@ Memory is bounded however long the recording: the problems are consumed lazily w
     OUT/filters.parquet/part-000001.parquet   the recursive filters asked for (FILTER_COLUMNS)
     OUT/samples.parquet/part-000001.parquet   states on a regular time step, when asked
                                               (SAMPLE_COLUMNS)
+    OUT/figure_data.parquet/part-000001.parquet  what the tracks' figures need beside these,
+                                              when the task keeps it (a service job's:
+                                              solver.figure_data.FIGURE_COLUMNS)
     OUT/progress.jsonl                        one line per finished track (the commit log)
 
 A part is written to a temporary name and renamed, then its tracks' lines are appended to
@@ -49,6 +52,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .config import FILTER_GATE_SIGMA, ReconstructionConfig
+from .figure_data import FIGURE_DATA
 from .inputs import FloatArray
 from .io.dates import UTC, utc_times
 from .plots import PlotTable
@@ -148,6 +152,7 @@ class TrackOutcome:
     cpu_s: float | None = None  # the task thread's CPU time (elapsed_s - cpu_s: waiting)
     diagnostics: dict[str, Any] | None = None
     altitude: dict[str, float] | None = None
+    figure: pa.Table | None = None  # figure_data.parquet's rows (solver.figure_data)
 
     def ledger(self, part: str | None) -> dict[str, Any]:
         """The track's line of ``progress.jsonl``; ``diagnostics``: the reconstruction's
@@ -433,6 +438,7 @@ class _Store:
         self.segments_dir = out / "segments.parquet"
         self.filters_dir = out / "filters.parquet"  # made when a track has filters
         self.samples_dir = out / "samples.parquet"  # made when a track has samples
+        self.figure_dir = out / FIGURE_DATA  # made when a track has figure data
         for d in (self.tracks_dir, self.segments_dir):
             d.mkdir(parents=True, exist_ok=True)
         self.ledger_path = out / PROGRESS
@@ -448,7 +454,8 @@ class _Store:
             if len(entries) != len(lines):  # the torn line dropped (written as commit() does)
                 self._rewrite([json.dumps(e).encode() for e in entries])
         numbers = [0]
-        for d in (self.tracks_dir, self.segments_dir, self.filters_dir, self.samples_dir):
+        for d in (self.tracks_dir, self.segments_dir, self.filters_dir, self.samples_dir,
+                  self.figure_dir):
             if not d.is_dir():
                 continue
             for f in d.iterdir():
@@ -478,7 +485,8 @@ class _Store:
             for d, tables in ((self.tracks_dir, [o.states for o in done]),
                               (self.segments_dir, [o.segments for o in done]),
                               (self.filters_dir, [o.filters for o in done]),
-                              (self.samples_dir, [o.samples for o in done])):
+                              (self.samples_dir, [o.samples for o in done]),
+                              (self.figure_dir, [o.figure for o in done])):
                 tables = [t for t in tables if t is not None]
                 if not tables:
                     continue

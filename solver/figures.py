@@ -16,6 +16,7 @@ Map axes: east to the right, north up, in km in the local plane (about the reque
 from __future__ import annotations
 
 import io
+import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,6 +32,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse, Patch
 from matplotlib.ticker import FuncFormatter, MultipleLocator
 
+from .figure_data import TrackFigureData, from_reconstruction
 from .inputs import FloatArray
 from .manoeuvres import Manoeuvre, from_segments
 from .plots import PlotTable
@@ -68,17 +70,6 @@ def _thin(n: int) -> np.ndarray:
     return np.arange(0, n, max(1, int(np.ceil(n / MAX_ELLIPSES))))
 
 
-def _fix_covariances(table: PlotTable) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Plot centres and their one-sigma covariances in the plane."""
-    e = table.fixes().ellipses
-    c, s = np.cos(e.psi), np.sin(e.psi)
-    cov = np.empty((len(table), 2, 2))
-    cov[:, 0, 0] = c * c * e.B**2 + s * s * e.A**2
-    cov[:, 1, 1] = s * s * e.B**2 + c * c * e.A**2
-    cov[:, 0, 1] = cov[:, 1, 0] = s * c * (e.B**2 - e.A**2)
-    return e.cx, e.cz, cov
-
-
 def _map_axes(ax: Axes, title: str) -> None:
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("east of the plane's origin (km)")
@@ -112,80 +103,114 @@ def track_figure(table: PlotTable, rec: Reconstruction, title: str = "",
                  times_of_day: bool = False) -> Figure:
     """One aircraft's plots, reconstruction and controls (see the module docstring);
     ``times_of_day``: the table's times are seconds from a UTC midnight (a recording's),
-    shown as clock times."""
-    has_alt = rec.samples.h is not None
-    fig = plt.figure(figsize=(13, 7.5), dpi=DPI)
+    shown as clock times. :func:`draw_track_figure` of
+    :func:`solver.figure_data.from_reconstruction`."""
+    return draw_track_figure(from_reconstruction(table, rec), title, times_of_day)
+
+
+DRAWING = threading.Lock()
+"""Held while a track figure is drawn and rendered (:func:`track_png`): matplotlib's mathtext
+parser (the controls' ``m/s^2`` labels) is one object per process, and figures drawn at once
+in threads failed its parse (``ParseException ... at char 0``: 4 threads, 24 figures)."""
+
+
+def track_png(data: TrackFigureData, title: str = "", times_of_day: bool = False) -> bytes:
+    """:func:`draw_track_figure` as PNG bytes, one figure at a time in this process
+    (:data:`DRAWING`; drawing is Python under the GIL: threads gained nothing anyway)."""
+    with DRAWING:
+        return png(draw_track_figure(data, title, times_of_day))
+
+
+def _covariances(terms: FloatArray) -> FloatArray:
+    """``(n, 2, 2)`` symmetric covariances of their ``(n, 3)`` terms ``xx, xz, zz``."""
+    cov = np.empty((len(terms), 2, 2))
+    cov[:, 0, 0], cov[:, 1, 1] = terms[:, 0], terms[:, 2]
+    cov[:, 0, 1] = cov[:, 1, 0] = terms[:, 1]
+    return cov
+
+
+def draw_track_figure(data: TrackFigureData, title: str = "",
+                      times_of_day: bool = False) -> Figure:
+    """:func:`track_figure` of its content (a reconstruction's, or one a run stored:
+    :mod:`solver.figure_data`). A figure of its own, not pyplot's (drawn in the service's
+    threads, beside other figures)."""
+    has_alt = data.sample_h is not None
+    fig = Figure(figsize=(13, 7.5), dpi=DPI)
     grid = fig.add_gridspec(4 if has_alt else 3, 2, width_ratios=(1.3, 1))
     ax = fig.add_subplot(grid[:, 0])
-    cx, cz, cov = _fix_covariances(table)
+    cx, cz, cov = data.plot_x, data.plot_z, _covariances(data.plot_cov)
     counts = []
-    for k, sensor in enumerate(table.sensors):
-        rows = np.flatnonzero(table.sensor == k)
+    for k, (sensor_id, kind) in enumerate(data.sensors):
+        rows = np.flatnonzero(data.plot_sensor == k)
         colour = COLOURS[k % len(COLOURS)]
         ax.plot(cz[rows] / 1e3, cx[rows] / 1e3, MARKERS[k % len(MARKERS)], ms=4, color=colour,
-                label=f"{sensor.id} ({sensor.kind}, {rows.size} plots; 3-sigma ellipses)",
+                label=f"{sensor_id} ({kind}, {rows.size} plots; 3-sigma ellipses)",
                 zorder=2)
         sel = rows[_thin(rows.size)]
         patches = _ellipse_patches(cx[sel], cz[sel], 9.0 * cov[sel])  # 3 sigma
         ax.add_collection(PatchCollection(patches, facecolor="none", edgecolor=colour, lw=0.4,
                                           alpha=0.6, zorder=1))
-        counts.append(f"{sensor.id} {rows.size}")
-    s = rec.samples
-    a = rec.at_plots
-    if a.cov is not None:
-        sel = _thin(len(a))
-        patches = _ellipse_patches(a.x[sel], a.z[sel], CHI2_2DOF_95 * a.cov[sel, :2, :2])
+        counts.append(f"{sensor_id} {rows.size}")
+    if data.at_cov is not None:
+        sel = _thin(len(data.at_x))
+        patches = _ellipse_patches(data.at_x[sel], data.at_z[sel],
+                                   CHI2_2DOF_95 * _covariances(data.at_cov[sel]))
         ax.add_collection(PatchCollection(patches, facecolor="0.5", edgecolor="none",
                                           alpha=0.3, zorder=3))
-    ax.plot(s.z / 1e3, s.x / 1e3, "-", color="k", lw=1.2, label="reconstruction", zorder=4)
-    starts = np.array([[seg.z, seg.x] for seg in rec.segments[1:]]) / 1e3
+    st, sx, sz = data.sample_t, data.sample_x, data.sample_z
+    segments = data.segments
+    ax.plot(sz / 1e3, sx / 1e3, "-", color="k", lw=1.2, label="reconstruction", zorder=4)
+    starts = np.array([[seg.z, seg.x] for seg in segments[1:]]) / 1e3
     if starts.size:  # under the line, small: 160 of them on a noisy track buried it
         ax.plot(starts[:, 0], starts[:, 1], "o", mfc="white", mec="0.35", mew=0.5, ms=2.5,
-                label=f"control switches ({len(rec.segments) - 1})", zorder=3.5)
-    ax.plot(s.z[:1] / 1e3, s.x[:1] / 1e3, "o", color="k", ms=6, zorder=5,
-            label=f"start ({clock(s.t[0]) if times_of_day else f't = {s.t[0]:g} s'})")
-    if len(s) > 1:
-        heading = np.degrees(np.arctan2(s.z[-1] - s.z[-2], s.x[-1] - s.x[-2]))
-        ax.plot(s.z[-1:] / 1e3, s.x[-1:] / 1e3, marker=(3, 0, -heading), color="k", ms=8,
+                label=f"control switches ({len(segments) - 1})", zorder=3.5)
+    ax.plot(sz[:1] / 1e3, sx[:1] / 1e3, "o", color="k", ms=6, zorder=5,
+            label=f"start ({clock(st[0]) if times_of_day else f't = {st[0]:g} s'})")
+    if len(st) > 1:
+        heading = np.degrees(np.arctan2(sz[-1] - sz[-2], sx[-1] - sx[-2]))
+        ax.plot(sz[-1:] / 1e3, sx[-1:] / 1e3, marker=(3, 0, -heading), color="k", ms=8,
                 ls="none", zorder=5, label="end")
     handles, _ = ax.get_legend_handles_labels()
-    if a.cov is not None:  # after the reconstruction's line
-        at = len(table.sensors) + 1
+    if data.at_cov is not None:  # after the reconstruction's line
+        at = len(data.sensors) + 1
         handles.insert(at, Patch(facecolor="0.5", alpha=0.3, label="its 95 % ellipses"))
     ax.legend(handles=handles, loc="best", fontsize=7)
-    _map_axes(ax, title or f"{len(table)} plots, {len(table.sensors)} sensor(s)")
-    found = from_segments(rec.segments)
-    span = (f"{clock(s.t[0])} to {clock(s.t[-1])} UTC" if times_of_day
-            else f"t {s.t[0]:g} to {s.t[-1]:g} s")
-    fig.suptitle(f"{title + ': ' if title else ''}{span}, {len(table)} plots "
-                 f"({', '.join(counts)}), {len(rec.segments) - 1} control switches, "
+    _map_axes(ax, title or f"{len(data)} plots, {len(data.sensors)} sensor(s)")
+    found = from_segments(segments)
+    span = (f"{clock(st[0])} to {clock(st[-1])} UTC" if times_of_day
+            else f"t {st[0]:g} to {st[-1]:g} s")
+    switches = max(len(segments) - 1, 0)
+    fig.suptitle(f"{title + ': ' if title else ''}{span}, {len(data)} plots "
+                 f"({', '.join(counts)}), {switches} control switches, "
                  f"{len(found)} manoeuvre(s)", fontsize=10)
-    t = np.array([seg.t_start for seg in rec.segments] + [rec.segments[-1].t_end])
-    panels = [("u, lateral (m/s$^2$, + right)", [seg.u for seg in rec.segments]),
-              ("w, along track (m/s$^2$)", [seg.w for seg in rec.segments])]
+    # no segment (one instant's plots by the sliding windows): empty control panels
+    t = np.array([seg.t_start for seg in segments] + [seg.t_end for seg in segments[-1:]])
+    panels = [("u, lateral (m/s$^2$, + right)", [seg.u for seg in segments]),
+              ("w, along track (m/s$^2$)", [seg.w for seg in segments])]
     control_axes: list[Axes] = []
     for i, (label, values) in enumerate(panels):
         axc = fig.add_subplot(grid[i, 1], sharex=control_axes[0] if control_axes else None)
-        axc.step(t, [*values, values[-1]], where="post", color="k", lw=1)
+        axc.step(t, [*values, *values[-1:]], where="post", color="k", lw=1)
         axc.set_ylabel(label, fontsize=8)
         axc.grid(True, lw=0.3)
         control_axes.append(axc)
     _mark_manoeuvres(ax, control_axes, found)
     axv = fig.add_subplot(grid[2, 1], sharex=control_axes[0])
-    axv.plot(s.t, s.speed, color="k", lw=1)
+    axv.plot(st, data.sample_speed, color="k", lw=1)
     axv.set_ylabel("speed (m/s)", fontsize=8)
     axv.grid(True, lw=0.3)
     if has_alt:
-        assert s.h is not None and s.h_sigma is not None
+        h, h_sigma = data.sample_h, data.sample_h_sigma
+        assert h is not None and h_sigma is not None
         axh = fig.add_subplot(grid[3, 1], sharex=control_axes[0])
-        axh.plot(s.t, s.h, color="k", lw=1, label="estimated height")
-        axh.fill_between(s.t, s.h - 2 * s.h_sigma, s.h + 2 * s.h_sigma, color="0.5",
+        axh.plot(st, h, color="k", lw=1, label="estimated height")
+        axh.fill_between(st, h - 2 * h_sigma, h + 2 * h_sigma, color="0.5",
                          alpha=0.3, lw=0, label="+-2 sigma")
-        known = np.isfinite(table.altitude_m)
+        known = np.isfinite(data.plot_altitude_m)
         if known.any():
-            axh.plot(table.t[known], table.altitude_m[known], ".", ms=2, color=COLOURS[0],
-                     label="reported altitude")
-        low = float(np.min(s.h - 2 * s.h_sigma))
+            axh.plot(data.plot_t[known], data.plot_altitude_m[known], ".", ms=2,
+                     color=COLOURS[0], label="reported altitude")
+        low = float(np.min(h - 2 * h_sigma))
         if low < HEIGHT_FLOOR_M:  # an unobservable height's band reached -2 km
             axh.set_ylim(bottom=HEIGHT_FLOOR_M)
         axh.legend(fontsize=7, loc="best")

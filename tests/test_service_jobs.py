@@ -659,6 +659,10 @@ def test_a_service_stopped_right_after_a_delete_keeps_the_job_cancelled(client, 
         assert {t["status"] for t in listed} == {"done", "cancelled"}
         for key in done:
             assert second.get(f"{loc}/tracks/{key}").status_code == 200
+        # its figures were off (jobs_track_figures): nothing kept to draw them from
+        nofigure = second.get(f"{loc}/tracks/{done[0]}/figure.png")
+        assert nofigure.status_code == 404, nofigure.text
+        assert nofigure.json()["message"].startswith(f"no figure of track {done[0]!r}")
         summary = second.get(loc + "/results/summary.json")
         assert summary.status_code == 200 and summary.json()["done"] == len(done)
         assert second.delete(loc).status_code == 204
@@ -1399,3 +1403,143 @@ def test_a_recordings_cat021_edition_is_a_job_option(client):
     assert default["problems"]["dropped"]["other_edition"] == 80
     for loc, _ in jobs.values():
         assert client.delete(loc).status_code == 204
+
+
+def _job_figure_dir(client, loc: str) -> Path:
+    return client.app.state.jobs.job_dir(loc.rsplit("/", 1)[1]) / "out" / "figures"
+
+
+def test_a_jobs_track_figure_is_drawn_when_first_asked_for_from_what_the_job_stored(
+        client, monkeypatch):
+    """A job drew every track's figure on its workers (0.8 s a figure against 63 ms to solve a
+    three-plot track: a tester's 30,000 short tracks spent most of 6.7 h on figures nobody
+    asked for). Now none is drawn while the job runs; the first GET draws the figure from the
+    job's stored rows and keeps it, later ones answer the kept file (no drawing). The figure
+    shows what the one drawn from the job's own reconstruction shows (its drawn data, as
+    test_figures compares them, there also with the samples kept in samples.parquet).
+    results.zip holds no track figure."""
+    from test_figures import difference, drawn
+
+    from solver.figures import draw_track_figure, track_figure
+    from solver.reconstruct import reconstruct
+
+    runner = client.app.state.jobs
+    sensors, tracks = json_tracks(encode_recording(duration=40.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
+    assert r.status_code == 202, r.text
+    loc, job_id = r.headers["location"], r.json()["id"]
+    assert wait(client, loc)["state"] == "done"
+    assert not _job_figure_dir(client, loc).exists()  # nothing drawn during the job
+    settings = runner.options(job_id)
+    loaded, chosen = runner._load(job_id, settings)
+    track = next(t for t in chosen if t.key == "A")
+    data, times_of_day = runner.figure_data(job_id, "A")
+    assert times_of_day == loaded.times_of_day
+    lazy = drawn(draw_track_figure(data, "A", times_of_day))
+    live = drawn(track_figure(track.table, reconstruct(track.table, config=settings.config()),
+                              "A", loaded.times_of_day))
+    assert difference(lazy, live) is None, difference(lazy, live)
+    first = client.get(f"{loc}/tracks/A/figure.png")
+    assert first.status_code == 200 and first.content[:8] == b"\x89PNG\r\n\x1a\n"
+    (kept,) = _job_figure_dir(client, loc).glob("*/A.png")
+    assert kept.read_bytes() == first.content
+    stamp = kept.stat().st_mtime_ns
+
+    def no_drawing(*args):
+        raise AssertionError("drawn again")
+
+    with monkeypatch.context() as m:
+        m.setattr(runner, "draw_figure", no_drawing)
+        again = client.get(f"{loc}/tracks/a/figure.png")  # another case: the same track
+    assert again.status_code == 200 and again.content == first.content
+    assert kept.stat().st_mtime_ns == stamp
+    names = zipfile.ZipFile(io.BytesIO(client.get(loc + "/results/results.zip").content)
+                            ).namelist()
+    assert {n for n in names if n.endswith(".png")} == {"map.png", "sensors.png"}, names
+    assert client.delete(loc).status_code == 204
+
+
+def test_track_figures_drawn_at_once_are_bounded_and_each_drawn_once(client, monkeypatch):
+    """At most `jobs_figure_draws` figures are drawn at once (in threads, off the event loop):
+    a figure asked for beyond is 503 with Retry-After (a drawn one is still answered); asked
+    for again while it is drawn, it is drawn once and both answered from it."""
+    import asyncio
+    import threading
+
+    from service.job_figures import Busy, TrackFigures
+
+    runner = client.app.state.jobs
+    sensors, tracks = json_tracks(encode_recording(duration=40.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
+    loc, job_id = r.headers["location"], r.json()["id"]
+    assert wait(client, loc)["state"] == "done"
+    draw, release, calls = runner.draw_figure, threading.Event(), []
+
+    def held(job: str, key: str):
+        calls.append(key)
+        assert release.wait(30)
+        return draw(job, key)
+
+    monkeypatch.setattr(runner, "draw_figure", held)
+
+    async def scenario():
+        figures = TrackFigures(runner, max_draws=1)
+        first = asyncio.ensure_future(figures.path(job_id, "A"))
+        while not calls:  # its drawing started
+            await asyncio.sleep(0.01)
+        second = asyncio.ensure_future(figures.path(job_id, "A"))
+        await asyncio.sleep(0.05)
+        with pytest.raises(Busy, match=r"1 figures are being drawn \(the limit is 1"):
+            await figures.path(job_id, "B")
+        release.set()
+        return await first, await second, figures.drawing
+
+    a, b, drawing = asyncio.run(scenario())
+    assert a == b and a.is_file() and calls == ["A"] and drawing == 0
+    figures = client.app.state.job_figures
+    monkeypatch.setattr(figures, "drawing", figures.max_draws)  # every slot taken
+    busy = client.get(f"{loc}/tracks/B/figure.png")
+    assert busy.status_code == 503 and busy.headers["retry-after"] == "2", busy.text
+    assert "too many figures being drawn" in busy.json()["message"]
+    assert client.get(f"{loc}/tracks/A/figure.png").status_code == 200  # kept
+    assert calls == ["A"]
+    assert client.delete(loc).status_code == 204
+
+
+def test_a_track_figure_of_a_running_job_and_one_drawn_while_its_job_is_deleted(
+        client, monkeypatch):
+    """A done track's figure is drawn while its job still runs; an unknown key is a 404
+    naming it, a pending track a 409. A figure drawn while a DELETE removes its (finished)
+    job is a 404 saying so, never a 500, and nothing of the job is left on disk."""
+    runner = client.app.state.jobs
+    loc, _ = _upload_until_a_track_is_done(client)
+    job_id = loc.rsplit("/", 1)[1]
+    done = next(t["aircraft"] for t in client.get(loc + "/tracks").json()
+                if t["status"] == "done")
+    figure = client.get(f"{loc}/tracks/{done}/figure.png")
+    assert figure.status_code == 200 and figure.content[:4] == b"\x89PNG"
+    assert client.get(loc).json()["state"] == "running"  # it was drawn while the job ran
+    pending = [t["aircraft"] for t in client.get(loc + "/tracks").json()
+               if t["status"] == "pending"]
+    if pending:
+        r = client.get(f"{loc}/tracks/{pending[-1]}/figure.png")
+        assert r.status_code == 409 and "pending" in r.json()["message"], r.text
+    missing = client.get(f"{loc}/tracks/NOPE/figure.png")
+    assert missing.status_code == 404 and "'NOPE'" in missing.json()["message"]
+    assert client.delete(loc).status_code == 200  # cancelled
+    end = time.monotonic() + 60
+    while job_id in runner._running:  # its outputs written: a DELETE now removes it
+        assert time.monotonic() < end
+        time.sleep(0.1)
+    shutil.rmtree(_job_figure_dir(client, loc))  # the figure to be drawn again
+    read = runner.figure_data
+
+    def deleted_meanwhile(job: str, key: str):
+        got = read(job, key)
+        assert runner.cancel(job) is None  # the finished job removed with its data
+        return got
+
+    monkeypatch.setattr(runner, "figure_data", deleted_meanwhile)
+    gone = client.get(f"{loc}/tracks/{done}/figure.png")
+    assert gone.status_code == 404 and "deleted" in gone.json()["message"], gone.text
+    assert not runner.job_dir(job_id).exists()
