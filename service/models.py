@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from solver.config import FILTER_GATE_SIGMA, MAX_FILTER_GATE_SIGMA
+from solver.config import FILTER_GATE_SIGMA, MAX_FILTER_GATE_SIGMA, MIN_TRIAL_STEP_S
 from solver.estimation import FILTER_NAMES, GATING_NAMES
 from solver.io.sensors_file import MAX_OFFSETS
 from solver.manoeuvres import (
@@ -232,8 +232,9 @@ class WindowIn(_In):
         "over the whole track, with a warning.",
         examples=[3])
     trial_step_s: float = Field(
-        5.0, description="Spacing (s, > 0) of the extra trial start points between plots, "
-        "where the controls may switch.", examples=[5.0])
+        5.0, ge=MIN_TRIAL_STEP_S, description="Spacing (s, at least "
+        f"{MIN_TRIAL_STEP_S:g}, the time stamps' resolution) of the extra trial start points "
+        "between plots, where the controls may switch.", examples=[5.0])
 
 
 _EXAMPLE_REQUEST = {
