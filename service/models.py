@@ -561,6 +561,20 @@ class ErrorItem(BaseModel):
     type: str = Field(description="Error kind, e.g. `value_error`, `float_type`.")
 
 
+MAX_ECHO_CHARS = 80
+"""A client's value longer than this is shortened where an error message or field path
+echoes it (a client's unknown key of a megabyte was echoed twice: a 2-MB answer; a 100-KB job
+id came back whole in its 404)."""
+
+
+def shortened(text: str) -> str:
+    """``text`` as an error message echoes it: whole up to :data:`MAX_ECHO_CHARS`
+    characters, else its start and its length."""
+    if len(text) <= MAX_ECHO_CHARS:
+        return text
+    return f"{text[:MAX_ECHO_CHARS - 30]}... ({len(text)} characters)"
+
+
 class ErrorResponse(BaseModel):
     """Every 4xx/5xx answer of the service."""
 
