@@ -232,7 +232,7 @@ class WindowIn(_In):
         "over the whole track, with a warning.",
         examples=[3])
     trial_step_s: float = Field(
-        5.0, ge=MIN_TRIAL_STEP_S, description="Spacing (s, at least "
+        5.0, description="Spacing (s, at least "
         f"{MIN_TRIAL_STEP_S:g}, the time stamps' resolution) of the extra trial start points "
         "between plots, where the controls may switch.", examples=[5.0])
 

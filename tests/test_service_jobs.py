@@ -1023,8 +1023,7 @@ def test_a_jobs_options_take_the_single_requests_bounds(client):
                                                       "method": "sliding", "window": window})
     assert job.status_code == single.status_code == 422, (job.text, single.text)
     assert job.json()["message"] == single.json()["message"], (job.json(), single.json())
-    assert job.json()["message"].startswith("window.trial_step_s: Input should be greater "
-                                            "than or equal to 0.0078125")
+    assert job.json()["message"].startswith("window.trial_step_s must be at least 0.0078125 s")
 
 
 def test_long_path_values_are_not_echoed_whole(client):
