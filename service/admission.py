@@ -68,7 +68,8 @@ class BuildSlots:
 class ByteBudget:
     """Bytes of bodies received and parsed at once: a reservation of ``size`` fits when the
     budget holds it beside those already made, or when none is made (so one body as large as
-    the single-body limit is always let in alone); else :class:`Crowded`. Thread-safe."""
+    the single-body limit is always let in alone), or when it is 0 (a post that holds no body
+    in memory); else :class:`Crowded`. Thread-safe."""
 
     def __init__(self, budget: int, what: str):
         self.budget = budget
@@ -78,7 +79,7 @@ class ByteBudget:
 
     def reserve(self, size: int) -> None:
         with self._lock:
-            if self.taken and self.taken + size > self.budget:
+            if size and self.taken and self.taken + size > self.budget:
                 raise Crowded(f"{self.taken} bytes of {self.what} are being received or "
                               f"checked and this one would add {size} (the limit is "
                               f"{self.budget})")

@@ -31,6 +31,7 @@ from test_io_asterix import (
     pcapng_section,
 )
 
+from service.admission import Crowded
 from service.app import create_app
 from service.settings import Settings
 
@@ -1122,6 +1123,13 @@ def test_json_bodies_beyond_their_byte_budget_or_the_queue_are_503(lean):
     assert r.status_code == 202, r.text
     assert budget.taken == 0 and runner._receiving == 0
     lean.delete(r.headers["location"])
+    budget.reserve(2000)  # one body alone over the budget: a post holding none still enters
+    try:
+        budget.reserve(0)
+        with pytest.raises(Crowded):
+            budget.reserve(1)
+    finally:
+        budget.release(2000)
 
 
 def test_a_named_dask_scheduler_runs_the_jobs(client, tmp_path):
