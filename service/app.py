@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import re
 import sqlite3
@@ -34,9 +35,15 @@ from . import __version__
 from .convert import client_loc, to_job
 from .logs import LOGGER, setup_logging
 from .metrics import Metrics
-from .models import ErrorResponse, Health, ReconstructionRequest, ReconstructionResponse
+from .models import (
+    ErrorResponse,
+    Health,
+    ReconstructionRequest,
+    ReconstructionResponse,
+    shortened,
+)
 from .pool import Busy, SolverPool
-from .routes_jobs import JOBS_PATH, JobsBodyLimit, install_jobs
+from .routes_jobs import HEAD_ONLY, JOBS_PATH, JobsBodyLimit, install_jobs
 from .settings import Settings, get_settings
 from .workers import Outcome, SolveError
 
@@ -124,8 +131,8 @@ def _clean_loc(loc: tuple[Any, ...]) -> list[str | int]:
     """FastAPI's ``("body", "plots", 3, "t")`` -> ``["plots", 3, "t"]``; a sensor's kind,
     which pydantic puts in the path of a tagged union's member (``sensors[1].radar.
     range_error_m``), left out: the field is ``sensors[1].range_error_m``. A name longer
-    than :data:`MAX_KEY_CHARS` is shortened."""
-    parts = [p if isinstance(p, int) else _short(str(p)) for p in loc]
+    than :data:`service.models.MAX_ECHO_CHARS` is shortened."""
+    parts = [p if isinstance(p, int) else shortened(str(p)) for p in loc]
     parts = parts[1:] if parts[:1] == ["body"] and len(parts) > 1 else parts
     return [p for k, p in enumerate(parts)
             if not (k >= 2 and parts[k - 2] == "sensors" and isinstance(parts[k - 1], int)
@@ -151,17 +158,6 @@ MAX_ERRORS_LISTED = 100
 """An invalid body's errors listed in the answer's ``detail`` (its message counts them all).
 Listing every one, a 1.9-MB body of 40,000 plots with three bad fields each was answered 11 MB
 of ``detail`` after 7 s in the event loop (pydantic's validation and error list: 0.45 s)."""
-
-MAX_KEY_CHARS = 80
-"""A name longer than this in an error's field path is shortened (a client's unknown key of
-a megabyte was echoed twice, in the message and the path: a 2-MB answer)."""
-
-
-def _short(part: str) -> str:
-    if len(part) <= MAX_KEY_CHARS:
-        return part
-    return f"{part[:MAX_KEY_CHARS - 30]}... ({len(part)} characters)"
-
 
 def _validation_items(exc: RequestValidationError) -> tuple[list[dict[str, Any]], int]:
     """The first :data:`MAX_ERRORS_LISTED` errors in the documented shape, and how many there
@@ -254,6 +250,37 @@ class Framing:
         await self.app(scope, receive, send)
 
 
+class HeadAsGet:
+    """Answer ``HEAD`` as ``GET`` without its body where no route takes ``HEAD`` itself
+    (FastAPI routes a ``GET`` route for ``GET`` only: figures, results and a job's status
+    answered ``HEAD`` with 405; RFC 9110 9.3.2). Status and headers are the ``GET``'s,
+    ``Content-Length`` included; the body is dropped here (and by the server)."""
+
+    def __init__(self, app: ASGIApp, routes: list[BaseRoute]):
+        self.app = app
+        self.routes = routes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD" or any(
+                r.matches(scope)[0] is Match.FULL for r in self.routes):
+            await self.app(scope, receive, send)
+            return
+
+        async def headers_only(message: Message) -> None:
+            if message["type"] == "http.response.body":
+                if message.get("more_body", False):
+                    return
+                message = {"type": "http.response.body", "body": b"", "more_body": False}
+            await send(message)
+
+        inner = {**scope, "method": "GET", HEAD_ONLY: True}  # a copy: the server's is HEAD
+        try:
+            await self.app(inner, receive, headers_only)
+        finally:
+            if "route" in inner:  # for Observe's route label
+                scope.setdefault("route", inner["route"])
+
+
 # the method label takes these values only: any other token is counted as "other", so junk
 # methods cannot create new Prometheus series
 KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
@@ -335,6 +362,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "jit": compiled.jit_command() or "none: the motion model is interpreted"}})
         pool.start()
         jobs.start()
+        # the startup's objects (modules, schemas) out of every later full collection: the
+        # collections a large job answer's rows set off held the event loop (20 concurrent
+        # 19.6-MB track answers: 52.6 s and /healthz up to 2.2 s; frozen: 33.9 s, 1.2 s).
+        # Once a process: a test process starts many apps
+        if not gc.get_freeze_count():
+            gc.collect()
+            gc.freeze()
         yield
         await jobs.aclose()
         await pool.close()
@@ -373,6 +407,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # 120 ms); answers over 128 KiB are compressed in a thread, off the event loop
     app.add_middleware(JobsBodyLimit, limit=BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=1)
+    app.add_middleware(HeadAsGet, routes=app.router.routes)
     app.add_middleware(Framing)
     app.add_middleware(Observe, metrics=metrics, access_log=settings.access_log,
                        routes=app.router.routes)
@@ -444,7 +479,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         except Exception:  # the store closed (stopping): not known to be gone
             gone = False
         if request.url.path.startswith(JOBS_PATH + "/") and gone:
-            return _error(404, f"job {job_id} not found: it was deleted while this was read")
+            return _error(404, f"job {shortened(job_id)} not found: it was deleted while this "
+                          "was read")
         LOGGER.error("unhandled error", exc_info=exc)
         return _error(500, f"internal error: {type(exc).__name__}")
 

@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from solver.config import FILTER_GATE_SIGMA, MAX_FILTER_GATE_SIGMA
+from solver.config import FILTER_GATE_SIGMA, MAX_FILTER_GATE_SIGMA, MIN_TRIAL_STEP_S
 from solver.estimation import FILTER_NAMES, GATING_NAMES
 from solver.io.sensors_file import MAX_OFFSETS
 from solver.manoeuvres import (
@@ -232,8 +232,9 @@ class WindowIn(_In):
         "over the whole track, with a warning.",
         examples=[3])
     trial_step_s: float = Field(
-        5.0, description="Spacing (s, > 0) of the extra trial start points between plots, "
-        "where the controls may switch.", examples=[5.0])
+        5.0, description="Spacing (s, at least "
+        f"{MIN_TRIAL_STEP_S:g}, the time stamps' resolution) of the extra trial start points "
+        "between plots, where the controls may switch.", examples=[5.0])
 
 
 _EXAMPLE_REQUEST = {
@@ -558,6 +559,20 @@ class ErrorItem(BaseModel):
     msg: str = Field(description="What is wrong, e.g. \"plots[17].t is not after plots[16].t "
                      "(38.2 <= 40.0)\".")
     type: str = Field(description="Error kind, e.g. `value_error`, `float_type`.")
+
+
+MAX_ECHO_CHARS = 80
+"""A client's value longer than this is shortened where an error message or field path
+echoes it (a client's unknown key of a megabyte was echoed twice: a 2-MB answer; a 100-KB job
+id came back whole in its 404)."""
+
+
+def shortened(text: str) -> str:
+    """``text`` as an error message echoes it: whole up to :data:`MAX_ECHO_CHARS`
+    characters, else its start and its length."""
+    if len(text) <= MAX_ECHO_CHARS:
+        return text
+    return f"{text[:MAX_ECHO_CHARS - 30]}... ({len(text)} characters)"
 
 
 class ErrorResponse(BaseModel):

@@ -8,7 +8,7 @@ import json
 import os
 import shutil
 import time
-from collections.abc import AsyncGenerator
+from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -18,9 +18,10 @@ from fastapi import APIRouter, FastAPI, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.formparsers import MultiPartException, MultiPartParser
+from starlette.middleware.gzip import DEFAULT_EXCLUDED_CONTENT_TYPES
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from solver.inputs import Bounds, InputError
@@ -34,6 +35,7 @@ from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
+from .admission import BuildSlots, ByteBudget, Crowded
 from .convert import plot_table, require_fields, unsent_reference
 from .job_figures import Busy, TrackFigures
 from .job_models import (
@@ -45,10 +47,13 @@ from .job_models import (
     SensorSummaryOut,
 )
 from .jobs import FINISHED, RESULT_FILES, Full, JobRecord, JobRunner
-from .models import ErrorResponse
+from .models import ErrorResponse, shortened
 from .settings import Settings
 
 JOBS_PATH = "/v1/jobs"
+HEAD_ONLY = "trajrecon.head_only"
+"""Scope key set on a ``HEAD`` served as ``GET`` (:class:`service.app.HeadAsGet`): a file
+answer then sends its headers without reading the file."""
 MAX_TRACK_KEY_CHARS = 200
 """Longest name of a JSON job's track (the ``aircraft`` option's limit too)."""
 TABLE_SUFFIXES = {".csv": ".csv", ".parquet": ".parquet", ".pq": ".parquet"}
@@ -62,6 +67,8 @@ def _err(description: str) -> dict[str, Any]:
 
 _NOT_FOUND = {404: _err("No such job (or track).")}
 _NOT_YET = {409: _err("Not available in the job's (or track's) current state.")}
+_CROWDED = {503: _err("Too many large answers being built; retry after `Retry-After` "
+                      "seconds.")}
 _PNG = {200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
               "description": "A PNG image."}}
 
@@ -95,6 +102,10 @@ def install_jobs(app: FastAPI, settings: Settings) -> JobRunner:
     runner = JobRunner(settings)
     app.state.jobs = runner
     app.state.job_figures = TrackFigures(runner, settings.jobs_figure_draws)
+    app.state.answer_slots = BuildSlots(settings.jobs_answer_builds,
+                                        settings.jobs_answer_waiting)
+    app.state.json_bytes = ByteBudget(settings.jobs_json_bytes_in_flight,
+                                      "JSON bodies of tracks")
     app.include_router(router)
     return runner
 
@@ -115,8 +126,8 @@ def _error(status: int, message: str, loc: list[str | int] | None = None,
     return JSONResponse(body.model_dump(), status_code=status, headers=headers)
 
 
-def _busy(runner: JobRunner, why: str) -> JSONResponse:
-    return _error(503, f"too many jobs: {why}; retry later",
+def _busy(runner: JobRunner, why: str, what: str = "too many jobs") -> JSONResponse:
+    return _error(503, f"{what}: {why}; retry later",
                   headers={"Retry-After": str(runner.settings.retry_after_s)})
 
 
@@ -161,8 +172,10 @@ _CREATE_BODY = {
                         413: _err("Upload over the jobs' size limit."),
                         415: _err("Neither multipart/form-data nor JSON."),
                         422: _err("Invalid input; the message names the part or field."),
-                        503: _err("Too many jobs queued or running; retry after "
-                                  "`Retry-After` seconds.")})
+                        503: _err("Too many jobs queued, running or being received, or too "
+                                  "many bytes of JSON bodies being received and checked "
+                                  "(`jobs_json_bytes_in_flight`); retry after `Retry-After` "
+                                  "seconds.")})
 async def create_job(request: Request) -> Response:
     """Accept a job: a multipart upload of a `recording` file and its `sensors` file, or a
     JSON body of tracks (`JobTracksRequest`). The inputs are stored durably before the 202;
@@ -185,6 +198,29 @@ async def create_job(request: Request) -> Response:
         return _error(415, "send the recording as multipart/form-data (parts `recording` and "
                       "`sensors`) or the tracks as application/json", ["headers",
                                                                        "content-type"])
+    reserved = ((int(length) if length.isdigit() else limit) if ctype == "application/json"
+                else 0)  # a multipart upload streams to disk
+    budget: ByteBudget = request.app.state.json_bytes
+    try:
+        with runner.receiving():
+            budget.reserve(reserved)
+            try:
+                record = await _receive(request, runner, ctype, limit)
+            finally:
+                budget.release(reserved)
+    except TooLarge:
+        return _too_large(limit, ctype)
+    except Full as e:
+        return _busy(runner, str(e))
+    except Crowded as e:
+        return _busy(runner, str(e), "too many JSON bodies at once")
+    body_out = _status(runner, record)
+    return JSONResponse(body_out.model_dump(mode="json"), status_code=202,
+                        headers={"Location": f"{JOBS_PATH}/{record.id}"})
+
+
+async def _receive(request: Request, runner: JobRunner, ctype: str, limit: int) -> JobRecord:
+    """Read, check and store a post's inputs, then queue its job."""
     incoming = await run_in_threadpool(runner.new_inputs)
     accepted = False
     try:
@@ -196,18 +232,13 @@ async def create_job(request: Request) -> Response:
             body = b"".join([c async for c in _limited(request, limit)])
             await run_in_threadpool(_save_tracks, body, incoming / "inputs",
                                     runner.settings.jobs_max_tracks)
+            del body
         record = await run_in_threadpool(runner.accept, incoming, kind)
         accepted = True
-    except TooLarge:
-        return _too_large(limit, ctype)
-    except Full as e:
-        return _busy(runner, str(e))
     finally:
         if not accepted:
             shutil.rmtree(incoming, ignore_errors=True)
-    body_out = _status(runner, record)
-    return JSONResponse(body_out.model_dump(mode="json"), status_code=202,
-                        headers={"Location": f"{JOBS_PATH}/{record.id}"})
+    return record
 
 
 def _too_large(limit: int, ctype: str = "") -> JSONResponse:
@@ -478,10 +509,22 @@ class _OpenFile(FileResponse):
         self.fd = fd
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope.get(HEAD_ONLY) and not _gzipped(scope, self.media_type):
+            scope = {**scope, "method": "HEAD"}  # a HEAD served as GET: the file unread
         try:
             await super().__call__(scope, receive, send)
         finally:
             os.close(self.fd)
+
+
+def _gzipped(scope: Scope, media_type: str | None) -> bool:
+    """Whether the service's gzip compresses this answer (the client takes gzip, the type is
+    not one it leaves alone): a HEAD must then say the compressed length, so the file is read
+    as for a GET."""
+    accepts = b"gzip" in dict(scope["headers"]).get(b"accept-encoding", b"")
+    kind = (media_type or "").partition(";")[0].strip().lower()
+    return accepts and not {kind, kind.partition("/")[0] + "/*"} & set(
+        DEFAULT_EXCLUDED_CONTENT_TYPES)
 
 
 def _file(path: Path, media_type: str, filename: str | None = None) -> Response:
@@ -495,7 +538,7 @@ def _file(path: Path, media_type: str, filename: str | None = None) -> Response:
 def _job(runner: JobRunner, job_id: str) -> JobRecord:
     job = runner.get(job_id)
     if job is None:
-        raise HTTPException(404, f"job {job_id} not found")
+        raise HTTPException(404, f"job {shortened(job_id)} not found")
     return job
 
 
@@ -546,21 +589,43 @@ def delete_job(job_id: str, request: Request) -> Response:
     return JSONResponse(_status(runner, job).model_dump(mode="json"))
 
 
+async def _built(request: Request, fn: Callable[..., bytes], *args: Any) -> bytes:
+    """``fn(*args)``, a large answer's JSON, built in the threadpool when one of the build
+    slots is free (:class:`service.admission.BuildSlots`); 503 with Retry-After when too
+    many wait. Rendered there too: FastAPI renders a returned model on the event loop (0.3 s
+    for 19.6 MB)."""
+    slots: BuildSlots = request.app.state.answer_slots
+    try:
+        return await slots.build(fn, *args)
+    except Crowded as e:
+        raise HTTPException(503, f"too many large answers at once: {e}; retry later", headers={
+            "Retry-After": str(request.app.state.settings.retry_after_s)}) from None
+
+
+_TRACK_LIST = TypeAdapter(list[JobTrack])
+
+
 @router.get(JOBS_PATH + "/{job_id}/tracks", response_model=list[JobTrack],
-            responses=_NOT_FOUND, summary="A job's tracks with their status")
-def list_job_tracks(job_id: str, request: Request, response: Response,
+            responses={**_NOT_FOUND, **_CROWDED}, summary="A job's tracks with their status")
+async def list_job_tracks(job_id: str, request: Request,
                     offset: Annotated[int, Query(ge=0, description="Tracks to pass over "
                                                  "first.")] = 0,
                     limit: Annotated[int, Query(ge=1, le=MAX_LISTED_TRACKS, description=(
                         "At most this many tracks (the job's `tracks_total` tells how many "
-                        "there are)."))] = MAX_LISTED_TRACKS) -> list[JobTrack]:
+                        "there are)."))] = MAX_LISTED_TRACKS) -> Response:
     """The aircraft of the job (empty until the recording has been read), in order of first
     plot: pending, done or failed (with the reason); ``offset`` and ``limit`` page through a
     job of many (a tester's 300,000 tracks made one answer of 29 MB in 5.5 s)."""
     runner = _runner(request)
+    body, total = await _built(request, _track_list, runner, job_id, offset, limit)
+    return Response(body, media_type="application/json",  # a page says it is one
+                    headers={"X-Total-Count": str(total)})
+
+
+def _track_list(runner: JobRunner, job_id: str, offset: int, limit: int) -> tuple[bytes, int]:
+    """The JSON of a page of a job's tracks, and the job's count of tracks."""
     job = _job(runner, job_id)
     unfinished = "cancelled" if job.state == "cancelled" else "pending"
-    response.headers["X-Total-Count"] = str(job.tracks_total or 0)  # a page says it is one
     entries = runner.progress(job_id).entries
     out = []
     for key, plots in runner.tracks(job_id, offset, limit):
@@ -568,7 +633,7 @@ def list_job_tracks(job_id: str, request: Request, response: Response,
         out.append(JobTrack(aircraft=key, plots=plots, status=unfinished) if e is None else
                    JobTrack(aircraft=key, plots=plots, status=e["status"], error=e["error"],
                             elapsed_s=e.get("elapsed_s"), warnings=e.get("warnings") or []))
-    return out
+    return _TRACK_LIST.dump_json(out, by_alias=True), job.tracks_total or 0
 
 
 # ``{aircraft:path}``: a key may hold "/" (a user's own key); the figure's route comes first
@@ -582,7 +647,7 @@ def _track_entry(runner: JobRunner, job_id: str, aircraft: str) -> tuple[str, di
     if len(keys) != 1:
         similar = (f" ({len(keys)} tracks differ from it only in case: "
                    f"{', '.join(map(repr, keys[:5]))})" if keys else "")
-        raise HTTPException(404, f"job {job_id} has no track {aircraft!r}{similar}")
+        raise HTTPException(404, f"job {job_id} has no track {shortened(aircraft)!r}{similar}")
     key = keys[0]
     entry = runner.progress(job_id).entries.get(key)
     if entry is None:
@@ -618,19 +683,27 @@ async def get_job_track_figure(job_id: str, aircraft: str, request: Request) -> 
 
 
 @router.get(JOBS_PATH + "/{job_id}/tracks/{aircraft:path}", response_model=JobTrackResult,
-            responses={**_NOT_FOUND, **_NOT_YET}, summary="One reconstructed track of a job")
-def get_job_track(job_id: str, aircraft: str, request: Request,
+            responses={**_NOT_FOUND, **_NOT_YET, **_CROWDED},
+            summary="One reconstructed track of a job")
+async def get_job_track(job_id: str, aircraft: str, request: Request,
                   omit: Annotated[list[Literal["samples", "covariances"]], Query(
                       max_length=2, description="Parts of the answer to leave out, as in "
                       "`POST /v1/reconstructions`: `samples` (an empty `trajectory.samples`) "
                       "and/or `covariances` (every `cov` null), e.g. "
                       "`?omit=samples&omit=covariances`.")] = []  # noqa: B006 - not mutated
-                  ) -> JobTrackResult:
+                  ) -> Response:
     """The track's segments and its state at every plot (with latitude and longitude), the
     regular samples when the job keeps them, the filters' states, its sensors' statistics and
     the reconstruction's diagnostics; available as soon as the track is done. `aircraft`: the
     track's key, exactly, else in another case when only one key matches (`4ca2d1`)."""
     runner = _runner(request)
+    body = await _built(request, _track_answer, runner, job_id, aircraft, frozenset(omit))
+    return Response(body, media_type="application/json")
+
+
+def _track_answer(runner: JobRunner, job_id: str, aircraft: str, omit: frozenset[str]
+                  ) -> bytes:
+    """The JSON of a done track's :class:`JobTrackResult`."""
     key, entry = _track_entry(runner, job_id, aircraft)
     got = runner.track_rows(job_id, key, samples="samples" not in omit)
     if got is None:  # pragma: no cover - a done entry always names its part
@@ -648,7 +721,7 @@ def get_job_track(job_id: str, aircraft: str, request: Request,
                        **_altitude(entry.get("altitude"))},
         "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, key)],
         "filters": _filter_rows(filtered, cov),
-        "diagnostics": _track_diagnostics(entry)})
+        "diagnostics": _track_diagnostics(entry)}).model_dump_json(by_alias=True).encode()
 
 
 def _midnight_us(states: Any) -> int | None:
@@ -846,7 +919,8 @@ def get_job_result(job_id: str, name: str, request: Request) -> Response:
     `problems.txt`, `summary.json`, `map.png`, or all of them as `results.zip`."""
     runner = _runner(request)
     if name not in RESULT_FILES:
-        raise HTTPException(404, f"no result file {name!r} (files: {', '.join(RESULT_FILES)})")
+        raise HTTPException(404, f"no result file {shortened(name)!r} (files: "
+                            f"{', '.join(RESULT_FILES)})")
     _finished(runner, job_id)
     path = runner.result_file(job_id, name)
     if path is None:

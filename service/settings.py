@@ -96,6 +96,20 @@ class Settings(BaseSettings):
         "jobs_max_upload_bytes); larger ones get 413. Validating JSON takes about 14 times its "
         "size in the server's memory (a 99-MB body: 1.5 GB); send more plots as a CSV or "
         "Parquet table.")
+    jobs_json_bytes_in_flight: int = Field(
+        64 << 20, ge=1024, description="JSON bodies of tracks received and checked at once "
+        "(bytes, each counted by its Content-Length, a body without one as "
+        "jobs_max_json_bytes); a body beyond gets 503 with Retry-After (one body alone is "
+        "always let in). At about 14 times its size in memory, the default holds that near "
+        "0.9 GB: 6 bodies of 30 MB received at once had taken the service from 0.9 to 2.7 GB.")
+    jobs_answer_builds: int = Field(
+        2, ge=1, description="Job answers built at once (GET /v1/jobs/{id}/tracks/{key} and "
+        "pages of GET /v1/jobs/{id}/tracks: Python work holding the interpreter lock, 3.3 s "
+        "for a 19.6-MB track); later ones wait (without a thread), so /healthz stays fast: 20 "
+        "built at once had held it up to 10.8 s.")
+    jobs_answer_waiting: int = Field(
+        64, ge=0, description="Job answers allowed to wait for a build slot; beyond this they "
+        "get 503 with Retry-After.")
     jobs_max_tracks: int = Field(50_000, ge=1, description="Most tracks one job may hold: a "
                                  "recording read into more fails at once with the reason, a "
                                  "JSON body of more gets 422 (a job's cost is then bounded by "

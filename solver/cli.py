@@ -61,7 +61,7 @@ from .batch import (
     quiet_interrupted_sync,
     reconstruct_many,
 )
-from .config import FILTER_GATE_SIGMA, ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, MIN_TRIAL_STEP_S, ReconstructionConfig
 from .inputs import Bounds, InputError
 from .io.altitudes import offsets_summary
 from .io.asterix import edition_choices, parse_edition
@@ -463,7 +463,7 @@ def _method(ap: argparse.ArgumentParser, default: str | None) -> None:
                     help=f"sliding: plots per window (>= 2; default {d.window_plots}{run})")
     ap.add_argument("--trial-step", type=float, default=None, metavar="S",
                     help="sliding: spacing of the extra trial start points between plots (s, "
-                    f"> 0; default {d.trial_step_s:g}{run})")
+                    f">= {MIN_TRIAL_STEP_S:g}; default {d.trial_step_s:g}{run})")
     ap.add_argument("--criterion", choices=("R1", "R2"), default=None,
                     help="sliding: window fit criterion, R1 plain least squares or R2 weighted "
                     f"by each plot's ellipse (default {d.criterion}{run})")

@@ -21,6 +21,12 @@ ones (an operator's sigmas are seldom exact) made it leave out up to 33 genuine 
 and cost up to 9.4 % RMS on clean plots, where 6 sigma left out at most 1.6 per 1,000 and cost
 at most 1 %. Looking ahead keeps far genuine plots (turns) either way."""
 
+MIN_TRIAL_STEP_S = 1 / 128
+"""The finest spacing of the sliding windows' trial start points (s): the time stamps of a
+recording are no finer (ASTERIX I140: 1/128 s), so no switch time lies between two closer
+trial starts. A 1e-9-s step asked 2e10 trial starts of a 19-s window; a job took it and then
+failed every track with the same error (a hostile-client tester's)."""
+
 
 MAX_FILTER_GATE_SIGMA = 1e6
 """The widest gate accepted (sigmas): wider is no gate (None); 1.4e154 overflowed its square."""
@@ -175,6 +181,10 @@ class ReconstructionConfig:
             raise InputError(("window", "plots"), "must be at least 2")
         if not self.trial_step_s > 0:
             raise InputError(("window", "trial_step_s"), "must be positive")
+        if not self.trial_step_s >= MIN_TRIAL_STEP_S:
+            raise InputError(("window", "trial_step_s"), f"must be at least {MIN_TRIAL_STEP_S:g} "
+                             "s (the time stamps' resolution; trial starts closer than that "
+                             "tell no switch time apart)")
         if not 0 < self.sample_step_s < float("inf"):
             raise InputError(("sample_step_s",), "must be positive and finite")
         if self.criterion not in ("R1", "R2"):

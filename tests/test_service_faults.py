@@ -24,6 +24,7 @@ from service.metrics import Metrics
 from service.models import ReconstructionRequest
 from service.pool import SolverPool
 from service.settings import Settings
+from solver.inputs import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED_BATCH = json.loads((ROOT / "examples" / "seed_track.json").read_text())
@@ -145,9 +146,18 @@ def test_solve_time_limit_stops_sliding_windows_over_sensors():
 
 
 def test_trial_step_that_asks_for_billions_of_windows_is_a_422_naming_it():
+    """1e-9 s is refused by the configuration's bound (MIN_TRIAL_STEP_S); a step above it that asks
+    too many trial starts of long windows (plots 10 times farther apart: 380-s windows at
+    0.01 s) is the solver's 422 naming it."""
     body = copy.deepcopy(SEED_BATCH)
     body["plots"] = body["plots"][:20]
     body.update(method="sliding", window={"plots": 3, "trial_step_s": 1e-9})
+    with pytest.raises(InputError, match=r"must be at least 0\.0078125 s"):
+        job_of(body)
+    for p in body["plots"]:
+        p["t"] *= 10.0
+    body.update(window={"plots": 3, "trial_step_s": 0.01},
+                bounds={"u": [-7.0, 7.0], "w": [-2.0, 3.0], "v": [1.0, 330.0]})
 
     async def scenario() -> None:
         pool = SolverPool(Settings(workers=1, warmup=False), Metrics())

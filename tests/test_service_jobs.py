@@ -31,6 +31,7 @@ from test_io_asterix import (
     pcapng_section,
 )
 
+from service.admission import Crowded
 from service.app import create_app
 from service.settings import Settings
 
@@ -774,6 +775,8 @@ def test_a_json_body_of_tracks_has_its_own_smaller_limit(tmp_path):
         ('{"method": "kalman"}', "options.method"),
         ('{"window": {"plots": 1}}', "options.window.plots"),
         ('{"window": {"trial_step_s": 0}}', "options.window.trial_step_s"),
+        # accepted, then every track failed alike (a tester's): the single request's bound
+        ('{"window": {"trial_step_s": 1e-9}}', "options.window.trial_step_s"),
         ('{"criterion": "R3"}', "options.criterion"),
         ('{"aircraft": []}', "options.aircraft"),
         ('{"aircraft": [""]}', "options.aircraft[0]"),
@@ -814,6 +817,8 @@ def test_bad_json_tracks_are_422_naming_the_field(client):
         ({"sensors": sensors, "tracks": {"A": [plot]}, "method": "imm"}, "method"),
         ({"sensors": sensors, "tracks": {"A": [plot]}, "window": {"plots": 1}},
          "window.plots"),
+        ({"sensors": sensors, "tracks": {"A": [plot]}, "window": {"trial_step_s": 1e-9}},
+         "window.trial_step_s"),
     ]
     for body, field in cases:
         r = client.post("/v1/jobs", json=body)
@@ -1056,6 +1061,125 @@ def test_unknown_job_is_404(client):
                          ("DELETE", "/v1/jobs/nope"), ("GET", "/v1/jobs/nope/map.png")):
         r = client.request(method, path)
         assert r.status_code == 404 and r.json()["message"] == "job nope not found"
+
+
+def test_a_jobs_options_take_the_single_requests_bounds(client):
+    """A job's trial step of 1e-9 s was accepted (202) and then failed every track with the
+    same error: it is the single request's 422 at the same field, from the same bound."""
+    sensors, tracks = json_tracks(encode_recording(duration=20.0))
+    window = {"plots": 3, "trial_step_s": 1e-9}
+    job = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks,
+                                        "method": "sliding", "window": window})
+    single = client.post("/v1/reconstructions", json={"sensors": sensors, "plots": tracks["A"],
+                                                      "method": "sliding", "window": window})
+    assert job.status_code == single.status_code == 422, (job.text, single.text)
+    assert job.json()["message"] == single.json()["message"], (job.json(), single.json())
+    assert job.json()["message"].startswith("window.trial_step_s must be at least 0.0078125 s")
+
+
+def test_long_path_values_are_not_echoed_whole(client):
+    """A 100-KB job id came back whole in its 404 message (60,000 characters here: the test
+    client's longest URL is 65,536)."""
+    long = "x" * 60_000
+    job = client.post("/v1/jobs", json=dict(zip(("sensors", "tracks"), json_tracks(
+        encode_recording(duration=20.0)), strict=True))).headers["location"]
+    for path in (f"/v1/jobs/{long}", f"/v1/jobs/{long}/tracks", f"{job}/tracks/{long}",
+                 f"{job}/results/{long}", f"/v1/jobs/{long}/tracks/A/figure.png"):
+        r = client.get(path)
+        assert r.status_code == 404, (path[:60], r.status_code)
+        assert len(r.content) < 400 and "(60000 characters)" in r.json()["message"], r.text
+    wait(client, job)
+    client.delete(job)
+
+
+def test_head_answers_like_get_without_the_body(client):
+    """HEAD on a GET route (a job's status, tracks, results, figures) was a 405: it answers the
+    GET's status and headers, Content-Length included, with no body; a file is not sent."""
+    sensors, tracks = json_tracks(encode_recording(duration=20.0))
+    job = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks}).headers["location"]
+    assert wait(client, job)["state"] == "done"
+    for path in (job, f"{job}/tracks", f"{job}/tracks/A", f"{job}/tracks/A/figure.png",
+                 f"{job}/map.png", f"{job}/results/summary.json", f"{job}/results/results.zip",
+                 f"{job}/sensors", "/v1/jobs/nope", f"{job}/results/nope"):
+        for encoding in ("identity", "gzip"):
+            head = client.head(path, headers={"accept-encoding": encoding})
+            get = client.get(path, headers={"accept-encoding": encoding})
+            assert head.status_code == get.status_code, (path, head.status_code)
+            assert head.content == b"", path
+            same = ("content-type", "content-length", "content-encoding", "x-total-count")
+            assert [head.headers.get(k) for k in same] == [get.headers.get(k) for k in same], (
+                path, encoding)
+    assert client.head(f"{job}/results/results.zip").headers["content-length"] == str(
+        len(client.get(f"{job}/results/results.zip").content))
+    assert client.head("/v1/reconstructions").status_code == 405  # POST only
+    assert client.head("/healthz").status_code == 200
+    client.delete(job)
+
+
+@pytest.fixture(scope="module")
+def lean(tmp_path_factory):
+    """An app of one build slot and none to wait in, a JSON budget of 1 KiB and a queue of
+    one job."""
+    settings = Settings(workers=1, warmup=False, access_log=False, log_level="WARNING",
+                        data_dir=tmp_path_factory.mktemp("lean"), jobs_max_running=1,
+                        jobs_workers=1, jobs_max_queued=0, jobs_answer_builds=1,
+                        jobs_answer_waiting=0,
+                        jobs_json_bytes_in_flight=1024)
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+def test_large_answers_beyond_the_build_slots_are_503(lean):
+    """Job answers are built at most ``jobs_answer_builds`` at once (20 built at once held
+    /healthz up to 10.8 s); beyond those and the waiting places: 503 with Retry-After."""
+    slots = lean.app.state.answer_slots
+    lean.portal.call(slots.acquire)  # an answer being built
+    try:
+        for path in ("/v1/jobs/nope/tracks", "/v1/jobs/nope/tracks/A"):
+            r = lean.get(path)
+            assert r.status_code == 503 and r.headers["retry-after"] == "2", r.text
+            assert r.json()["message"].startswith("too many large answers at once: 1 large "
+                                                  "answers are being built and 0 wait")
+        assert lean.get("/healthz").status_code == 200
+    finally:
+        lean.portal.call(slots.release)
+    assert lean.get("/v1/jobs/nope/tracks").status_code == 404
+    assert (slots.building, slots.waiting) == (0, 0)
+
+
+def test_json_bodies_beyond_their_byte_budget_or_the_queue_are_503(lean):
+    """JSON bodies in flight are bounded in bytes (6 of 30 MB at once took the service from
+    0.9 to 2.7 GB), and a body being received holds a place in the queue (the room check
+    counted committed jobs only): beyond either, 503 with Retry-After before reading it; one
+    body alone is let in whatever its size."""
+    sensors, tracks = json_tracks(encode_recording(duration=20.0))
+    body = {"sensors": sensors, "tracks": tracks}
+    assert len(json.dumps(body)) > 1024
+    budget = lean.app.state.json_bytes
+    budget.reserve(1000)  # a body being received
+    try:
+        r = lean.post("/v1/jobs", json=body)
+        assert r.status_code == 503 and r.headers["retry-after"] == "2", r.text
+        assert r.json()["message"].startswith("too many JSON bodies at once: 1000 bytes of "
+                                              "JSON bodies of tracks are being received")
+    finally:
+        budget.release(1000)
+    runner = lean.app.state.jobs
+    with runner.receiving():  # the queue's one place taken by a post being received
+        r = lean.post("/v1/jobs", json=body)
+        assert r.status_code == 503, r.text
+        assert "0 jobs are queued or running and 1 more are being received" in r.text
+    r = lean.post("/v1/jobs", json=body)
+    assert r.status_code == 202, r.text
+    assert budget.taken == 0 and runner._receiving == 0
+    lean.delete(r.headers["location"])
+    budget.reserve(2000)  # one body alone over the budget: a post holding none still enters
+    try:
+        budget.reserve(0)
+        with pytest.raises(Crowded):
+            budget.reserve(1)
+    finally:
+        budget.release(2000)
 
 
 def test_a_named_dask_scheduler_runs_the_jobs(client, tmp_path):
