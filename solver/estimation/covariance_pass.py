@@ -28,6 +28,16 @@ import numpy as np
 from .. import compiled
 
 CHUNK_SIZES = tuple(2**k for k in range(4, 13))  # steps of the cached chains (16..4096)
+CHAIN_ENTRIES = 2**18
+"""A chain holds at most this many steps times ``nx^2``: 4096 steps of the track's 8 states,
+64 of 56 (16 radars' offsets). Building ``mapaccum`` grows faster than its steps, and with the
+states: 1024 steps of 54 states took 15.7 s to build (47 s of a 91-s reconstruction of 16
+radars' offsets), 64 steps 0.03 s; a chain's evaluation costs the same in any chunks."""
+
+
+def largest_chain(nx: int) -> int:
+    """The longest cached chain for ``nx`` states (:data:`CHAIN_ENTRIES`)."""
+    return max([s for s in CHUNK_SIZES if s * nx * nx <= CHAIN_ENTRIES], default=CHUNK_SIZES[0])
 
 
 def _update(P: ca.MX, H: ca.MX, R: ca.MX, gain: ca.MX) -> ca.MX:
@@ -85,15 +95,16 @@ def _run_chain(step: ca.Function, size: int, carry: np.ndarray, per_step: list[n
             for j, r in enumerate(outs)]
 
 
-def _chunks(n: int, every: int) -> list[tuple[int, int, int]]:
-    """``(start, stop, size)``: runs of cached chain sizes, the largest that fit, none crossing a
-    multiple of ``every``; a run shorter than the smallest size (the end of a segment) is padded
-    to it."""
+def _chunks(n: int, every: int, largest: int = CHUNK_SIZES[-1]) -> list[tuple[int, int, int]]:
+    """``(start, stop, size)``: runs of cached chain sizes, the largest that fit (at most
+    ``largest``), none crossing a multiple of ``every``; a run shorter than the smallest size
+    (the end of a segment) is padded to it."""
     out = []
     for first in range(0, n, every):
         start, end = first, min(first + every, n)
         while start < end:
-            size = max((s for s in CHUNK_SIZES if s <= end - start), default=CHUNK_SIZES[0])
+            size = max((s for s in CHUNK_SIZES if s <= min(end - start, largest)),
+                       default=CHUNK_SIZES[0])
             out.append((start, min(start + size, end), size))
             start += size
     return out
@@ -134,7 +145,7 @@ def filtered_covariances(P0: np.ndarray, Phi: np.ndarray, Q: np.ndarray,
     Q_in = np.concatenate([np.zeros((1, nx, nx)), Q[: n - 1]])
     Pf, Pp = np.empty((n, nx, nx)), np.empty((n, nx, nx))
     P = P0
-    for start, stop, size in _chunks(n, check_every):
+    for start, stop, size in _chunks(n, check_every, largest_chain(nx)):
         if check is not None and start % check_every == 0:
             check()
         ins = [_padded(a, start, stop, size) for a in (Phi_in, Q_in, *per_step)]
@@ -155,7 +166,7 @@ def smoothed_covariances(Pf: np.ndarray, Pp: np.ndarray, Phi: np.ndarray) -> np.
     rev = (Pf[n - 2::-1], C[::-1], Pp[:0:-1])
     step = _smoother_step(nx)
     P = Pf[n - 1]
-    for start, stop, size in _chunks(n - 1, CHUNK_SIZES[-1]):
+    for start, stop, size in _chunks(n - 1, CHUNK_SIZES[-1], largest_chain(nx)):
         (out,) = _run_chain(step, size, P, [_padded(a, start, stop, size) for a in rev])
         Ps[n - 2 - start: n - 2 - stop if n - 2 - stop >= 0 else None: -1] = out[: stop - start]
         P = out[stop - start - 1]

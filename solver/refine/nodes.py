@@ -266,14 +266,34 @@ def fused_points(t: FloatArray, centre: FloatArray, info: FloatArray,
     """Plots within ``min_gap_s`` of each other (e.g. several sensors at one instant) fused
     into one point (information-weighted, at the group's mean time): times, centres ``(m, 2)``
     and information ``(m, 2, 2)``. The sum of the plots' quadratic forms ``d^T I d`` is the
-    fused point's plus a constant, for any position at that time."""
+    fused point's plus a constant, for any position at that time.
+
+    A run of plots each within ``min_gap_s`` of the next that spans ``min_gap_s`` or more (many
+    sensors: 16 radars' 2,000 plots over 618 s left no gap of 1 s, and the whole track became 2
+    points, a start 7 km from the truth in the median, on which IPOPT with the radars' offsets
+    ran out of its 300 iterations twice) is cut into bins of ``min_gap_s`` from its first plot,
+    each bin's time held within its middle half, so fused points stay ``min_gap_s / 2`` apart
+    and each is off by at most ``3 min_gap_s / 4`` of flight."""
     order = np.argsort(t, kind="stable")
     ts = t[order]
-    group_sorted = np.concatenate([[0], np.cumsum(np.diff(ts) >= min_gap_s)])
+    run = np.concatenate([[0], np.cumsum(np.diff(ts) >= min_gap_s)])
+    first = ts[np.flatnonzero(np.diff(run, prepend=-1))][run]  # each run's first time
+    span = np.zeros(run[-1] + 1)
+    np.maximum.at(span, run, ts - first)
+    long = (span >= min_gap_s)[run]
+    part = np.where(long, np.floor((ts - first) / min_gap_s), 0.0)
+    group_sorted = np.concatenate([[0], np.cumsum((np.diff(run) > 0) | (np.diff(part) != 0))])
     inverse = np.empty(t.size, dtype=int)
     inverse[order] = group_sorted
     m = int(group_sorted[-1]) + 1
     times = np.bincount(inverse, weights=t, minlength=m) / np.bincount(inverse, minlength=m)
+    cut = np.zeros(m, bool)
+    cut[group_sorted[long]] = True
+    if cut.any():  # a bin's time within the middle half of the bin
+        start = np.zeros(m)
+        start[group_sorted] = first + part * min_gap_s
+        times[cut] = np.clip(times[cut], start[cut] + min_gap_s / 4,
+                             start[cut] + 3 * min_gap_s / 4)
     I = np.zeros((times.size, 2, 2))
     np.add.at(I, inverse, info)
     b = np.zeros((times.size, 2))
