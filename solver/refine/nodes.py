@@ -420,3 +420,50 @@ def with_altitude(guess: np.ndarray, h: FloatArray, t_nodes: FloatArray) -> np.n
     hd[:-1][ok] = np.diff(h)[ok] / dt[ok]
     return np.column_stack([guess, h, np.clip(hd, -HD_MAX, HD_MAX)])
 
+
+
+OFFSET_GUESS_ROUNDS = 3
+"""Huber-reweighted least-squares rounds of :func:`offset_guess`."""
+
+
+def offset_guess(data: NodeData, guess: np.ndarray, altitude: bool, bias_info: FloatArray,
+                 time_gauge: FloatArray | None, huber: float = GUESS_HUBER_SIGMA
+                 ) -> np.ndarray:
+    """Start ``(biases, 3)`` of the estimated offsets: the least-squares offsets of the plots
+    against the start's track, ``min_b sum_i w_i |J_i b - d_i|^2_{M_i} + sum b^2 / s_b^2 +
+    (g . b_t)^2`` with ``d_i = c_i - p_i`` and ``J_i = [dc/dr, dc/dpsi, -v_i e_i]`` (the NLP's
+    linearised plot model, :mod:`.nlp`), Huber weights ``w_i = min(1, huber / r_i)`` of each
+    plot's distance in sigmas after the previous round. The NLP started at zero offsets:
+    16 radars' 48 offsets took 93 IPOPT iterations of the first solve, started at the true
+    offsets 19 (2,004 plots, about 0.13 s each: 12 s of 17)."""
+    nb = data.sensor.shape[1]
+    m = 3 * nb
+    plotted = (data.weight > 0) & (data.info[:, 0] + data.info[:, 2] > 0) & data.sensor.any(1)
+    if nb == 0 or not plotted.any():
+        return np.zeros((nb, 3))
+    k = np.flatnonzero(plotted)
+    phi, v = guess[k, 2], guess[k, 3]
+    J = np.stack([data.d_range[k], data.d_azimuth[k],
+                  -v[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])], axis=2)
+    d = -data.residuals(guess, None, altitude)[k]
+    M = info_matrices(data.weighed_info()[k])
+    onehot = data.sensor[k]
+    prior = np.diag(np.asarray(bias_info, float))
+    if time_gauge is not None and np.any(time_gauge):
+        g = np.zeros(m)
+        g[2::3] = time_gauge
+        prior += np.outer(g, g)
+    w = np.ones(k.size)
+    b = np.zeros(m)
+    for _ in range(OFFSET_GUESS_ROUNDS):
+        JtM = np.einsum("nki,nkl->nil", J, M * w[:, None, None])
+        A = prior.copy()
+        blocks = np.einsum("ns,nij->sij", onehot, JtM @ J)
+        rhs = np.einsum("ns,ni->si", onehot, np.einsum("nil,nl->ni", JtM, d))
+        for j in range(nb):
+            A[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] += blocks[j]
+        b = np.linalg.solve(A, rhs.ravel())
+        e = np.einsum("nij,nj->ni", J, (onehot @ b.reshape(nb, 3))) - d
+        r = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", e, M, e), 0.0))
+        w = np.minimum(1.0, huber / np.maximum(r, 1e-300))
+    return b.reshape(nb, 3)
