@@ -152,3 +152,34 @@ def test_check_is_called_before_every_block_of_steps():
     with pytest.raises(Stop):
         filtered_covariances(P0, Phi, Q, ((H, R, measured[:, None] * np.ones(nx)),),
                              check=stop_second, check_every=CHUNK_SIZES[0])
+
+
+def test_smoother_checks_before_every_block_of_steps_and_many_states_match():
+    """The backward pass calls ``check`` as the forward pass does (its gains were one batched
+    solve without a check: seconds with 48 radars' offsets); with 54 states (16 radars'
+    offsets: chains of at most 64 steps) both passes still match the reference loops."""
+    rng = np.random.default_rng(4)
+    n, nx = 300, 54
+    P0, Phi, Q, H, R, measured = _problem(rng, n, nx)
+    Phi = np.eye(nx) + 0.02 * rng.normal(size=(n, nx, nx))
+    updates = ((H, R, measured[:, None] * np.ones(nx)),)
+    Pp, Pf = filtered_covariances(P0, Phi, Q, updates)
+    Pp_ref, Pf_ref = _loop(P0, Phi, Q, updates)
+    np.testing.assert_allclose(Pf, Pf_ref, rtol=1e-8, atol=1e-8)
+    calls: list[int] = []
+    Ps = smoothed_covariances(Pf, Pp, Phi, check=lambda: calls.append(1), check_every=64)
+    assert len(calls) == 5  # before steps 0, 64, 128, 192, 256 of the 299
+    _, Ps_ref = rts_smoother(np.zeros((n, nx)), Pf, np.zeros((n, nx)), Pp, Phi)
+    np.testing.assert_allclose(Ps, Ps_ref, rtol=1e-8, atol=1e-8)
+
+    class Stop(Exception):
+        pass
+
+    def stop_second() -> None:
+        calls.append(1)
+        if len(calls) == 2:
+            raise Stop
+
+    calls.clear()
+    with pytest.raises(Stop):
+        smoothed_covariances(Pf, Pp, Phi, check=stop_second, check_every=CHUNK_SIZES[0])

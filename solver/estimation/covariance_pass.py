@@ -155,19 +155,28 @@ def filtered_covariances(P0: np.ndarray, Phi: np.ndarray, Q: np.ndarray,
     return Pp, Pf
 
 
-def smoothed_covariances(Pf: np.ndarray, Pp: np.ndarray, Phi: np.ndarray) -> np.ndarray:
-    """RTS-smoothed covariances ``(n, nx, nx)`` from :func:`filtered_covariances`' output."""
+def smoothed_covariances(Pf: np.ndarray, Pp: np.ndarray, Phi: np.ndarray,
+                         check: Callable[[], None] | None = None, check_every: int = 1024
+                         ) -> np.ndarray:
+    """RTS-smoothed covariances ``(n, nx, nx)`` from :func:`filtered_covariances`' output;
+    ``check`` is called before every ``check_every`` steps (a deadline), the gains of each
+    run of steps solved just before it (their ``n nx^3`` work was one batched solve, no check
+    in it: 48 radars' offsets, ``nx`` 150, cost seconds there)."""
     n, nx = Pf.shape[0], Pf.shape[1]
     Ps = Pf.copy()
     if n < 2:
         return Ps
-    C = np.linalg.solve(Pp[1:], Phi[: n - 1] @ Pf[:-1]).transpose(0, 2, 1)
-    # backwards: step j smooths k = n - 2 - j
-    rev = (Pf[n - 2::-1], C[::-1], Pp[:0:-1])
     step = _smoother_step(nx)
     P = Pf[n - 1]
-    for start, stop, size in _chunks(n - 1, CHUNK_SIZES[-1], largest_chain(nx)):
-        (out,) = _run_chain(step, size, P, [_padded(a, start, stop, size) for a in rev])
-        Ps[n - 2 - start: n - 2 - stop if n - 2 - stop >= 0 else None: -1] = out[: stop - start]
+    # backwards: step j smooths k = n - 2 - j
+    for start, stop, size in _chunks(n - 1, min(check_every, CHUNK_SIZES[-1]),
+                                     largest_chain(nx)):
+        if check is not None and start % check_every == 0:
+            check()
+        k = n - 2 - np.arange(start, stop)
+        C = np.linalg.solve(Pp[k + 1], Phi[k] @ Pf[k]).transpose(0, 2, 1)
+        (out,) = _run_chain(step, size, P, [_padded(a, 0, stop - start, size)
+                                            for a in (Pf[k], C, Pp[k + 1])])
+        Ps[k] = out[: stop - start]
         P = out[stop - start - 1]
     return Ps
