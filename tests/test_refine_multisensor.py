@@ -1112,3 +1112,38 @@ def test_a_dense_stream_of_plots_is_fused_into_points_a_second_apart():
     times, _, info = fused_points(sparse, np.zeros((6, 2)), np.tile(np.eye(2), (6, 1, 1)))
     np.testing.assert_allclose(times, [0.0, 4.8, 9.85, 30.0])
     np.testing.assert_allclose(info[:, 0, 0], [1, 2, 2, 1])
+
+
+def test_the_offsets_covariance_by_blocks_is_the_dense_one(monkeypatch):
+    """The covariance passes take the offsets as constant states (``ns``: the track's states
+    move, the offsets' do not; ``O(ns nx^2)`` a node): on the registration track (two radars'
+    offsets, three sensors, 250 nodes, a 1e12 m^2 prior on the position) the filtered and
+    smoothed covariances equal the dense passes'. The random problems of
+    test_estimation_covariance_pass are well conditioned; here a rank form of the update lost
+    the track's covariance (3e69 m^2) where the dense one did not."""
+    import solver.refine.covariance as cov
+    from solver.estimation.covariance_pass import filtered_covariances, smoothed_covariances
+
+    seen = {}
+
+    def spy(*args):
+        seen["args"] = args
+        return filtered_covariances(*args)
+
+    monkeypatch.setattr(cov, "filtered_covariances", spy)
+    a = replace(SSR_A, estimate_bias=True)
+    b = replace(SSR_B, estimate_bias=True)
+    table, *_ = _simulate((a, b, PositionSensor("ADSB", 30.0)),
+                          ((4.8, 0.3), (4.0, 1.1), (5.0, 2.0)), noise=1.0, seed=5,
+                          biases={0: (150.0, np.deg2rad(0.2), 0.5)}, mode_c=True)
+    reconstruct(table)
+    P0, Phi, Q, updates, _, _, ns = seen["args"]
+    assert ns == 6 and P0.shape[0] == 12
+    Pp, Pf = filtered_covariances(P0, Phi, Q, updates, ns=ns)
+    Pp_d, Pf_d = filtered_covariances(P0, Phi, Q, updates)
+    # relative to each node's own scale (the position's prior is 1e12 m^2 at the first node)
+    scale = np.abs(Pf_d).max(axis=(1, 2))[:, None, None]
+    assert np.all(np.abs(Pf - Pf_d) <= 1e-9 * scale)
+    Ps = smoothed_covariances(Pf, Pp, Phi, ns=ns)
+    Ps_d = smoothed_covariances(Pf_d, Pp_d, Phi)
+    assert np.all(np.abs(Ps - Ps_d) <= 1e-9 * np.abs(Ps_d).max(axis=(1, 2))[:, None, None])

@@ -119,8 +119,9 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
         alt_H[:, 0, NH] = 1.0
         alt_R = 1.0 / np.where(on, data.alt_info, 1.0)
         updates.append((alt_H, alt_R[:, None, None], informed * on[:, None]))
-    Pp, Pf = filtered_covariances(P0, Phi, Q, tuple(updates), check, check_every(nx))
-    Ps = smoothed_covariances(Pf, Pp, Phi, check, check_every(nx))
+    ns = NH + 2 * variant.altitude  # the offsets after them are constant states
+    Pp, Pf = filtered_covariances(P0, Phi, Q, tuple(updates), check, check_every(nx), ns)
+    Ps = smoothed_covariances(Pf, Pp, Phi, check, check_every(nx), ns)
     return Ps
 
 
