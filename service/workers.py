@@ -24,7 +24,7 @@ from solver.inputs import InputError
 from solver.results import non_finite_part
 from solver.warmup import synthetic_track
 
-from .convert import Job, response_dict
+from .convert import Job, refinement_nodes, response_dict
 from .logs import setup_logging
 from .models import ReconstructionResponse
 
@@ -155,11 +155,34 @@ def _time_limit(signum: int, frame: object) -> None:
         raise _TimeLimit
 
 
+GAP_NODES_SHARE = 0.5
+"""Nodes added in gaps beyond this share of the plots are named as a cost in :func:`remedy`."""
+
+
 def remedy(job: Job) -> str:
-    """What the client can change to make a too costly solve cheaper."""
+    """What made a solve costly and what the client can change: the node intervals of the
+    refinement, the offsets estimated with them (``estimate_bias``), the nodes long gaps add.
+    A tester's 16 radars with ``estimate_bias`` (2,000 plots, no gap longer than 2 s) were
+    told of gaps when the 48 offsets were the cost."""
     if job.config.method == "sliding":
         return "split the track or raise window.trial_step_s"
-    return "split the track (long gaps between plots are filled with nodes every 20 s)"
+    table = job.table
+    step = job.config.refine.max_node_step_s
+    nodes = refinement_nodes(table.t, step) if len(table) > 1 else 0
+    biased = [s.id for s in table.sensors if s.estimate_bias] if len(table.sensors) > 1 else []
+    said = f"the refinement solves {nodes} node intervals"
+    if biased:
+        names = ", ".join(biased[:5]) + (f" and {len(biased) - 5} more" if len(biased) > 5 else "")
+        said += (f" with the {3 * len(biased)} offsets of {len(biased)} sensor(s) with "
+                 f"estimate_bias ({names}): every offset is joined to every node, so an "
+                 "iteration's work grows with the nodes times the square of the offsets")
+    gap_nodes = nodes - max(len(table) - 1, 0)
+    if gap_nodes > GAP_NODES_SHARE * len(table):
+        said += (f"; {gap_nodes} of the nodes fill long gaps between plots (one every "
+                 f"{step:g} s)")
+    advice = ("estimate_bias on fewer sensors or over a shorter stretch of the track, or split "
+              "the track") if biased else "split the track"
+    return f"{said}; {advice}"
 
 
 def _too_long(job: Job, time_limit_s: float) -> Outcome:

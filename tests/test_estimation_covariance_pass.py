@@ -152,3 +152,64 @@ def test_check_is_called_before_every_block_of_steps():
     with pytest.raises(Stop):
         filtered_covariances(P0, Phi, Q, ((H, R, measured[:, None] * np.ones(nx)),),
                              check=stop_second, check_every=CHUNK_SIZES[0])
+
+
+def test_smoother_checks_before_every_block_of_steps_and_many_states_match():
+    """The backward pass calls ``check`` as the forward pass does (its gains were one batched
+    solve without a check: seconds with 48 radars' offsets); with 54 states (16 radars'
+    offsets: chains of at most 64 steps) both passes still match the reference loops."""
+    rng = np.random.default_rng(4)
+    n, nx = 300, 54
+    P0, Phi, Q, H, R, measured = _problem(rng, n, nx)
+    Phi = np.eye(nx) + 0.02 * rng.normal(size=(n, nx, nx))
+    updates = ((H, R, measured[:, None] * np.ones(nx)),)
+    Pp, Pf = filtered_covariances(P0, Phi, Q, updates)
+    _, Pf_ref = _loop(P0, Phi, Q, updates)
+    np.testing.assert_allclose(Pf, Pf_ref, rtol=1e-8, atol=1e-8)
+    calls: list[int] = []
+    Ps = smoothed_covariances(Pf, Pp, Phi, check=lambda: calls.append(1), check_every=64)
+    assert len(calls) == 5  # before steps 0, 64, 128, 192, 256 of the 299
+    _, Ps_ref = rts_smoother(np.zeros((n, nx)), Pf, np.zeros((n, nx)), Pp, Phi)
+    np.testing.assert_allclose(Ps, Ps_ref, rtol=1e-8, atol=1e-8)
+
+    class Stop(Exception):
+        pass
+
+    def stop_second() -> None:
+        calls.append(1)
+        if len(calls) == 2:
+            raise Stop
+
+    calls.clear()
+    with pytest.raises(Stop):
+        smoothed_covariances(Pf, Pp, Phi, check=stop_second, check_every=CHUNK_SIZES[0])
+
+
+@pytest.mark.parametrize(("n", "ns", "m"), [(1, 6, 3), (40, 6, 3), (300, 8, 48)])
+def test_constant_states_by_blocks_match_the_loops(n, ns, m):
+    """States after the first ``ns`` constant (sensor offsets: transition I, no noise): the
+    block steps (``ns`` given, ``O(ns nx^2)``) against the reference loops of the dense
+    equations, with two updates, measurements on both blocks and consider offsets (gain
+    zero) in the second half."""
+    rng = np.random.default_rng(n + m)
+    nx = ns + m
+    P0, Phi, Q, H, R, measured = _problem(rng, n, nx)
+    Phi[:, ns:, :] = 0.0
+    Phi[:, :ns, ns:] = 0.0
+    Phi[:, ns:, ns:] = np.eye(m)
+    Phi[:, :ns, :ns] = np.eye(ns) + 0.05 * rng.normal(size=(n, ns, ns))
+    Q[:, ns:, :] = Q[:, :, ns:] = 0.0
+    gain = measured[:, None] * np.ones(nx)
+    gain[n // 2:, ns:] = 0.0
+    h2 = rng.normal(size=(n, 1, nx))
+    on2 = (rng.random(n) < 0.5)[:, None] * np.ones(nx)
+    updates = ((H, R, gain), (h2, np.full((n, 1, 1), 2.0), on2))
+    Pp, Pf = filtered_covariances(P0, Phi, Q, updates, ns=ns)
+    Pp_ref, Pf_ref = _loop(P0, Phi, Q, updates)
+    # entries near zero differ by rounding at the matrices' scale (2.7e-8 of 330 at 56 states)
+    tol = 1e-9 * np.abs(P0).max()
+    np.testing.assert_allclose(Pp, Pp_ref, rtol=1e-8, atol=tol)
+    np.testing.assert_allclose(Pf, Pf_ref, rtol=1e-8, atol=tol)
+    Ps = smoothed_covariances(Pf, Pp, Phi, ns=ns)
+    _, Ps_ref = rts_smoother(np.zeros((n, nx)), Pf, np.zeros((n, nx)), Pp, Phi)
+    np.testing.assert_allclose(Ps, Ps_ref, rtol=1e-8, atol=tol)

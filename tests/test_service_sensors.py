@@ -505,3 +505,32 @@ def test_flight_levels_are_made_geometric_by_the_aircrafts_adsb(client):
     res = client.post("/v1/reconstructions", json=bad)
     assert res.status_code == 422 and res.json()["detail"][0]["loc"][:3] == ["plots", 0,
                                                                             "flight_level"]
+
+
+@pytest.mark.parametrize("estimate_bias", [False, True])
+def test_a_solve_past_its_time_limit_names_its_cost(estimate_bias):
+    """A tester's 16 radars with estimate_bias held a worker for the whole limit and were
+    told of long gaps between plots; the offsets were the cost. The answer names what the
+    refinement solved: its node intervals, the offsets of the sensors with estimate_bias, and
+    gaps only where they add nodes."""
+    from service.convert import to_job
+    from service.models import ReconstructionRequest
+    from service.workers import solve
+
+    body = _body(mode_c=True, estimate_bias=estimate_bias)
+    body["sensors"][1]["estimate_bias"] = estimate_bias
+    job = to_job(ReconstructionRequest.model_validate(body), "sqpmethod", 20_000, 100_000)
+    out = solve(job, 0.0, time_limit_s=1e-6)
+    assert out.body is None and out.error_loc == ("plots",)
+    msg = out.error_message
+    assert "solve time limit of 1e-06 s" in msg and "split the track" in msg
+    assert f"{len(job.table) - 1} node intervals" in msg
+    assert "gaps" not in msg
+    assert ("6 offsets of 2 sensor(s) with estimate_bias (LJLJ, SSR2)" in msg) == estimate_bias
+    # a gap of an hour: its nodes are named
+    late = copy.deepcopy(body)
+    for p in late["plots"]:
+        p["t"] += 3600.0 if p["t"] > 150.0 else 0.0
+    job = to_job(ReconstructionRequest.model_validate(late), "sqpmethod", 20_000, 100_000)
+    msg = solve(job, 0.0, time_limit_s=1e-6).error_message
+    assert "of the nodes fill long gaps between plots (one every 20 s)" in msg

@@ -58,6 +58,7 @@ from .nodes import (
     hd_information,
     node_grid,
     nodes_from_segments,
+    offset_guess,
     smoother_guess,
     with_altitude,
 )
@@ -250,7 +251,7 @@ def refine_table(table: PlotTable, config: ReconstructionConfig,
 
     kept = np.array([], dtype=int)  # far plots kept as a turn harder than the bounds
     try:
-        biases0 = np.zeros((variant.biases, BIAS_TERMS))
+        biases0 = offset_guess(data, guess, variant.altitude, pb.bias_info, time_gauge)
         sol, biases, failures, iters = solve_all(guess, data, biases0, None, first_tol)
         solves = len(blocks)
         # Sensors whose plots lie far closer to the track than their declared sigmas: weight

@@ -35,6 +35,13 @@ NH = 6  # horizontal node state: x, z, phi, v, u, w
 CHECK_EVERY = 1024  # nodes between deadline checks (about 15 ms of the forward pass)
 
 
+def check_every(nx: int) -> int:
+    """Nodes between deadline checks for ``nx`` states: :data:`CHECK_EVERY` for the track's 8,
+    fewer as a node's work grows with ``nx^3`` (at least 16: 48 radars' offsets, ``nx`` 150,
+    about 0.3 s of the forward pass)."""
+    return max(16, int(CHECK_EVERY * (NH + 2) ** 3 / max(nx, NH + 2) ** 3))
+
+
 @cache
 def motion_jacobian() -> ca.Function:
     """``J(s6, dt) -> d s6(dt) / d s6``: the motion map's Jacobian with ``u, w`` in the state."""
@@ -68,8 +75,9 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
                     check: Callable[[], None] | None = None) -> np.ndarray:
     """Smoothed ``(n, nx, nx)`` covariance of the node states (and offsets).
 
-    ``check`` is called every :data:`CHECK_EVERY` nodes of the forward pass (a deadline: on a
-    15,000-node track the forward pass takes about 0.2 s, past a deadline the solves had met).
+    ``check`` is called every :func:`check_every` nodes of the forward and backward passes
+    (a deadline: on a 15,000-node track the forward pass takes about 0.2 s, past a deadline the
+    solves had met; with many offsets a node costs ``nx^3``).
 
     ``consider_from``: from this node on the offsets were held, not estimated (later blocks of
     a long track), so they are *consider* states there (Schmidt-Kalman: their gain is zero, the
@@ -111,8 +119,9 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
         alt_H[:, 0, NH] = 1.0
         alt_R = 1.0 / np.where(on, data.alt_info, 1.0)
         updates.append((alt_H, alt_R[:, None, None], informed * on[:, None]))
-    Pp, Pf = filtered_covariances(P0, Phi, Q, tuple(updates), check, CHECK_EVERY)
-    Ps = smoothed_covariances(Pf, Pp, Phi)
+    ns = NH + 2 * variant.altitude  # the offsets after them are constant states
+    Pp, Pf = filtered_covariances(P0, Phi, Q, tuple(updates), check, check_every(nx), ns)
+    Ps = smoothed_covariances(Pf, Pp, Phi, check, check_every(nx), ns)
     return Ps
 
 

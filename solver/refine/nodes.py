@@ -266,14 +266,34 @@ def fused_points(t: FloatArray, centre: FloatArray, info: FloatArray,
     """Plots within ``min_gap_s`` of each other (e.g. several sensors at one instant) fused
     into one point (information-weighted, at the group's mean time): times, centres ``(m, 2)``
     and information ``(m, 2, 2)``. The sum of the plots' quadratic forms ``d^T I d`` is the
-    fused point's plus a constant, for any position at that time."""
+    fused point's plus a constant, for any position at that time.
+
+    A run of plots each within ``min_gap_s`` of the next that spans ``min_gap_s`` or more (many
+    sensors: 16 radars' 2,000 plots over 618 s left no gap of 1 s, and the whole track became 2
+    points, a start 7 km from the truth in the median, on which IPOPT with the radars' offsets
+    ran out of its 300 iterations twice) is cut into bins of ``min_gap_s`` from its first plot,
+    each bin's time held within its middle half, so fused points stay ``min_gap_s / 2`` apart
+    and each is off by at most ``3 min_gap_s / 4`` of flight."""
     order = np.argsort(t, kind="stable")
     ts = t[order]
-    group_sorted = np.concatenate([[0], np.cumsum(np.diff(ts) >= min_gap_s)])
+    run = np.concatenate([[0], np.cumsum(np.diff(ts) >= min_gap_s)])
+    first = ts[np.flatnonzero(np.diff(run, prepend=-1))][run]  # each run's first time
+    span = np.zeros(run[-1] + 1)
+    np.maximum.at(span, run, ts - first)
+    long = (span >= min_gap_s)[run]
+    part = np.where(long, np.floor((ts - first) / min_gap_s), 0.0)
+    group_sorted = np.concatenate([[0], np.cumsum((np.diff(run) > 0) | (np.diff(part) != 0))])
     inverse = np.empty(t.size, dtype=int)
     inverse[order] = group_sorted
     m = int(group_sorted[-1]) + 1
     times = np.bincount(inverse, weights=t, minlength=m) / np.bincount(inverse, minlength=m)
+    cut = np.zeros(m, bool)
+    cut[group_sorted[long]] = True
+    if cut.any():  # a bin's time within the middle half of the bin
+        start = np.zeros(m)
+        start[group_sorted] = first + part * min_gap_s
+        times[cut] = np.clip(times[cut], start[cut] + min_gap_s / 4,
+                             start[cut] + 3 * min_gap_s / 4)
     I = np.zeros((times.size, 2, 2))
     np.add.at(I, inverse, info)
     b = np.zeros((times.size, 2))
@@ -400,3 +420,50 @@ def with_altitude(guess: np.ndarray, h: FloatArray, t_nodes: FloatArray) -> np.n
     hd[:-1][ok] = np.diff(h)[ok] / dt[ok]
     return np.column_stack([guess, h, np.clip(hd, -HD_MAX, HD_MAX)])
 
+
+OFFSET_GUESS_ROUNDS = 3
+"""Huber-reweighted least-squares rounds of :func:`offset_guess`."""
+
+
+def offset_guess(data: NodeData, guess: np.ndarray, altitude: bool, bias_info: FloatArray,
+                 time_gauge: FloatArray | None, huber: float = GUESS_HUBER_SIGMA
+                 ) -> np.ndarray:
+    """Start ``(biases, 3)`` of the estimated offsets: the least-squares offsets of the plots
+    against the start's track, ``min_b sum_i w_i |J_i b - d_i|^2_{M_i} + sum b^2 / s_b^2 +
+    (g . b_t)^2`` with ``d_i = c_i - p_i`` and ``J_i = [dc/dr, dc/dpsi, -v_i e_i]`` (the NLP's
+    linearised plot model, :mod:`.nlp`), Huber weights ``w_i = min(1, huber / r_i)`` of each
+    plot's distance in sigmas after the previous round (zero offsets where that is not
+    finite). Started at zero, 16 radars' 48 offsets took 93 IPOPT iterations of the first
+    solve (2,004 plots, about 0.13 s each: 12 s of 17), at the true offsets 19, here 17; the
+    same solution (offsets and sigmas of the tests' two-radar cases to the printed digits)."""
+    nb = data.sensor.shape[1]
+    m = 3 * nb
+    plotted = (data.weight > 0) & (data.info[:, 0] + data.info[:, 2] > 0) & data.sensor.any(1)
+    if nb == 0 or not plotted.any():
+        return np.zeros((nb, 3))
+    k = np.flatnonzero(plotted)
+    phi, v = guess[k, 2], guess[k, 3]
+    J = np.stack([data.d_range[k], data.d_azimuth[k],
+                  -v[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])], axis=2)
+    d = -data.residuals(guess, None, altitude)[k]
+    M = info_matrices(data.weighed_info()[k])
+    onehot = data.sensor[k]
+    prior = np.diag(np.asarray(bias_info, float))
+    if time_gauge is not None and np.any(time_gauge):
+        g = np.zeros(m)
+        g[2::3] = time_gauge
+        prior += np.outer(g, g)
+    w = np.ones(k.size)
+    b = np.zeros(m)
+    for _ in range(OFFSET_GUESS_ROUNDS):
+        JtM = np.einsum("nki,nkl->nil", J, M * w[:, None, None])
+        A = prior.copy()
+        blocks = np.einsum("ns,nij->sij", onehot, JtM @ J)
+        rhs = np.einsum("ns,ni->si", onehot, np.einsum("nil,nl->ni", JtM, d))
+        for j in range(nb):
+            A[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] += blocks[j]
+        b = np.linalg.solve(A, rhs.ravel())
+        e = np.einsum("nij,nj->ni", J, (onehot @ b.reshape(nb, 3))) - d
+        r = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", e, M, e), 0.0))
+        w = np.minimum(1.0, huber / np.maximum(r, 1e-300))
+    return b.reshape(nb, 3) if np.all(np.isfinite(b)) else np.zeros((nb, 3))
