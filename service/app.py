@@ -32,6 +32,7 @@ from solver.inputs import InputError, format_loc
 from solver.json_keys import TWICE, duplicate_key
 
 from . import __version__
+from .admission import DISCONNECT_POLL_S
 from .convert import client_loc, to_job
 from .logs import LOGGER, setup_logging
 from .metrics import Metrics
@@ -85,7 +86,6 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 DOCS_ASSETS = "/docs/assets"
 
 
-DISCONNECT_POLL_S = 0.5
 """How often a waiting reconstruction checks that its client is still connected."""
 
 

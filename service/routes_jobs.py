@@ -22,6 +22,7 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.middleware.gzip import DEFAULT_EXCLUDED_CONTENT_TYPES
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from solver.inputs import Bounds, InputError
@@ -35,7 +36,7 @@ from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
 from solver.sensors import RadarSensor
 
-from .admission import BuildSlots, ByteBudget, Crowded
+from .admission import BuildSlots, ByteBudget, Crowded, Gone
 from .convert import plot_table, require_fields, unsent_reference
 from .job_figures import Busy, TrackFigures
 from .job_models import (
@@ -596,7 +597,9 @@ async def _built(request: Request, fn: Callable[..., bytes], *args: Any) -> byte
     for 19.6 MB)."""
     slots: BuildSlots = request.app.state.answer_slots
     try:
-        return await slots.build(fn, *args)
+        return await slots.build(fn, *args, gone=request.is_disconnected)
+    except Gone:  # nobody reads an answer: 499 and an info line (the app's handler)
+        raise ClientDisconnect() from None
     except Crowded as e:
         raise HTTPException(503, f"too many large answers at once: {e}; retry later", headers={
             "Retry-After": str(request.app.state.settings.retry_after_s)}) from None
