@@ -208,6 +208,18 @@ def test_table_timestamps_across_midnight_and_a_given_date():
         recording_date(own_t, "2024-03-09", False)
 
 
+def test_table_timestamps_with_rfc3339_lower_case_t_and_z():
+    """RFC 3339 allows ``t`` and ``z`` in lower case: read as ``T`` and ``Z`` (a lower-case
+    ``z`` was a bad value, "not a time", though its regex took it as zoned)."""
+    csv = ("timestamp,sensor,range_m,azimuth_deg\n2024-03-09T10:00:00z,R1,50000,10\n"
+           "2024-03-09t10:00:01.5Z,R1,50000,11\n2024-03-09t05:00:02-05:00,R1,50000,12\n"
+           "2024-03-09t10:00:03,R1,50000,13\n")
+    rows, problems = read_csv(csv.encode())
+    assert not problems, problems.summary()
+    assert rows.date == "2024-03-09"
+    np.testing.assert_allclose(rows.t, [36_000.0, 36_001.5, 36_002.0, 36_003.0])
+
+
 def test_table_timestamp_column_checks():
     """A bad timestamp is a bad value of its row; a t or time_of_day_s beside the timestamp
     that disagrees with it too; a Parquet timestamp column (naive: UTC) is read as such."""
