@@ -1060,9 +1060,12 @@ class JobRunner:
     def figure_data(self, job_id: str, aircraft: str) -> tuple[TrackFigureData, bool] | None:
         """A done track's figure's content and whether its times are of the day
         (:func:`solver.figure_data.read_stored`); None when the job kept none for it (its
-        figures were off)."""
+        figures were off); ``FileNotFoundError`` when the job was deleted (its data gone read
+        as none kept: the wrong 404)."""
         entry = self.progress(job_id).entries.get(aircraft)
         if entry is None or entry["status"] != "done" or not entry.get("part"):
+            if self.get(job_id) is None:
+                raise FileNotFoundError(f"job {job_id} was deleted")
             return None
         return read_stored(self.job_dir(job_id) / "out", entry["part"], aircraft)
 

@@ -1630,6 +1630,29 @@ def test_track_figures_drawn_at_once_are_bounded_and_each_drawn_once(client, mon
     assert client.delete(loc).status_code == 204
 
 
+def test_a_track_figure_asked_for_as_its_job_is_deleted_is_the_deleted_404(client, monkeypatch):
+    """A figure request whose job is deleted before its drawing reads the job's data is the
+    job-deleted 404 (it was "its job kept nothing to draw it from ... jobs_track_figures":
+    the data of a deleted job read as none kept)."""
+    runner = client.app.state.jobs
+    sensors, tracks = json_tracks(encode_recording(duration=20.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
+    loc, job_id = r.headers["location"], r.json()["id"]
+    assert wait(client, loc)["state"] == "done"
+    cached = runner.figure
+
+    def deleted_meanwhile(job: str, key: str):
+        got = cached(job, key)  # not drawn yet: None
+        assert runner.cancel(job) is None  # the finished job removed with its data
+        return got
+
+    monkeypatch.setattr(runner, "figure", deleted_meanwhile)
+    gone = client.get(f"{loc}/tracks/A/figure.png")
+    assert gone.status_code == 404, gone.text
+    assert "deleted" in gone.json()["message"] and "kept nothing" not in gone.text, gone.text
+    assert not runner.job_dir(job_id).exists()
+
+
 def test_a_track_figure_of_a_running_job_and_one_drawn_while_its_job_is_deleted(
         client, monkeypatch):
     """A done track's figure is drawn while its job still runs; an unknown key is a 404
