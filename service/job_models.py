@@ -16,6 +16,7 @@ from .models import (
     DiagnosticsOut,
     FilterName,
     FilterOut,
+    FilterStateOut,
     ManoeuvreOut,
     Method,
     PlotIn,
@@ -303,6 +304,19 @@ class JobTrackDiagnostics(DiagnosticsOut):
                                   "reconstruction, the filters, the statistics, the figure.")
 
 
+class JobFilterStateOut(FilterStateOut):
+    """A job track's recursive estimate at one plot."""
+
+    time_utc: str | None = Field(None, description=_TIME_UTC_DOC)
+
+
+class JobFilterOut(FilterOut):
+    """A job track's recursive estimator."""
+
+    states: list[JobFilterStateOut] = Field(description="One estimate per plot, in input "
+                                            "order.")
+
+
 class JobTrackResult(_Out):
     """One reconstructed track of a job (the single-track answer, states at the plots)."""
 
@@ -310,7 +324,7 @@ class JobTrackResult(_Out):
     trajectory: JobTrajectoryOut
     sensors: list[SensorOut] = Field(default_factory=list, description="Each sensor's plots "
                                      "of this track against its reconstruction.")
-    filters: dict[str, FilterOut] = Field(
+    filters: dict[str, JobFilterOut] = Field(
         default_factory=dict, description="The job's `filters` on this track: one state per "
         "plot, in the order of `trajectory.at_plots` (a filter that could not run on the track "
         "is absent, the reason in `diagnostics.warnings`).")

@@ -49,7 +49,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from solver.assessment import write_sensors_figure
-from solver.batch import TRACK_COLUMNS, TrackOutcome, read_part, reconstruct_many
+from solver.batch import SEGMENT_COLUMNS, TRACK_COLUMNS, TrackOutcome, read_part, reconstruct_many
 from solver.config import FILTER_GATE_SIGMA, ReconstructionConfig
 from solver.figure_data import TrackFigureData, read_stored
 from solver.figures import track_png
@@ -72,6 +72,8 @@ FINISHED: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 ACTIVE: frozenset[str] = frozenset({"queued", "running"})
 PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet", "samples.parquet")
 """Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
+RESULT_COLUMNS = {"tracks.parquet": TRACK_COLUMNS, "segments.parquet": SEGMENT_COLUMNS}
+"""Their columns where a part of an earlier version may lack some (:func:`_combine`)."""
 RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "manoeuvres.csv",
                 "warnings.csv", "sensors.json", "sensors.csv", "problems.txt", "summary.json",
                 "map.png", "sensors.png", "results.zip")
@@ -899,7 +901,7 @@ class JobRunner:
         progress = self.progress(job_id)
         for name in PARQUET_RESULTS:
             _combine(out / name, _committed_parts(progress), export / name,
-                     TRACK_COLUMNS if name == "tracks.parquet" else None)
+                     RESULT_COLUMNS.get(name))
         record = self._db().get(job_id)
         settings = self.options(job_id)
         summary = {"tracks": len(progress.entries), "done": progress.done,

@@ -17,6 +17,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
@@ -111,7 +112,8 @@ def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
     enc = encode_recording(duration=30.0)
     r = client.post("/v1/jobs", files={"recording": ("day.ast", enc.data),
                                        "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
-                    data={"options": json.dumps({"date": CAPTURE_DAY, "sample_step_s": 10.0})})
+                    data={"options": json.dumps({"date": CAPTURE_DAY, "sample_step_s": 10.0,
+                                                 "filters": ["singer"]})})
     assert r.status_code == 202, r.text
     loc = r.headers["location"]
     status = wait(client, loc)
@@ -127,6 +129,15 @@ def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
     assert all(g["time_utc_start"] == iso(g["t_start"]) and g["time_utc_end"] == iso(g["t_end"])
                for g in body["segments"])
     assert body["at_plots"][0]["time_utc"].startswith("2023-11-14T10:00:")
+    # the filters' states too (they had no time_utc), and segments.parquet's ends (it had none)
+    states = client.get(f"{loc}/tracks/{FLIGHTS[0].address:06X}").json()["filters"]["singer"][
+        "states"]
+    assert states and all(s["time_utc"] == iso(s["t"]) for s in states)
+    segments = pq.read_table(io.BytesIO(client.get(loc + "/results/segments.parquet").content))
+    for end in ("start", "end"):
+        assert segments.schema.field(f"time_utc_{end}").type == pa.timestamp("us", tz="UTC")
+        assert segments.column(f"time_utc_{end}").to_pylist() == [
+            midnight + dt.timedelta(seconds=t) for t in segments.column(f"t_{end}").to_pylist()]
     summary = json.loads(client.get(loc + "/results/summary.json").content)
     assert summary["recording_date"] == CAPTURE_DAY
 
@@ -1354,6 +1365,9 @@ def test_a_jobs_track_has_the_manoeuvres_of_the_single_track_answer(client):
         assert g.pop("time_utc_start") is None and g.pop("time_utc_end") is None
         assert g == {k: v if isinstance(v, str) else pytest.approx(v, rel=1e-9, abs=1e-6)
                      for k, v in e.items()}
+    segments = pq.read_table(io.BytesIO(client.get(loc + "/results/segments.parquet").content))
+    assert segments.num_rows and all(segments.column(f"time_utc_{end}").null_count
+                                     == segments.num_rows for end in ("start", "end"))
     table = list(csv.DictReader(io.StringIO(client.get(loc + "/results/manoeuvres.csv").text)))
     assert [(m["aircraft"], m["kind"], m["direction"]) for m in table] == [
         ("SEED", e["kind"], e["direction"]) for e in expected]
