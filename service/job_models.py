@@ -75,9 +75,10 @@ def _real_date(text: str) -> str:
 _DATE_DOC = ("The UTC date (`YYYY-MM-DD`) of the midnight the recording's times of day count "
              "from (its first plot's day; the command line's `--date`), which gives every "
              "state its `time_utc`. A raw ASTERIX or IOSS recording does not carry it; a pcap "
-             "capture's packet times and a plot table's `timestamp` column do, and a date that "
-             "contradicts them fails the job, naming both. Default: the recording's own, if "
-             "any (else `time_utc` is null).")
+             "capture's packet times do (this date overrides theirs: a `date_override` problem "
+             "naming both), and a plot table's `timestamp` column (a date that contradicts it "
+             "fails the job, naming both). Default: the recording's own, if any (else "
+             "`time_utc` is null).")
 _TIME_UTC_DOC = ("`t` as a UTC time, ISO 8601 ending in `Z` (`2024-03-09T10:00:00.007812Z`), "
                  "where the recording's date is known (its capture's packet times, its table's "
                  "`timestamp`, or the job's `options.date`); null otherwise.")

@@ -100,11 +100,13 @@ def test_pcapng_capture_job_runs_to_done(client):
     assert status["plots"] == status["plots_done"] == status["rows"] > 0.95 * len(enc.plots)
 
 
-def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
+def test_job_date_gives_utc_times_overrides_a_captures_and_a_contradicting_one_fails(client):
     """`options.date` on a raw recording (which says no date): every state's `time_utc` is its
     `t` on that day (Python's datetime as the reference), the segments' and samples' too, and
     the status says the date; a pcap capture whose packet times give 2023-11-14, with a date of
-    the 15th, fails at once naming both dates."""
+    the 15th, is timed on the 15th with a `date_override` problem naming both (a host clock
+    may be whole days off: it failed, the right date could not be given); a table whose
+    `timestamp` says the 9th, with the 10th, fails at once naming both dates."""
     import datetime as dt
 
     from test_io_asterix import CAPTURE_DAY, pcap
@@ -145,10 +147,28 @@ def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
                                        "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
                     data={"options": json.dumps({"date": "2023-11-15"})})
     assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    status = wait(client, loc)
+    assert status["state"] == "done", status
+    assert status["problems"]["counts"] == {"date_override": 1}, status["problems"]
+    assert ("date_override at date: the date given, 2023-11-15, overrides 2023-11-14 (from "
+            "its capture's packet times)") in status["problems"]["examples"][0]
+    summary = json.loads(client.get(loc + "/results/summary.json").content)
+    assert summary["recording_date"] == "2023-11-15"
+    assert summary["problems"] == {"date_override": 1}
+    body = client.get(f"{loc}/tracks/{FLIGHTS[0].address:06X}").json()["trajectory"]
+    assert body["at_plots"][0]["time_utc"].startswith("2023-11-15T10:00:")
+
+    table = ("timestamp,sensor,range_m,azimuth_deg\n2024-03-09T10:00:00Z,R1,50000,10\n"
+             "2024-03-09T10:00:04Z,R1,50100,10\n")
+    r = client.post("/v1/jobs", files={"recording": ("day.csv", table.encode()),
+                                       "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                    data={"options": json.dumps({"date": "2024-03-10"})})
+    assert r.status_code == 202, r.text
     status = wait(client, r.headers["location"])
     assert status["state"] == "failed", status
-    assert status["error"].startswith("options.date 2023-11-15 contradicts the recording's "
-                                      "own date 2023-11-14 (from its capture's packet times)"
+    assert status["error"].startswith("options.date 2024-03-10 contradicts the recording's "
+                                      "own date 2024-03-09 (from its timestamp column)"
                                       ), status
 
 
