@@ -537,16 +537,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse(health.model_dump(), status_code=200 if health.status == "ready"
                             else 503)
 
-    @app.head("/healthz", include_in_schema=False)
-    async def healthz_head() -> Response:
-        """``GET /healthz`` without its body (load balancers probe with HEAD)."""
-        return Response(status_code=200)
-
-    @app.head("/readyz", include_in_schema=False)
-    async def readyz_head() -> Response:
-        """``GET /readyz`` without its body."""
-        return Response(status_code=(await readyz()).status_code)
-
     @app.get("/metrics", name="metrics", response_class=PlainTextResponse, tags=["operations"],
              summary="Prometheus metrics",
              responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},

@@ -16,6 +16,7 @@ from .models import (
     DiagnosticsOut,
     FilterName,
     FilterOut,
+    FilterStateOut,
     ManoeuvreOut,
     Method,
     PlotIn,
@@ -74,9 +75,10 @@ def _real_date(text: str) -> str:
 _DATE_DOC = ("The UTC date (`YYYY-MM-DD`) of the midnight the recording's times of day count "
              "from (its first plot's day; the command line's `--date`), which gives every "
              "state its `time_utc`. A raw ASTERIX or IOSS recording does not carry it; a pcap "
-             "capture's packet times and a plot table's `timestamp` column do, and a date that "
-             "contradicts them fails the job, naming both. Default: the recording's own, if "
-             "any (else `time_utc` is null).")
+             "capture's packet times do (this date overrides theirs: a `date_override` problem "
+             "naming both), and a plot table's `timestamp` column (a date that contradicts it "
+             "fails the job, naming both). Default: the recording's own, if any (else "
+             "`time_utc` is null).")
 _TIME_UTC_DOC = ("`t` as a UTC time, ISO 8601 ending in `Z` (`2024-03-09T10:00:00.007812Z`), "
                  "where the recording's date is known (its capture's packet times, its table's "
                  "`timestamp`, or the job's `options.date`); null otherwise.")
@@ -303,6 +305,19 @@ class JobTrackDiagnostics(DiagnosticsOut):
                                   "reconstruction, the filters, the statistics, the figure.")
 
 
+class JobFilterStateOut(FilterStateOut):
+    """A job track's recursive estimate at one plot."""
+
+    time_utc: str | None = Field(None, description=_TIME_UTC_DOC)
+
+
+class JobFilterOut(FilterOut):
+    """A job track's recursive estimator."""
+
+    states: list[JobFilterStateOut] = Field(description="One estimate per plot, in input "
+                                            "order.")
+
+
 class JobTrackResult(_Out):
     """One reconstructed track of a job (the single-track answer, states at the plots)."""
 
@@ -310,7 +325,7 @@ class JobTrackResult(_Out):
     trajectory: JobTrajectoryOut
     sensors: list[SensorOut] = Field(default_factory=list, description="Each sensor's plots "
                                      "of this track against its reconstruction.")
-    filters: dict[str, FilterOut] = Field(
+    filters: dict[str, JobFilterOut] = Field(
         default_factory=dict, description="The job's `filters` on this track: one state per "
         "plot, in the order of `trajectory.at_plots` (a filter that could not run on the track "
         "is absent, the reason in `diagnostics.warnings`).")

@@ -49,7 +49,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from solver.assessment import write_sensors_figure
-from solver.batch import TRACK_COLUMNS, TrackOutcome, read_part, reconstruct_many
+from solver.batch import SEGMENT_COLUMNS, TRACK_COLUMNS, TrackOutcome, read_part, reconstruct_many
 from solver.config import FILTER_GATE_SIGMA, ReconstructionConfig
 from solver.figure_data import TrackFigureData, read_stored
 from solver.figures import track_png
@@ -72,6 +72,8 @@ FINISHED: frozenset[str] = frozenset({"done", "failed", "cancelled"})
 ACTIVE: frozenset[str] = frozenset({"queued", "running"})
 PARQUET_RESULTS = ("tracks.parquet", "segments.parquet", "filters.parquet", "samples.parquet")
 """Combined into one file each when a job is done (``filters.parquet``: with ``filters``)."""
+RESULT_COLUMNS = {"tracks.parquet": TRACK_COLUMNS, "segments.parquet": SEGMENT_COLUMNS}
+"""Their columns where a part of an earlier version may lack some (:func:`_combine`)."""
 RESULT_FILES = (*PARQUET_RESULTS, "tracks.csv", "tracks.geojsonl", "manoeuvres.csv",
                 "warnings.csv", "sensors.json", "sensors.csv", "problems.txt", "summary.json",
                 "map.png", "sensors.png", "results.zip")
@@ -899,7 +901,7 @@ class JobRunner:
         progress = self.progress(job_id)
         for name in PARQUET_RESULTS:
             _combine(out / name, _committed_parts(progress), export / name,
-                     TRACK_COLUMNS if name == "tracks.parquet" else None)
+                     RESULT_COLUMNS.get(name))
         record = self._db().get(job_id)
         settings = self.options(job_id)
         summary = {"tracks": len(progress.entries), "done": progress.done,
@@ -1060,9 +1062,12 @@ class JobRunner:
     def figure_data(self, job_id: str, aircraft: str) -> tuple[TrackFigureData, bool] | None:
         """A done track's figure's content and whether its times are of the day
         (:func:`solver.figure_data.read_stored`); None when the job kept none for it (its
-        figures were off)."""
+        figures were off); ``FileNotFoundError`` when the job was deleted (its data gone read
+        as none kept: the wrong 404)."""
         entry = self.progress(job_id).entries.get(aircraft)
         if entry is None or entry["status"] != "done" or not entry.get("part"):
+            if self.get(job_id) is None:
+                raise FileNotFoundError(f"job {job_id} was deleted")
             return None
         return read_stored(self.job_dir(job_id) / "out", entry["part"], aircraft)
 

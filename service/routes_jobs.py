@@ -818,10 +818,13 @@ def _filter_rows(t: Any, cov: bool = True) -> dict[str, dict[str, list[dict[str,
         return {}
     cols = t.to_pydict()
     gated_col = cols.get("gated") or [False] * t.num_rows  # parts written before the column
+    utc = (iso_utc(t.column("time_utc")).to_pylist() if "time_utc" in t.column_names
+           else [None] * t.num_rows)  # a part stored before the column: null
     out: dict[str, list[tuple[int, dict[str, Any]]]] = {}
     gated: dict[str, list[int]] = {}
     for i in range(t.num_rows):
         row = {k: cols[k][i] for k in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg")}
+        row["time_utc"] = utc[i]
         row["cov"] = _cov(cols, i) if cov else None
         out.setdefault(cols["filter"][i], []).append((cols["plot"][i], row))
         if gated_col[i]:

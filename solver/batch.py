@@ -14,7 +14,7 @@ Memory is bounded however long the recording: the problems are consumed lazily w
 ``max_in_flight`` tasks submitted, and finished tracks are written as they come, in parts::
 
     OUT/tracks.parquet/part-000001.parquet    states at every plot (see TRACK_COLUMNS)
-    OUT/segments.parquet/part-000001.parquet  constant-control segments
+    OUT/segments.parquet/part-000001.parquet  constant-control segments (SEGMENT_COLUMNS)
     OUT/filters.parquet/part-000001.parquet   the recursive filters asked for (FILTER_COLUMNS)
     OUT/samples.parquet/part-000001.parquet   states on a regular time step, when asked
                                               (SAMPLE_COLUMNS)
@@ -103,10 +103,14 @@ SAMPLE_COLUMNS = ("aircraft", "t", "time_of_day_s", "time_utc", "x", "z", "lat_d
 """Columns of ``samples.parquet``: the reconstructed state every ``sample_step_s`` from the
 track's first plot to its last (the last plot's time always included), propagated from the
 solution with its covariance, as the single-track answer's ``trajectory.samples``."""
-SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "x", "z", "heading_deg", "speed", "u", "w")
+SEGMENT_COLUMNS = ("aircraft", "t_start", "t_end", "time_utc_start", "time_utc_end", "x", "z",
+                   "heading_deg", "speed", "u", "w")
+"""Columns of ``segments.parquet``: the constant-control pieces, their ends' ``t`` and, as
+``time_utc`` of ``tracks.parquet``, their UTC times (null without the date)."""
 _TYPES = {"aircraft": pa.string(), "sensor": pa.string(), "filter": pa.string(),
           "source": pa.string(), "plot": pa.int32(), "gated": pa.bool_(),
-          "wild": pa.bool_(), "no_reference": pa.bool_(), "time_utc": UTC}  # others: float64
+          "wild": pa.bool_(), "no_reference": pa.bool_(), "time_utc": UTC,
+          "time_utc_start": UTC, "time_utc_end": UTC}  # others: float64
 
 
 def read_part(path: Path, names: Sequence[str] = TRACK_COLUMNS) -> pa.Table:
@@ -229,7 +233,7 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
                                   "numerical solution")
         clock = (times_of_day, date)
         states = _states_table(key, table, rec.at_plots, clock, rec.residuals)
-        segments = _segments_table(key, rec)
+        segments = _segments_table(key, rec, clock)
         sampled = _samples_table(key, table, rec.samples, clock) if samples else None
         more = extras(rec) if extras is not None else {}
         warnings += rec.diagnostics.warnings
@@ -384,12 +388,15 @@ def _nullable(a: Any, n: int) -> pa.Array:
     return pa.array(np.asarray(a, float), pa.float64(), from_pandas=True)
 
 
-def _segments_table(key: str, rec: Any) -> pa.Table:
+def _segments_table(key: str, rec: Any, clock: Clock) -> pa.Table:
     segs = rec.segments
+    date = clock[1] if clock[0] else None
     return pa.table({
         "aircraft": pa.array([key] * len(segs), pa.string()),
         "t_start": pa.array([g.t_start for g in segs], pa.float64()),
         "t_end": pa.array([g.t_end for g in segs], pa.float64()),
+        "time_utc_start": utc_times(np.array([g.t_start for g in segs], float), date),
+        "time_utc_end": utc_times(np.array([g.t_end for g in segs], float), date),
         "x": pa.array([g.x for g in segs], pa.float64()),
         "z": pa.array([g.z for g in segs], pa.float64()),
         "heading_deg": pa.array([float(full_turn(np.rad2deg(g.heading), 360.0)) for g in segs],

@@ -13,8 +13,8 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 ``LocalCluster`` sized to the cores, or the cluster at ``--scheduler``; the task:
 :mod:`solver.track_task`) with a progress bar, and writes into ``DIR``:
 
-- with the recording's date (a capture's packet times, a table's ``timestamp``, else
-  ``--date``: :mod:`solver.io.dates`) ``time_utc`` beside ``t`` in every output;
+- with the recording's date (``--date``, else a capture's packet times or a table's
+  ``timestamp``: :mod:`solver.io.dates`) ``time_utc`` beside ``t`` in every output;
 - ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
   with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
   resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
@@ -367,8 +367,9 @@ def parser() -> argparse.ArgumentParser:
                      help="the UTC date of the midnight the recording's times of day count "
                      "from (its first plot's day), for the UTC times of the outputs "
                      "(time_utc): a raw ASTERIX or IOSS recording does not carry it; a pcap "
-                     "capture's packet times and a table's timestamp column give it, and a "
-                     "date that contradicts them is an error")
+                     "capture's packet times give it (a date given overrides theirs, reported: "
+                     "date_override), a table's timestamp column too (a date that "
+                     "contradicts it is an error)")
     rec.add_argument("--filters", nargs="+", default=[], choices=FILTER_NAMES,
                      metavar="FILTER", help="recursive filters run beside the reconstruction "
                      f"into --out/filters.parquet ({', '.join(FILTER_NAMES)})")

@@ -692,13 +692,15 @@ def test_known_offsets_reach_the_tracks_a_radar_sees_alone(tmp_path, capsys, sch
     assert err["estimated"] > 150.0 and err["known"] < 25.0, err
 
 
-def test_date_gives_the_captures_utc_times_and_a_contradicting_one_is_refused(
+def test_date_gives_the_captures_utc_times_and_overrides_the_captures_own(
         recording, tmp_path, capsys, scheduler):
     """The recording across midnight as raw ASTERIX with ``--date`` and as a pcap capture
     stamped by a right clock without it: the same ``time_utc`` in tracks.parquet (each row's
     ``t`` on 2023-11-14, Python's datetime as the reference: those past midnight on the 15th),
     in tracks.csv (ISO 8601 ending in Z), the GeoJSON lines and manoeuvres.csv's header; the
-    capture with a ``--date`` it contradicts exits 2 naming both dates, before any track."""
+    capture with another ``--date`` is timed on it, a ``date_override`` problem naming both in
+    problems.txt and the summary (it exited 2: a host clock whole days off could not be
+    corrected)."""
     import datetime as dt
 
     from test_io_asterix import CAPTURE_DAY, pcap
@@ -731,13 +733,19 @@ def test_date_gives_the_captures_utc_times_and_a_contradicting_one_is_refused(
         got[name] = (table.column("aircraft").to_pylist(), utc)
     assert got["day.ast"] == got["day.pcap"]
     capsys.readouterr()
+    out = tmp_path / "other-day"
     assert main([str(tmp_path / "day.pcap"), "--sensors", str(d / "sensors.json"), "--out",
-                 str(tmp_path / "wrong"), "--scheduler", scheduler, "--no-progress",
-                 "--date", "2023-11-15"]) == 2
-    err = capsys.readouterr().err
-    assert "date 2023-11-15 contradicts the recording's own date 2023-11-14 (from its " \
-        "capture's packet times)" in err
-    assert not (tmp_path / "wrong" / "progress.jsonl").exists()
+                 str(out), "--scheduler", scheduler, "--no-progress",
+                 "--date", "2023-11-15"]) == 0
+    assert "date_override 1" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["recording_date"] == "2023-11-15" and summary["problems"] == {
+        "date_override": 1}
+    assert ("date_override at date: the date given, 2023-11-15, overrides 2023-11-14 (from its "
+            "capture's packet times)") in (out / "problems.txt").read_text()
+    utc = pq.read_table(out / "tracks.parquet").sort_by([("aircraft", "ascending"),
+                                                         ("t", "ascending")]).column("time_utc")
+    assert utc.to_pylist() == [u + dt.timedelta(days=1) for u in got["day.pcap"][1]]
     with pytest.raises(SystemExit):  # argparse: not a calendar day
         main([str(tmp_path / "day.ast"), "--sensors", str(d / "sensors.json"), "--out",
               str(tmp_path / "bad"), "--date", "2023-02-29"])

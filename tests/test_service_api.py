@@ -71,11 +71,14 @@ def test_readyz_waits_for_warm_solvers(client):
 
 
 def test_health_answers_head_as_get_without_a_body(client):
-    """Load balancers probe with HEAD."""
+    """Load balancers probe with HEAD: the GET's status and headers (hand-written HEAD routes
+    answered Content-Length 0 without a Content-Type), no body."""
     for path in ("/healthz", "/readyz"):
-        r = client.head(path)
-        assert r.status_code == client.get(path).status_code == 200, path
+        r, get = client.head(path), client.get(path)
+        assert r.status_code == get.status_code == 200, path
         assert r.content == b""
+        for name in ("content-type", "content-length"):
+            assert r.headers.get(name) == get.headers[name], (path, name)
 
 
 def test_reconstruction_matches_in_process_solver(client):

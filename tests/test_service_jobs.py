@@ -17,6 +17,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
@@ -99,11 +100,13 @@ def test_pcapng_capture_job_runs_to_done(client):
     assert status["plots"] == status["plots_done"] == status["rows"] > 0.95 * len(enc.plots)
 
 
-def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
+def test_job_date_gives_utc_times_overrides_a_captures_and_a_contradicting_one_fails(client):
     """`options.date` on a raw recording (which says no date): every state's `time_utc` is its
     `t` on that day (Python's datetime as the reference), the segments' and samples' too, and
     the status says the date; a pcap capture whose packet times give 2023-11-14, with a date of
-    the 15th, fails at once naming both dates."""
+    the 15th, is timed on the 15th with a `date_override` problem naming both (a host clock
+    may be whole days off: it failed, the right date could not be given); a table whose
+    `timestamp` says the 9th, with the 10th, fails at once naming both dates."""
     import datetime as dt
 
     from test_io_asterix import CAPTURE_DAY, pcap
@@ -111,7 +114,8 @@ def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
     enc = encode_recording(duration=30.0)
     r = client.post("/v1/jobs", files={"recording": ("day.ast", enc.data),
                                        "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
-                    data={"options": json.dumps({"date": CAPTURE_DAY, "sample_step_s": 10.0})})
+                    data={"options": json.dumps({"date": CAPTURE_DAY, "sample_step_s": 10.0,
+                                                 "filters": ["singer"]})})
     assert r.status_code == 202, r.text
     loc = r.headers["location"]
     status = wait(client, loc)
@@ -127,6 +131,15 @@ def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
     assert all(g["time_utc_start"] == iso(g["t_start"]) and g["time_utc_end"] == iso(g["t_end"])
                for g in body["segments"])
     assert body["at_plots"][0]["time_utc"].startswith("2023-11-14T10:00:")
+    # the filters' states too (they had no time_utc), and segments.parquet's ends (it had none)
+    states = client.get(f"{loc}/tracks/{FLIGHTS[0].address:06X}").json()["filters"]["singer"][
+        "states"]
+    assert states and all(s["time_utc"] == iso(s["t"]) for s in states)
+    segments = pq.read_table(io.BytesIO(client.get(loc + "/results/segments.parquet").content))
+    for end in ("start", "end"):
+        assert segments.schema.field(f"time_utc_{end}").type == pa.timestamp("us", tz="UTC")
+        assert segments.column(f"time_utc_{end}").to_pylist() == [
+            midnight + dt.timedelta(seconds=t) for t in segments.column(f"t_{end}").to_pylist()]
     summary = json.loads(client.get(loc + "/results/summary.json").content)
     assert summary["recording_date"] == CAPTURE_DAY
 
@@ -134,10 +147,28 @@ def test_job_date_gives_utc_times_and_a_contradicting_one_fails_the_job(client):
                                        "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
                     data={"options": json.dumps({"date": "2023-11-15"})})
     assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    status = wait(client, loc)
+    assert status["state"] == "done", status
+    assert status["problems"]["counts"] == {"date_override": 1}, status["problems"]
+    assert ("date_override at date: the date given, 2023-11-15, overrides 2023-11-14 (from "
+            "its capture's packet times)") in status["problems"]["examples"][0]
+    summary = json.loads(client.get(loc + "/results/summary.json").content)
+    assert summary["recording_date"] == "2023-11-15"
+    assert summary["problems"] == {"date_override": 1}
+    body = client.get(f"{loc}/tracks/{FLIGHTS[0].address:06X}").json()["trajectory"]
+    assert body["at_plots"][0]["time_utc"].startswith("2023-11-15T10:00:")
+
+    table = ("timestamp,sensor,range_m,azimuth_deg\n2024-03-09T10:00:00Z,R1,50000,10\n"
+             "2024-03-09T10:00:04Z,R1,50100,10\n")
+    r = client.post("/v1/jobs", files={"recording": ("day.csv", table.encode()),
+                                       "sensors": ("sensors.json", json.dumps(SENSOR_FILE))},
+                    data={"options": json.dumps({"date": "2024-03-10"})})
+    assert r.status_code == 202, r.text
     status = wait(client, r.headers["location"])
     assert status["state"] == "failed", status
-    assert status["error"].startswith("options.date 2023-11-15 contradicts the recording's "
-                                      "own date 2023-11-14 (from its capture's packet times)"
+    assert status["error"].startswith("options.date 2024-03-10 contradicts the recording's "
+                                      "own date 2024-03-09 (from its timestamp column)"
                                       ), status
 
 
@@ -1354,6 +1385,9 @@ def test_a_jobs_track_has_the_manoeuvres_of_the_single_track_answer(client):
         assert g.pop("time_utc_start") is None and g.pop("time_utc_end") is None
         assert g == {k: v if isinstance(v, str) else pytest.approx(v, rel=1e-9, abs=1e-6)
                      for k, v in e.items()}
+    segments = pq.read_table(io.BytesIO(client.get(loc + "/results/segments.parquet").content))
+    assert segments.num_rows and all(segments.column(f"time_utc_{end}").null_count
+                                     == segments.num_rows for end in ("start", "end"))
     table = list(csv.DictReader(io.StringIO(client.get(loc + "/results/manoeuvres.csv").text)))
     assert [(m["aircraft"], m["kind"], m["direction"]) for m in table] == [
         ("SEED", e["kind"], e["direction"]) for e in expected]
@@ -1628,6 +1662,29 @@ def test_track_figures_drawn_at_once_are_bounded_and_each_drawn_once(client, mon
     assert client.get(f"{loc}/tracks/A/figure.png").status_code == 200  # kept
     assert calls == ["A"]
     assert client.delete(loc).status_code == 204
+
+
+def test_a_track_figure_asked_for_as_its_job_is_deleted_is_the_deleted_404(client, monkeypatch):
+    """A figure request whose job is deleted before its drawing reads the job's data is the
+    job-deleted 404 (it was "its job kept nothing to draw it from ... jobs_track_figures":
+    the data of a deleted job read as none kept)."""
+    runner = client.app.state.jobs
+    sensors, tracks = json_tracks(encode_recording(duration=20.0))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
+    loc, job_id = r.headers["location"], r.json()["id"]
+    assert wait(client, loc)["state"] == "done"
+    cached = runner.figure
+
+    def deleted_meanwhile(job: str, key: str):
+        got = cached(job, key)  # not drawn yet: None
+        assert runner.cancel(job) is None  # the finished job removed with its data
+        return got
+
+    monkeypatch.setattr(runner, "figure", deleted_meanwhile)
+    gone = client.get(f"{loc}/tracks/A/figure.png")
+    assert gone.status_code == 404, gone.text
+    assert "deleted" in gone.json()["message"] and "kept nothing" not in gone.text, gone.text
+    assert not runner.job_dir(job_id).exists()
 
 
 def test_a_track_figure_of_a_running_job_and_one_drawn_while_its_job_is_deleted(

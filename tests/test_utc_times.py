@@ -154,8 +154,8 @@ def test_a_streamed_capture_whose_first_unit_has_no_plot_dates_its_tracks(tmp_pa
                                                                          monkeypatch):
     """Streamed in 512-byte units as the command line reads, a capture that starts with 1 KB
     of CAT034 service messages (no plot): the date is known when the first track comes out
-    (the command line hands it to every track's task then), and a date given that contradicts
-    it raises before any track, naming the file."""
+    (the command line hands it to every track's task then), and a date given that differs
+    overrides it, reported (``date_override``) before any track."""
     import json
 
     from test_io_asterix import SENSOR_FILE
@@ -173,8 +173,40 @@ def test_a_streamed_capture_whose_first_unit_has_no_plot_dates_its_tracks(tmp_pa
     read = reading.stream(path, tmp_path / "sensors.json")
     assert read.date == CAPTURE_DAY
     assert len(list(read.tracks)) == 2 and not read.problems
-    with pytest.raises(InputError, match=r"2023-11-13 contradicts .* \(in .*day.pcap\)"):
-        reading.stream(path, tmp_path / "sensors.json", date="2023-11-13")
+    read = reading.stream(path, tmp_path / "sensors.json", date="2023-11-13")
+    assert read.date == "2023-11-13" and read.problems.counts == {"date_override": 1}
+    assert "2023-11-13, overrides 2023-11-14" in str(read.problems.entries[0])
+
+
+def test_a_capture_clock_whole_days_off_yields_to_the_date_given(tmp_path):
+    """A capturing host's clock with the right time of day but 3 days ahead: the capture's
+    date is 3 days late and no clock_disagreement can show it (the check is modulo a day).
+    The right date given overrides it (it was refused as contradicting the capture's own),
+    reported as ``date_override`` naming both dates; a table's ``timestamp`` still refuses
+    a date that contradicts it (test_table_timestamps_across_midnight_and_a_given_date)."""
+    import json
+
+    from test_io_asterix import SENSOR_FILE
+
+    import solver.io.reading as reading
+
+    enc = encode_recording(tod0=36_000.0, duration=20.0)
+    times = [p + 3 * 86_400.0 for p in capture_times(enc.blocks)]
+    path = tmp_path / "day.pcap"
+    path.write_bytes(pcap(enc.blocks, times=times))
+    (tmp_path / "sensors.json").write_text(json.dumps(SENSOR_FILE))
+    rec = read_recording(path, SENSORS)
+    assert rec.rows.date == "2023-11-17" and not rec.problems
+    assert recording_date(rec.rows, None, True) == "2023-11-17"  # nothing tells it wrong
+    loaded = reading.load(path, tmp_path / "sensors.json", date=CAPTURE_DAY)
+    assert loaded.date == CAPTURE_DAY
+    assert loaded.problems.counts == {"date_override": 1}
+    entry = loaded.problems.entries[0]
+    assert (entry.kind, entry.where) == ("date_override", "date")
+    assert ("the date given, 2023-11-14, overrides 2023-11-17 (from its capture's packet "
+            "times)") in entry.message and "3 days (ahead)" in entry.message
+    assert utc_times(loaded.rows.t[:1], loaded.date).to_pylist()[0] == \
+        MIDNIGHT + dt.timedelta(seconds=float(loaded.rows.time_of_day_s[0]))
 
 
 def test_table_timestamps_across_midnight_and_a_given_date():
@@ -206,6 +238,18 @@ def test_table_timestamps_across_midnight_and_a_given_date():
     own_t, _ = read_csv(b"t,sensor,range_m,azimuth_deg\n5,R1,50000,10\n")
     with pytest.raises(InputError, match="counts from no UTC midnight"):
         recording_date(own_t, "2024-03-09", False)
+
+
+def test_table_timestamps_with_rfc3339_lower_case_t_and_z():
+    """RFC 3339 allows ``t`` and ``z`` in lower case: read as ``T`` and ``Z`` (a lower-case
+    ``z`` was a bad value, "not a time", though its regex took it as zoned)."""
+    csv = ("timestamp,sensor,range_m,azimuth_deg\n2024-03-09T10:00:00z,R1,50000,10\n"
+           "2024-03-09t10:00:01.5Z,R1,50000,11\n2024-03-09t05:00:02-05:00,R1,50000,12\n"
+           "2024-03-09t10:00:03,R1,50000,13\n")
+    rows, problems = read_csv(csv.encode())
+    assert not problems, problems.summary()
+    assert rows.date == "2024-03-09"
+    np.testing.assert_allclose(rows.t, [36_000.0, 36_001.5, 36_002.0, 36_003.0])
 
 
 def test_table_timestamp_column_checks():

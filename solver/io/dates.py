@@ -8,8 +8,10 @@ seconds from the UTC midnight before their first plot, and no date. It is known:
   rows where it is more than :data:`CLOCK_TOLERANCE_S` off a midnight are reported
   (``clock_disagreement``), and the date is taken only where most rows agree on one;
 - from a plot table's ``timestamp`` column (:mod:`solver.io.tables`);
-- else from the user (``--date``, a job's ``options.date``; :func:`parse_date`), checked
-  against the recording's own (:func:`resolve_date`).
+- from the user (``--date``, a job's ``options.date``; :func:`parse_date`), checked
+  against the recording's own (:func:`resolve_date`): it overrides a capture's (a host clock
+  may be whole days off with the right time of day, which the check above cannot see),
+  reported (``date_override``); one that contradicts a table's ``timestamp`` is an error.
 
 An IOSS (FINAL) frame's one-byte "recording day" gives no date: 0 in jASTERIX's samples, no
 month or year (a day count of the recorder's, not a calendar date), so it is not used.
@@ -143,11 +145,25 @@ class CaptureClock:
                 problems.add("date_disagreement", at, message, key=name)
 
 
-def resolve_date(own: str | None, given: str | None, what: str) -> str | None:
-    """The date to time a recording by: its own (``what`` says where from), else the one
-    given; :class:`InputError` at ``date`` when both are known and differ (a day's error in
-    every UTC time either way: the user decides which is right)."""
-    if given is not None and own is not None and given != own:
+def resolve_date(own: str | None, given: str | None, what: str, *, clock: bool = False,
+                 problems: Problems | None = None) -> str | None:
+    """The date to time a recording by: the one given, else its own (``what`` says where
+    from). When both are known and differ: a date of a capture's packet times (``clock``: a
+    host clock whole days off keeps the right time of day, so no ``clock_disagreement`` shows
+    it) yields to the given one, reported in ``problems`` as ``date_override`` naming both;
+    a date the data hold (a table's ``timestamp``) is an :class:`InputError` at ``date``."""
+    if given is None or own is None or given == own:
+        return own if own is not None else given
+    if not clock:
         raise InputError(("date",), f"{given} contradicts the recording's own date {own} "
                          f"({what}): leave the date out, or correct it")
-    return own if own is not None else given
+    if problems is not None:
+        problems.add("date_override", "date", f"the date given, {given}, overrides {own} "
+                     f"({what}): the capturing host's clock is taken as wrong by "
+                     f"{_days_between(own, given)}; the UTC times are on {given}", key="date")
+    return given
+
+
+def _days_between(own: str, given: str) -> str:
+    days = int((np.datetime64(given, "D") - np.datetime64(own, "D")).astype(int))
+    return f"{abs(days)} day{'s' * (abs(days) != 1)} ({'behind' if days > 0 else 'ahead'})"

@@ -55,18 +55,21 @@ class Loaded:
     date: str | None = None  # the UTC date of that midnight (recording_date)
 
 
-def recording_date(rows: PlotRows, given: str | None, times_of_day: bool) -> str | None:
-    """The UTC date of the midnight ``t`` counts from: the recording's own (``rows.date``: a
-    capture's packet times, a table's ``timestamp``), else ``given`` (``--date``, a job's
-    ``options.date``); :class:`InputError` at ``date`` when the two differ, or when a date is
-    given for times that do not count from a midnight (a table's own ``t``, any epoch)."""
+def recording_date(rows: PlotRows, given: str | None, times_of_day: bool,
+                   problems: Problems | None = None) -> str | None:
+    """The UTC date of the midnight ``t`` counts from (:func:`solver.io.dates.resolve_date`):
+    ``given`` (``--date``, a job's ``options.date``), else the recording's own (``rows.date``:
+    a capture's packet times, a table's ``timestamp``). A given date overrides a capture's
+    (``date_override`` in ``problems``); :class:`InputError` at ``date`` when it contradicts a
+    table's ``timestamp``, or is given for times that do not count from a midnight (a table's
+    own ``t``, any epoch)."""
     if given is not None and not times_of_day and rows.date is None and len(rows):
         raise InputError(("date",), f"{given} cannot place the recording's times: its `t` "
                          "counts from no UTC midnight (a table's own t, any epoch): give the "
                          "table a time_of_day_s or a timestamp column, or leave the date out")
-    what = ("from its timestamp column" if rows.origin_unit == "row"
-            else "from its capture's packet times")
-    return resolve_date(rows.date, given, what)
+    table = rows.origin_unit == "row"
+    what = "from its timestamp column" if table else "from its capture's packet times"
+    return resolve_date(rows.date, given, what, clock=not table, problems=problems)
 
 
 def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS, *,
@@ -86,7 +89,7 @@ def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS, *
         periods = {sid: st.rotation_period_s for sid, st in rec.service.items()
                    if st.rotation_period_s}
     times_of_day = counts_from_midnight(rows)
-    day = recording_date(rows, date, times_of_day)
+    day = recording_date(rows, date, times_of_day, problems)
     frame = recording_frame(sensors, rows)
     tracks = split_aircraft(rows, sensors, reference=frame, problems=problems,
                             max_speed=max_speed)
@@ -120,7 +123,8 @@ class Streamed:
         if self.times_of_day is None and len(rows):
             self.times_of_day = counts_from_midnight(rows)
         if first:  # before any track of them is taken
-            self.date = recording_date(rows, self.given_date, bool(self.times_of_day))
+            self.date = recording_date(rows, self.given_date, bool(self.times_of_day),
+                                       self.problems)
         if self.frame is None:  # as split_stream: the first part that gives one
             self.frame = recording_frame(self.sensors, rows)
         return rows
@@ -138,7 +142,8 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
     sensor file or table header it cannot use, a capture of a link type not read) raises
     here, before any track is taken. ``editions``: the ASTERIX editions
     (:func:`solver.io.asterix.read_recording`; None: the defaults); ``date``: the date given
-    for it (:func:`recording_date`, checked on the first rows: a contradiction raises here)."""
+    for it (:func:`recording_date`, checked on the first rows: a table's timestamps it
+    contradicts raise here)."""
     sensors = load_sensors(sensors_path)
     out = Streamed(sensors, Problems(), iter(()), given_date=date, date=date)
     parts = _row_parts(recording, out, executor, editions)

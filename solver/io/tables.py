@@ -836,8 +836,8 @@ def timestamp_ns(col: pa.ChunkedArray | pa.Array,
                  report: Callable[[np.ndarray, str, str], None]) -> np.ndarray:
     """A ``timestamp`` column as epoch nanoseconds (int64; :data:`NO_TIME` where missing or
     bad, the bad ones reported): an Arrow timestamp (naive: UTC), epoch seconds (numbers, or
-    text of them), or ISO 8601 text (``2024-03-09T10:00:00.5Z``, ``+01:00``; without a zone:
-    UTC, as surveillance data are timed)."""
+    text of them), or ISO 8601 text (``2024-03-09T10:00:00.5Z``, ``+01:00``, RFC 3339's lower
+    case ``t`` and ``z`` too; without a zone: UTC, as surveillance data are timed)."""
     n = len(col)
     out = np.full(n, NO_TIME, dtype=np.int64)
     if pa.types.is_null(col.type):
@@ -879,15 +879,15 @@ def timestamp_ns(col: pa.ChunkedArray | pa.Array,
         for start in range(0, every.size, ISO_CHUNK_ROWS):
             idx = every[start:start + ISO_CHUNK_ROWS]
             part = text.take(pa.array(idx))
-            try:
-                out[idx] = np.asarray(pc.cast(part, kind).cast(pa.int64())
+            try:  # upper case: RFC 3339's t and z (Arrow reads T and Z only)
+                out[idx] = np.asarray(pc.cast(pc.utf8_upper(part), kind).cast(pa.int64())
                                       .to_numpy(zero_copy_only=False), dtype=np.int64)
                 continue
             except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
                 pass
             for i, v in zip(idx.tolist(), part.to_pylist(), strict=True):  # the bad ones
                 try:
-                    out[i] = pa.scalar(v).cast(kind).cast(pa.int64()).as_py()
+                    out[i] = pa.scalar(v.upper()).cast(kind).cast(pa.int64()).as_py()
                 except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
                     report(np.array([i]), "timestamp", f"{v!r} is not a time (ISO 8601, e.g. "
                            "2024-03-09T10:00:00.5Z, or epoch seconds)")
