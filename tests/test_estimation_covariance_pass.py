@@ -49,6 +49,19 @@ def _loop(P0, Phi, Q, updates):
     return Pp, Pf
 
 
+
+class _Stop(Exception):
+    pass
+
+
+def _stop_at(k: int, calls: list[int]):
+    """A ``check`` that counts its calls in ``calls`` and raises :class:`_Stop` at the k-th."""
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == k:
+            raise _Stop
+    return check
+
 @pytest.mark.parametrize("n", [1, 2, 15, 16, 17, 300, 1100])
 def test_filter_matches_the_loop_across_chain_sizes(n):
     rng = np.random.default_rng(n)
@@ -140,16 +153,9 @@ def test_check_is_called_before_every_block_of_steps():
                          check=lambda: calls.append(1), check_every=256)
     assert len(calls) == 5  # before steps 0, 256, 512, 768, 1024
 
-    class Stop(Exception):
-        pass
-
-    def stop_second() -> None:
-        calls.append(1)
-        if len(calls) == 2:
-            raise Stop
-
     calls.clear()
-    with pytest.raises(Stop):
+    stop_second = _stop_at(2, calls)
+    with pytest.raises(_Stop):
         filtered_covariances(P0, Phi, Q, ((H, R, measured[:, None] * np.ones(nx)),),
                              check=stop_second, check_every=CHUNK_SIZES[0])
 
@@ -172,16 +178,9 @@ def test_smoother_checks_before_every_block_of_steps_and_many_states_match():
     _, Ps_ref = rts_smoother(np.zeros((n, nx)), Pf, np.zeros((n, nx)), Pp, Phi)
     np.testing.assert_allclose(Ps, Ps_ref, rtol=1e-8, atol=1e-8)
 
-    class Stop(Exception):
-        pass
-
-    def stop_second() -> None:
-        calls.append(1)
-        if len(calls) == 2:
-            raise Stop
-
     calls.clear()
-    with pytest.raises(Stop):
+    stop_second = _stop_at(2, calls)
+    with pytest.raises(_Stop):
         smoothed_covariances(Pf, Pp, Phi, check=stop_second, check_every=CHUNK_SIZES[0])
 
 

@@ -40,17 +40,18 @@ def largest_chain(nx: int) -> int:
     return max([s for s in CHUNK_SIZES if s * nx * nx <= CHAIN_ENTRIES], default=CHUNK_SIZES[0])
 
 
-def _update(P: ca.MX, H: ca.MX, R: ca.MX, gain: ca.MX) -> ca.MX:
-    """Joseph-form update with the gain masked row by row; ``S^-1`` in closed form for one or
-    two measured components."""
-    PHt = ca.mtimes(P, H.T)
-    S = ca.mtimes(H, PHt) + R
+def _inverse(S: ca.MX) -> ca.MX:
+    """``S^-1`` in closed form for one or two measured components."""
     if S.shape == (1, 1):
-        Sinv = 1.0 / S
-    else:
-        a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
-        Sinv = ca.vertcat(ca.horzcat(d, -b), ca.horzcat(-c, a)) / (a * d - b * c)
-    K = ca.mtimes(ca.diag(gain), ca.mtimes(PHt, Sinv))
+        return 1.0 / S
+    a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
+    return ca.vertcat(ca.horzcat(d, -b), ca.horzcat(-c, a)) / (a * d - b * c)
+
+
+def _update(P: ca.MX, H: ca.MX, R: ca.MX, gain: ca.MX) -> ca.MX:
+    """Joseph-form update with the gain masked row by row (``S^-1`` by :func:`_inverse`)."""
+    PHt = ca.mtimes(P, H.T)
+    K = ca.mtimes(ca.diag(gain), ca.mtimes(PHt, _inverse(ca.mtimes(H, PHt) + R)))
     IKH = ca.MX.eye(P.shape[0]) - ca.mtimes(K, H)
     return ca.mtimes(ca.mtimes(IKH, P), IKH.T) + ca.mtimes(ca.mtimes(K, R), K.T)
 
@@ -83,13 +84,7 @@ def _update_rank(P: ca.MX, H: ca.MX, R: ca.MX, gain: ca.MX) -> ca.MX:
     1e12 m^2 prior (3e69 m^2 at the end of a test's 250 nodes); with ``(P H^T)^T`` for ``H P``
     (P is symmetric only to rounding) x's sigma ended 238 m for 27 m."""
     U = ca.mtimes(P, H.T)
-    S = ca.mtimes(H, U) + R
-    if S.shape == (1, 1):
-        Sinv = 1.0 / S
-    else:
-        a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
-        Sinv = ca.vertcat(ca.horzcat(d, -b), ca.horzcat(-c, a)) / (a * d - b * c)
-    K = ca.repmat(gain, 1, H.shape[0]) * ca.mtimes(U, Sinv)
+    K = ca.repmat(gain, 1, H.shape[0]) * ca.mtimes(U, _inverse(ca.mtimes(H, U) + R))
     W = P - ca.mtimes(K, ca.mtimes(H, P))
     return W - ca.mtimes(ca.mtimes(W, H.T), K.T) + ca.mtimes(ca.mtimes(K, R), K.T)
 
