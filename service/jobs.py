@@ -1059,8 +1059,9 @@ class JobRunner:
         d = figure_dir(self.job_dir(job_id) / "out" / "figures", aircraft)
         return next(iter(sorted(d.glob("*.png"))), None) if d.is_dir() else None
 
-    def figure_data(self, job_id: str, aircraft: str) -> tuple[TrackFigureData, bool] | None:
-        """A done track's figure's content and whether its times are of the day
+    def figure_data(self, job_id: str, aircraft: str
+                    ) -> tuple[TrackFigureData, bool, str | None] | None:
+        """A done track's figure's content, whether its times are of the day and their date
         (:func:`solver.figure_data.read_stored`); None when the job kept none for it (its
         figures were off); ``FileNotFoundError`` when the job was deleted (its data gone read
         as none kept: the wrong 404)."""
@@ -1081,8 +1082,8 @@ class JobRunner:
         got = self.figure_data(job_id, aircraft)
         if got is None:
             return None
-        data, times_of_day = got
-        image = track_png(data, title=aircraft, times_of_day=times_of_day)
+        data, times_of_day, date = got
+        image = track_png(data, title=aircraft, times_of_day=times_of_day, date=date)
         figures = self.job_dir(job_id) / "out" / "figures"
         with contextlib.suppress(FileExistsError):
             figures.mkdir()  # not its parents: out/ of a deleted job stays gone

@@ -540,7 +540,8 @@ def plot(args: argparse.Namespace) -> list[Path]:
                 continue
             rec = reconstruct(track.table, config=config)
             written.append(save(track_figure(track.table, rec, title=track.key,
-                                             times_of_day=bool(loaded.times_of_day)),
+                                             times_of_day=bool(loaded.times_of_day),
+                                             date=loaded.date),
                                 out / "figures" / f"{track_file_name(track.key)}.png"))
             wanted.discard(track.key)
             if not wanted:

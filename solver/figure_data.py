@@ -21,6 +21,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .inputs import FloatArray
+from .io.dates import UTC
 from .plots import PlotTable
 from .results import Reconstruction, Segment
 
@@ -181,10 +182,12 @@ def from_stored(states: pa.Table, segments: pa.Table, rows: pa.Table,
         sample_h_sigma=h_sigma, segments=segs)
 
 
-def read_stored(out: Path, part: str, key: str) -> tuple[TrackFigureData, bool] | None:
+def read_stored(out: Path, part: str, key: str
+                ) -> tuple[TrackFigureData, bool, str | None] | None:
     """The figure's content of the track ``key`` committed in ``part`` of the run in ``out``
-    (:func:`from_stored`) and whether its times are of the day (its ``time_of_day_s``
-    filled); None when the run kept no figure data for it."""
+    (:func:`from_stored`), whether its times are of the day (its ``time_of_day_s`` filled)
+    and the date of the midnight they count from (``time_utc - t``; None when not known);
+    None when the run kept no figure data for it."""
     path = out / FIGURE_DATA / part
     if not path.is_file():
         return None
@@ -197,4 +200,17 @@ def read_stored(out: Path, part: str, key: str) -> tuple[TrackFigureData, bool] 
     samples = out / "samples.parquet" / part
     kept = pq.read_table(samples, filters=flt) if samples.is_file() else None
     return (from_stored(states, segments, rows, kept),
-            states.column("time_of_day_s").null_count == 0)
+            states.column("time_of_day_s").null_count == 0, _date(states))
+
+
+def _date(states: pa.Table) -> str | None:
+    """The UTC date ``t`` counts from, off the first state with a ``time_utc``."""
+    if "time_utc" not in states.column_names:
+        return None
+    utc = states.column("time_utc").cast(UTC).cast(pa.int64())
+    known = np.flatnonzero(utc.is_valid().to_numpy(zero_copy_only=False))
+    if not known.size:
+        return None
+    i = int(known[0])
+    midnight = utc[i].as_py() - round(states.column("t")[i].as_py() * 1e6)
+    return str(np.datetime64(midnight, "us").astype("datetime64[D]"))

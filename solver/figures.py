@@ -93,19 +93,20 @@ def _time_axis(ax: Axes, times_of_day: bool) -> None:
         lo, hi = ax.get_xlim()
         step = next((s for s in CLOCK_STEPS_S if (hi - lo) / s <= 7), CLOCK_STEPS_S[-1])
         ax.xaxis.set_major_locator(MultipleLocator(step))
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: clock(v)))
+        ax.xaxis.set_major_formatter(FuncFormatter(  # "+1d" below: the ticks were one line
+            lambda v, _: clock(v).replace(" +", "\n+")))  # and ran into each other
         ax.set_xlabel("time of day (UTC)")
     else:
         ax.set_xlabel("t (s)")
 
 
 def track_figure(table: PlotTable, rec: Reconstruction, title: str = "",
-                 times_of_day: bool = False) -> Figure:
+                 times_of_day: bool = False, date: str | None = None) -> Figure:
     """One aircraft's plots, reconstruction and controls (see the module docstring);
     ``times_of_day``: the table's times are seconds from a UTC midnight (a recording's),
-    shown as clock times. :func:`draw_track_figure` of
-    :func:`solver.figure_data.from_reconstruction`."""
-    return draw_track_figure(from_reconstruction(table, rec), title, times_of_day)
+    shown as clock times, ``date`` that midnight's (in the title). :func:`draw_track_figure`
+    of :func:`solver.figure_data.from_reconstruction`."""
+    return draw_track_figure(from_reconstruction(table, rec), title, times_of_day, date)
 
 
 DRAWING = threading.Lock()
@@ -114,11 +115,12 @@ parser (the controls' ``m/s^2`` labels) is one object per process, and figures d
 in threads failed its parse (``ParseException ... at char 0``: 4 threads, 24 figures)."""
 
 
-def track_png(data: TrackFigureData, title: str = "", times_of_day: bool = False) -> bytes:
+def track_png(data: TrackFigureData, title: str = "", times_of_day: bool = False,
+              date: str | None = None) -> bytes:
     """:func:`draw_track_figure` as PNG bytes, one figure at a time in this process
     (:data:`DRAWING`; drawing is Python under the GIL: threads gained nothing anyway)."""
     with DRAWING:
-        return png(draw_track_figure(data, title, times_of_day))
+        return png(draw_track_figure(data, title, times_of_day, date))
 
 
 def _covariances(terms: FloatArray) -> FloatArray:
@@ -130,7 +132,7 @@ def _covariances(terms: FloatArray) -> FloatArray:
 
 
 def draw_track_figure(data: TrackFigureData, title: str = "",
-                      times_of_day: bool = False) -> Figure:
+                      times_of_day: bool = False, date: str | None = None) -> Figure:
     """:func:`track_figure` of its content (a reconstruction's, or one a run stored:
     :mod:`solver.figure_data`). A figure of its own, not pyplot's (drawn in the service's
     threads, beside other figures)."""
@@ -177,7 +179,7 @@ def draw_track_figure(data: TrackFigureData, title: str = "",
     ax.legend(handles=handles, loc="best", fontsize=7)
     _map_axes(ax, title or f"{len(data)} plots, {len(data.sensors)} sensor(s)")
     found = from_segments(segments)
-    span = (f"{clock(st[0])} to {clock(st[-1])} UTC" if times_of_day
+    span = (f"{date + ' ' if date else ''}{clock(st[0])} to {clock(st[-1])} UTC" if times_of_day
             else f"t {st[0]:g} to {st[-1]:g} s")
     switches = max(len(segments) - 1, 0)
     fig.suptitle(f"{title + ': ' if title else ''}{span}, {len(data)} plots "

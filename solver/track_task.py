@@ -50,7 +50,7 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
         if figures_dir is not None:
             from .figures import save, track_figure
 
-            save(track_figure(table, rec, title=key, times_of_day=times_of_day),
+            save(track_figure(table, rec, title=key, times_of_day=times_of_day, date=date),
                  Path(figures_dir) / f"{track_file_name(key)}.png")
         more: dict[str, Any] = {"sensors": [{**asdict(r), **spans.get(r.id, {})}
                                             for r in rec.sensors]}

@@ -179,30 +179,35 @@ def test_a_figure_drawn_from_a_runs_stored_rows_is_the_one_drawn_from_its_recons
     figures = {}
     for name, tab, config, keep, times_of_day in cases:
         out = tmp_path / name
+        date = "2024-02-28" if times_of_day else None
         with cf.ThreadPoolExecutor(1) as pool:
             reconstruct_many([TrackProblem(name, tab)], out, config=config, executor=pool,
                              task=partial(assess_track, figure_data=True, samples=keep,
-                                          times_of_day=times_of_day))
+                                          times_of_day=times_of_day, date=date))
         (entry,) = ledger_entries(out)
         assert entry["status"] == "done", entry
         assert (out / "samples.parquet").is_dir() == keep
-        data, tod = read_stored(out, entry["part"], name)
-        assert tod == times_of_day
-        lazy = drawn(draw_track_figure(data, title="K", times_of_day=tod))
+        data, tod, stored_date = read_stored(out, entry["part"], name)
+        assert (tod, stored_date) == (times_of_day, date)
+        lazy = drawn(draw_track_figure(data, title="K", times_of_day=tod, date=stored_date))
         live = track_figure(tab, reconstruct(tab, config=config), title="K",
-                            times_of_day=times_of_day)
+                            times_of_day=times_of_day, date=date)
         assert difference(lazy, drawn(live)) is None, (name, difference(lazy, drawn(live)))
         assert len(live.axes) == (5 if data.sample_h is not None else 4)
         figures[name] = (data, lazy)
         if name == "two radars":
             assert data.sample_h is not None and len(data.segments) > 1
             assert [t.get_text() for t in live.axes[0].texts] == ["1", "2"]  # manoeuvres
+            assert live._suptitle.get_text().startswith("K: 2024-02-28 06:06:40 to ")
+            tick = live.axes[-1].xaxis.get_major_formatter()
+            assert tick(86_400.0 + 60.0, 0) == "00:01:00\n+1d"  # two lines: no overlap
             assert len(live.axes[0].collections) == 3  # each radar's plots, the track's
             rows = pq.read_table(out / FIGURE_DATA)
             assert rows.column("item").to_pylist().count("plot") == len(tab)
             assert rows.column("item").to_pylist().count("sample") == len(data.sample_t)
             moved = dataclasses.replace(data, plot_cov=data.plot_cov * 1.01)
-            assert "collection" in difference(drawn(draw_track_figure(moved, "K", tod)), lazy)
+            assert "collection" in difference(
+                drawn(draw_track_figure(moved, "K", tod, stored_date)), lazy)
         if name == "one instant":
             assert data.segments == [] and live.axes[1].lines[0].get_xydata().size == 0
     # another sample step draws another line: told apart

@@ -1591,8 +1591,8 @@ def test_a_jobs_track_figure_is_drawn_when_first_asked_for_from_what_the_job_sto
     settings = runner.options(job_id)
     loaded, chosen = runner._load(job_id, settings)
     track = next(t for t in chosen if t.key == "A")
-    data, times_of_day = runner.figure_data(job_id, "A")
-    assert times_of_day == loaded.times_of_day
+    data, times_of_day, date = runner.figure_data(job_id, "A")
+    assert (times_of_day, date) == (loaded.times_of_day, loaded.date)
     lazy = drawn(draw_track_figure(data, "A", times_of_day))
     live = drawn(track_figure(track.table, reconstruct(track.table, config=settings.config()),
                               "A", loaded.times_of_day))
