@@ -59,10 +59,15 @@ class TrackFigures:
         self.drawing += 1
         done = asyncio.get_running_loop().create_future()
         self._pending[(job_id, key)] = done
-        try:  # the thread runs to its end even when this request is cancelled
-            return await run_in_threadpool(self.runner.draw_figure, job_id, key)
-        finally:
+
+        def finished(_: asyncio.Future[Path | None]) -> None:
             self.drawing -= 1
             if self._pending.get((job_id, key)) is done:
                 del self._pending[(job_id, key)]
             done.set_result(None)
+
+        # the slot is given back when the drawing's thread ends, not when this request is
+        # cancelled (the thread runs on: more drawings than max_draws would run at once)
+        drawing = asyncio.ensure_future(run_in_threadpool(self.runner.draw_figure, job_id, key))
+        drawing.add_done_callback(finished)
+        return await asyncio.shield(drawing)

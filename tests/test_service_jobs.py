@@ -1661,6 +1661,23 @@ def test_track_figures_drawn_at_once_are_bounded_and_each_drawn_once(client, mon
     assert "too many figures being drawn" in busy.json()["message"]
     assert client.get(f"{loc}/tracks/A/figure.png").status_code == 200  # kept
     assert calls == ["A"]
+    release = threading.Event()  # ``held`` now waits on this one
+
+    async def cancelled():  # a request cancelled while its figure is drawn: the thread runs
+        figures = TrackFigures(runner, max_draws=1)  # on, and so its slot stays taken
+        asking = asyncio.ensure_future(figures.path(job_id, "B"))
+        while calls == ["A"]:
+            await asyncio.sleep(0.01)
+        asking.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await asking
+        taken = figures.drawing
+        release.set()
+        while figures.drawing:
+            await asyncio.sleep(0.01)
+        return taken, figures._pending
+
+    assert asyncio.run(cancelled()) == (1, {})
     assert client.delete(loc).status_code == 204
 
 
