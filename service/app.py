@@ -86,9 +86,6 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 DOCS_ASSETS = "/docs/assets"
 
 
-"""How often a waiting reconstruction checks that its client is still connected."""
-
-
 async def _unless_gone(request: Request, work: Coroutine[Any, Any, Outcome]) -> Outcome | None:
     """``await work``, cancelled (None) when the client disconnects first: a tester's six
     requests abandoned by their clients after 2 s held the queue, and a quick request behind

@@ -26,7 +26,7 @@ from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from solver.inputs import Bounds, InputError
-from solver.io.dates import UTC, iso_utc
+from solver.io.dates import UTC, iso_utc, midnight_us
 from solver.io.reading import RECORDING_HEAD_BYTES, check_recording_head
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
@@ -713,7 +713,7 @@ def _track_answer(runner: JobRunner, job_id: str, aircraft: str, omit: frozenset
         raise HTTPException(409, f"track {key!r} has no stored rows")
     states, segments, filtered, sampled = got
     cov = "covariances" not in omit
-    midnight = _midnight_us(states)
+    midnight = midnight_us(states)
     return JobTrackResult.model_validate({
         "aircraft": key,
         "trajectory": {"segments": _with_utc(_segment_rows(segments), midnight),
@@ -725,18 +725,6 @@ def _track_answer(runner: JobRunner, job_id: str, aircraft: str, omit: frozenset
         "sensors": [_sensor_out(r) for r in runner.track_sensors(job_id, key)],
         "filters": _filter_rows(filtered, cov),
         "diagnostics": _track_diagnostics(entry)}).model_dump_json(by_alias=True).encode()
-
-
-def _midnight_us(states: Any) -> int | None:
-    """The UTC time (epoch us) ``t`` counts from, off a track's states (``time_utc - t`` of
-    one that has it; None where none has: the recording's date is not known, or the track was
-    stored before the column)."""
-    if "time_utc" not in states.column_names:
-        return None
-    utc = states.column("time_utc").cast(UTC).cast(pa.int64()).to_pylist()
-    t = states.column("t").to_pylist()
-    return next((u - round(s * 1e6) for u, s in zip(utc, t, strict=True)
-                 if u is not None and s is not None and np.isfinite(s)), None)
 
 
 def _with_utc(rows: list[dict[str, Any]], midnight: int | None) -> list[dict[str, Any]]:

@@ -21,7 +21,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from .inputs import FloatArray
-from .io.dates import UTC
+from .io.dates import date_of, midnight_us
 from .plots import PlotTable
 from .results import Reconstruction, Segment
 
@@ -200,17 +200,4 @@ def read_stored(out: Path, part: str, key: str
     samples = out / "samples.parquet" / part
     kept = pq.read_table(samples, filters=flt) if samples.is_file() else None
     return (from_stored(states, segments, rows, kept),
-            states.column("time_of_day_s").null_count == 0, _date(states))
-
-
-def _date(states: pa.Table) -> str | None:
-    """The UTC date ``t`` counts from, off the first state with a ``time_utc``."""
-    if "time_utc" not in states.column_names:
-        return None
-    utc = states.column("time_utc").cast(UTC).cast(pa.int64())
-    known = np.flatnonzero(utc.is_valid().to_numpy(zero_copy_only=False))
-    if not known.size:
-        return None
-    i = int(known[0])
-    midnight = utc[i].as_py() - round(states.column("t")[i].as_py() * 1e6)
-    return str(np.datetime64(midnight, "us").astype("datetime64[D]"))
+            states.column("time_of_day_s").null_count == 0, date_of(midnight_us(states)))

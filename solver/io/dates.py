@@ -75,6 +75,27 @@ def utc_times(t: FloatArray, date: str | None) -> pa.Array:
     return pa.array(stamps.astype(np.int64), pa.int64(), mask=~fin).cast(UTC)
 
 
+def midnight_us(states: pa.Table) -> int | None:
+    """The UTC time (epoch us) a run's ``t`` counts from, off its stored states: ``time_utc -
+    t`` of the first state that has both; None where none has (the recording's date is not
+    known, or the states were stored before the column)."""
+    if "time_utc" not in states.column_names:
+        return None
+    utc = states.column("time_utc").cast(UTC).cast(pa.int64())
+    t = states.column("t")
+    known = np.flatnonzero(utc.is_valid().to_numpy(zero_copy_only=False)
+                           & np.isfinite(t.to_numpy(zero_copy_only=False).astype(float)))
+    if not known.size:
+        return None
+    i = int(known[0])
+    return int(utc[i].as_py()) - round(float(t[i].as_py()) * 1e6)
+
+
+def date_of(midnight: int | None) -> str | None:
+    """``YYYY-MM-DD`` of a midnight in epoch us (:func:`midnight_us`)."""
+    return None if midnight is None else str(np.datetime64(midnight, "us").astype("datetime64[D]"))
+
+
 def iso_utc(times: pa.Array | pa.ChunkedArray) -> pa.Array | pa.ChunkedArray:
     """UTC times as ISO 8601 text ending in ``Z`` (``2024-03-09T10:00:00.007812Z``; null where
     null)."""
