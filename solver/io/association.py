@@ -10,19 +10,24 @@ keys (a code is shared by many aircraft: such a key may hold several).
 
 Evidence (:func:`compare`), both ways: each plot of one track is compared with the other's
 position at its time, linearly interpolated in the recording's plane between the other's
-neighbouring plots within :data:`WINDOW_S` (one-sided: its nearest), within the gate::
+neighbouring plots within :data:`WINDOW_S` (one-sided: its nearest). A plot agrees when at
+some common height of :data:`LEVELS` (a plot with Mode C, or a position, is at its own at
+every level) the distance is within the gate::
 
-    G = 3 hypot(sigma_a, sigma_b) + bias_a + bias_b + spread_a + spread_b + motion + SLACK
+    G = 3 hypot(sigma_a, sigma_b) + bias_a + bias_b + step_a + step_b + motion + SLACK
 
 ``sigma``: a radar plot's ``max(sigma_r, r sigma_psi)``, a position plot's
 ``position_sigma_m``; ``bias``: a radar's maximum systematic error ``eps_r + r eps_psi``
-(unregistered radars disagree by it); ``spread``: half the horizontal shift of a plot
-without Mode C over the heights it may have (:data:`solver.sensors.ALTITUDE_RANGE_M`, the
-position taken at their middle); ``motion``: what the speed bound ``v`` allows the aircraft to
-move from the interpolation, ``2 v tau0 tau1 / (tau0 + tau1)`` between neighbours ``tau0``,
-``tau1`` s away, ``v tau`` from one. Mode C altitudes, where both have them, must agree within
+(unregistered radars disagree by it); ``step``: half a plot without Mode C's shift to the
+neighbouring levels (2 km apart; 0 with Mode C); ``motion``: how far the speed bound ``v``
+lets the aircraft stray from the interpolation, ``2 v tau0 tau1 / (tau0 + tau1)`` between
+neighbours ``tau0``, ``tau1`` s away, ``v tau`` from one. Two radars' plots of one aircraft
+meet at its height; at a common height the unknown height costs no gate (a gate widened by
+each plot's whole spread over 0-20 km, 2.7 km at 40 km from a radar, let two aircraft 3 km
+apart agree). Mode C altitudes, where both have them, must agree within
 :data:`ALTITUDE_GATE_M` plus :data:`CLIMB_MS` times the time between them. A plot whose Mode
-3/A code differs from each known code of the other's neighbours is a code conflict.
+3/A code differs from each known code of the other's neighbours is a code conflict (a squawk
+change shows one radar's new code between the other's old and new: none).
 
 Tracks of different sensors are associated when :data:`MIN_COMPARED` plots or more were
 compared, :data:`MIN_AGREEING` of them or more agree and fewer than :data:`CODE_CONFLICTS`

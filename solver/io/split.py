@@ -8,6 +8,13 @@ Aircraft key of a row (``../shared/spec/recordings.md``), first that applies:
 3. the sensor's track number: ``<sensor>:track:<number>``;
 4. the Mode 3/A code: ``<sensor>:mode3a:<octal code>``.
 
+Sensor tracks without Mode S (3., pieces after the gap split, off the ground) of different
+sensors that are one aircraft by their plots (positions, Mode C, Mode 3/A:
+:mod:`solver.io.association`) are joined under their smallest key (``R1:track:12`` with
+``R2:track:40``: ``R1:track:12``), each join reported (``tracks_associated``: the keys, plots
+compared, share agreeing; a join refused: ``association_refused``); never the user's keys,
+Mode S keys or Mode 3/A keys.
+
 Before keying, a sensor's track (sensor, track number; pieces split at ``gap_s``) whose plots
 carry one single Mode S address lends it to its plots without one, so a track with an
 intermittent address stays one aircraft. Every key is split where the aircraft is not seen
@@ -22,7 +29,8 @@ aircraft under it is ``KEY~2``, ``KEY~3`` ... (``aircraft_apart``).
 :func:`split_stream` does the same on a recording that arrives in pieces and yields each
 aircraft once no later plot can change it (the same tracks, tested on random recordings):
 memory then holds the aircraft in the air, and those within ``gap_s`` of a sensor track
-without Mode S that is still in the air (its plots could still be lent an address).
+without Mode S that is still in the air (its plots could still be lent an address), and the
+sensor tracks associated (or still comparable) with one in the air.
 
 Each aircraft's rows are put in time order (stable); a sensor's second plot at the same time
 of the same aircraft is reported (``duplicate_time``) and left out (the first is kept), as are
@@ -266,7 +274,9 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
     an aircraft is yielded as soon as no later plot can change it: the recording has moved
     ``gap_s + disorder_s`` past its last plot (a later plot of its key starts a new piece), no
     plot without Mode S of a sensor track that may still get plots lies within ``gap_s`` of it
-    (it could still be lent its address, or lose it), and its key's earlier pieces are out. So
+    (it could still be lent its address, or lose it), its key's earlier pieces are out and,
+    for a sensor track without Mode S, every track associated with it, or still comparable
+    with one that is (:func:`solver.io.association.associate`), can go too. So
     memory holds the aircraft in the air (and those near a sensor track without Mode S in the
     air). The same tracks, keys, rows and problems as :func:`split_aircraft` on the whole when
     no row arrives more than ``disorder_s`` after a later-timed one. ``AircraftTrack.rows``
