@@ -243,3 +243,25 @@ def test_streaming_association_gives_the_same_tracks():
         assert (stream_p.counts, stream_p.dropped) == (whole_p.counts, whole_p.dropped)
         made += whole_p.counts.get("tracks_associated", 0)
     assert made > 10 and closed_early > 10, (made, closed_early)
+
+
+def test_the_safety_net_still_parts_a_merged_track_and_user_keys_stay_apart():
+    """R1's track 11 and R2's track 41 are one aircraft to 300 s; R1 gives track 11 again at
+    330 s (within the 300-s gap split) to another aircraft 60 km away that R2 does not see:
+    the association joins the two tracks (the later plots have nothing of R2's to be compared
+    with), and the merged track is told apart (``R1:track:11~2``, reported). The user's own
+    keys are never associated, even when they are one aircraft."""
+    f = Flight(30e3, 10e3, 0.0, 150.0, 50.0, {"R1": (11, 0, 300), "R2": (41, 0, 300)})
+    other = Flight(-30e3, 10e3, 0.0, 150.0, 90.0, {"R1": (11, 330, 600)})
+    rows = recording([f, other])
+    tracks, problems = split(rows)
+    assert sorted(tracks) == ["R1:track:11", "R1:track:11~2"]
+    assert problems.counts == {"tracks_associated": 1, "aircraft_apart": 1}
+    assert {s.id for s in tracks["R1:track:11"].table.sensors} == {"R1", "R2"}
+    later = tracks["R1:track:11~2"]
+    assert later.table.t.min() > 329.0 and {s.id for s in later.table.sensors} == {"R1"}
+    user = recording([f])
+    user = dataclasses.replace(user, aircraft=np.where(user.sensor == "R1", "A1", "A2").astype(
+        object))
+    tracks, problems = split(user)
+    assert sorted(tracks) == ["A1", "A2"] and not problems

@@ -113,8 +113,13 @@ def plane_points(rows: PlotRows, sensors: SensorSet, sensor_idx: np.ndarray,
             known = np.isfinite(h)
             x = np.empty((i.size, _K))
             z = np.empty((i.size, _K))
+            xk, zk = s.positions(frame, rr[known], psi[known], h[known])
+            x[known], z[known] = xk[:, None], zk[:, None]
+            free = ~known  # the levels only where there is no Mode C (11 times the geodesy)
             for j, level in enumerate(LEVELS.tolist()):
-                x[:, j], z[:, j] = s.positions(frame, rr, psi, np.where(known, h, level))
+                if free.any():
+                    x[free, j], z[free, j] = s.positions(frame, rr[free], psi[free],
+                                                         np.full(int(free.sum()), level))
             out[i, 1] = np.maximum(s.sigma_r, rr * s.sigma_psi)
             out[i, 2] = s.range_error_m + rr * s.azimuth_error_rad
         elif frame is not None:
