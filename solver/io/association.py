@@ -42,10 +42,13 @@ tracks whose own comparison says apart (:func:`resolve`); such a refused pair is
 share agreeing). The aircraft's key is its members' smallest key (``R1:track:12`` with
 ``R2:track:40``): stable, one of the keys the sensors gave.
 
-Streaming (:func:`associate` with ``closed_before``): a pair's evidence is final once the
-recording is :data:`WINDOW_S` past the earlier of the two tracks' last plots; the tracks
-joined by final associations or by pairs still open form a component, resolved once all its
-tracks are complete (the split's rule), so streamed pieces give the whole's aircraft.
+Streaming (:func:`associate` with ``final_before``): a pair's evidence is final once the
+track that ends first can get no more plots (the split's horizon: a later plot of its key
+starts a new piece) and the recording is :data:`WINDOW_S` past its end (the horizon is the
+gap split's ``gap_s``, more than twice the window, before the time up to which every plot
+has arrived); the tracks joined by final associations or by pairs still open form a
+component, resolved once all its tracks are complete (the split's rule), so streamed pieces
+give the whole's aircraft.
 """
 
 from __future__ import annotations
@@ -228,7 +231,8 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> tuple[int, int, int
     dist = np.hypot(a.x - ((1.0 - wk) * b.x[c0] + wk * b.x[c1]),
                     a.z - ((1.0 - wk) * b.z[c0] + wk * b.z[c1]))
     near = np.any(dist <= gate[:, None] + a.step + worst(b.step), axis=1)
-    compared = (has0 | has1) & (gate + a.span + worst(b.span) <= CELL_M) & np.isfinite(gate)
+    compared = (has0 | has1) & (gate + a.span + worst(b.span) <= CELL_M) & np.isfinite(
+        gate + a.x[:, 0] + worst(b.x[:, 0]))
     # Mode C: the nearest neighbour used that has one
     alt0 = np.where(has0, b.alt[c0], np.nan)
     alt1 = np.where(has1, b.alt[c1], np.nan)
@@ -373,11 +377,12 @@ def resolve(pieces: list[Piece], component: list[int], accepted: list[tuple[int,
 
 
 def associate(pieces: list[Piece], done: np.ndarray, max_speed: float, window: float,
-              closed_before: float) -> Associations:
+              final_before: float) -> Associations:
     """The aircraft of several of ``pieces`` (module docstring). Streaming: a pair whose
-    earlier last plot is ``window`` or less before ``closed_before`` (the time before which
-    every plot has arrived) is still open; a component (tracks linked by associations or open
-    pairs) is resolved once every track in it is ``done``, else its tracks wait."""
+    earlier last plot is at or after ``final_before`` (a track ending before it gets no more
+    plots, and every plot up to ``window`` after it has arrived) is still open; a component
+    (tracks linked by associations or open pairs) is resolved once every track in it is
+    ``done``, else its tracks wait."""
     parent = list(range(len(pieces)))
     cache: dict[tuple[int, int], Verdict] = {}
 
@@ -389,7 +394,7 @@ def associate(pieces: list[Piece], done: np.ndarray, max_speed: float, window: f
 
     accepted: list[tuple[int, int, Verdict]] = []
     for i, j in candidate_pairs(pieces, window):
-        if min(pieces[i].last, pieces[j].last) + window >= closed_before:
+        if min(pieces[i].last, pieces[j].last) >= final_before:
             linked = True  # open: later plots may still decide it
         else:
             v = verdict(i, j)

@@ -328,7 +328,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
             pieces[key] = _Piece(first, last < horizon and not near, str(base[members[0]]),
                                  members)
         found = (_associations(buffer, base, ground, plane, sensor_idx, pieces, max_speed,
-                               window, latest - disorder_s if np.isfinite(horizon) else np.inf)
+                               window, horizon)
                  if associate_tracks else None)
         complete = _complete(pieces, found)
         if not complete:
@@ -394,7 +394,7 @@ def _plane_of(rows: PlotRows, sensors: SensorSet, index: dict[str, int],
 
 def _associations(rows: PlotRows, base: np.ndarray, ground: np.ndarray, plane: np.ndarray,
                   sensor_idx: np.ndarray, pieces: dict[str, _Piece], max_speed: float,
-                  window: float, closed_before: float) -> _Found:
+                  window: float, final_before: float) -> _Found:
     """:func:`solver.io.association.associate` over the pieces keyed by a sensor's track
     number (their base key ``<sensor>:track:<n>``: no address lent, no user key) off the
     ground."""
@@ -409,7 +409,7 @@ def _associations(rows: PlotRows, base: np.ndarray, ground: np.ndarray, plane: n
             found.append(Piece.of(key, int(sensor_idx[p.members[0]]), p.members, plane, rows))
             done.append(p.done)
     return _Found(keys, found, associate(found, np.array(done, dtype=bool), max_speed, window,
-                                         closed_before))
+                                         final_before))
 
 
 def _complete(pieces: dict[str, _Piece], found: _Found | None
