@@ -14,6 +14,7 @@ from test_io_split import assert_streamed_alike, concat, split
 
 from solver.frames import LocalFrame, slant_and_azimuth
 from solver.io.problems import Problems
+from solver.io.reading import Selection
 from solver.io.sensors_file import parse_sensors
 from solver.io.split import recording_frame, split_aircraft, split_stream
 from solver.io.tables import FL_M, PlotRows
@@ -107,6 +108,11 @@ def test_three_mode_ac_aircraft_seen_by_two_radars_are_three_tracks(mode_c):
     assert said["aircraft R1:track:12"].startswith("R1:track:12 and R2:track:40: ")
     assert "plots compared" in said["aircraft R1:track:12"]
     assert "(100%) within the gate" in said["aircraft R1:track:12"]
+    assert tracks["R1:track:12"].members == ("R1:track:12", "R2:track:40")
+    # a sensor track's key selects the aircraft it is in (the command line's --aircraft)
+    chosen = Selection(["R2:track:40", "R2:track:99"])
+    assert [tr.key for tr in chosen.filter(iter(tracks.values()))] == ["R1:track:12"]
+    assert chosen.missing() == ["R2:track:99"]
     # switched off: one track per radar, as before
     off = {tr.key for tr in split_aircraft(rows, SENSORS, associate_tracks=False)}
     assert off == {f"R{r}:track:{n}" for r, n in ((1, 11), (1, 12), (1, 13), (2, 40),

@@ -88,6 +88,9 @@ class AircraftTrack:
     pressure_offset_m: float | None = None
     """The median geometric minus pressure altitude its ADS-B gave, by which its Mode C
     altitudes were moved (:mod:`solver.io.altitudes`); None: none moved."""
+    members: tuple[str, ...] = ()
+    """The keys of the sensor tracks associated into it (:mod:`solver.io.association`), its
+    own among them; empty: none associated."""
 
 
 def recording_frame(sensors: SensorSet, rows: PlotRows) -> LocalFrame | None:
@@ -350,7 +353,8 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                            problems) if members.size else None
             for part in _apart(track, buffer, sensors, sensor_idx, frame, min_plots, gap_s,
                                max_speed, problems):
-                yield replace(part, rows=numbers[part.rows])
+                joined = tuple(sorted(names)) if len(names) > 1 and part.key == key else ()
+                yield replace(part, rows=numbers[part.rows], members=joined)
         if found is not None:
             _report_associations(found, taken, problems)
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
