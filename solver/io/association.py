@@ -248,8 +248,25 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> tuple[int, int, int
     return int(compared.sum()), int(agreeing.sum()), int(conflict.sum())
 
 
+def _near(p: Piece, t0: float, t1: float, levels: bool) -> Piece:
+    """``p``'s plots from ``t0`` to ``t1`` (the others have nothing to be compared with), at
+    one level where no plot of either track is without Mode C (``levels`` False: the levels
+    are alike; 11 times less work)."""
+    i = int(np.searchsorted(p.t, t0, side="left"))
+    j = int(np.searchsorted(p.t, t1, side="right"))
+    k = slice(None) if levels else slice(0, 1)
+    return Piece(p.key, p.sensor, p.rows[i:j], p.t[i:j], p.sigma[i:j], p.bias[i:j],
+                 p.span[i:j], p.x[i:j, k], p.z[i:j, k], p.step[i:j, k], p.alt[i:j],
+                 p.code[i:j])
+
+
 def compare(a: Piece, b: Piece, max_speed: float, window: float = WINDOW_S) -> Verdict:
     """Both tracks' plots against each other (module docstring)."""
+    levels = bool(np.any(a.span > 0) or np.any(b.span > 0))
+    t0, t1 = max(a.first, b.first) - window, min(a.last, b.last) + window
+    a, b = _near(a, t0, t1, levels), _near(b, t0, t1, levels)
+    if not a.t.size or not b.t.size:
+        return Verdict(0, 0, 0)
     ab, ba = _one_way(a, b, max_speed, window), _one_way(b, a, max_speed, window)
     return Verdict(ab[0] + ba[0], ab[1] + ba[1], ab[2] + ba[2])
 
