@@ -393,21 +393,32 @@ def resolve(pieces: list[Piece], component: list[int], accepted: list[tuple[int,
     return out, refused
 
 
+VerdictCache = dict[tuple[object, object], Verdict]
+"""Streaming: the final verdicts of pairs still in the split's buffer, by the pieces'
+identities (their key and first row: a key may name another piece later)."""
+
+
 def associate(pieces: list[Piece], done: np.ndarray, max_speed: float, window: float,
-              final_before: float) -> Associations:
+              final_before: float, idents: list[object] | None = None,
+              cache: VerdictCache | None = None) -> Associations:
     """The aircraft of several of ``pieces`` (module docstring). Streaming: a pair whose
     earlier last plot is at or after ``final_before`` (a track ending before it gets no more
     plots, and every plot up to ``window`` after it has arrived) is still open; a component
     (tracks linked by associations or open pairs) is resolved once every track in it is
-    ``done``, else its tracks wait."""
+    ``done``, else its tracks wait. ``cache``: final verdicts of earlier calls by ``idents``
+    (kept for the pairs of these pieces only: what the buffer holds)."""
     parent = list(range(len(pieces)))
-    cache: dict[tuple[int, int], Verdict] = {}
+    ids = idents if idents is not None else list(range(len(pieces)))
+    known = cache if cache is not None else {}
+    kept: VerdictCache = {}
 
     def verdict(i: int, j: int) -> Verdict:
-        k = (min(i, j), max(i, j))
-        if k not in cache:
-            cache[k] = compare(pieces[k[0]], pieces[k[1]], max_speed, window)
-        return cache[k]
+        i, j = min(i, j), max(i, j)
+        k = (ids[i], ids[j])
+        if k not in known:  # only final verdicts are asked for (closed pairs, done tracks)
+            known[k] = compare(pieces[i], pieces[j], max_speed, window)
+        kept[k] = known[k]
+        return known[k]
 
     accepted: list[tuple[int, int, Verdict]] = []
     for i, j in candidate_pairs(pieces, window):
@@ -436,6 +447,9 @@ def associate(pieces: list[Piece], done: np.ndarray, max_speed: float, window: f
         inside = set(comp)
         found, refused = resolve(pieces, comp, [e for e in accepted if e[0] in inside], verdict)
         resolved.append(Component(comp, found, refused))
+    if cache is not None:
+        cache.clear()
+        cache.update(kept)
     return Associations(resolved, waiting)
 
 

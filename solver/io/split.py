@@ -57,7 +57,15 @@ from ..inputs import Bounds, FloatArray, InputError, format_loc
 from ..plots import PlotTable
 from ..sensors import ALTITUDE_RANGE_M, RadarSensor
 from .altitudes import MAX_OFFSET_M, geometric_altitudes
-from .association import PLANE_COLUMNS, WINDOW_S, Associations, Piece, associate, plane_points
+from .association import (
+    PLANE_COLUMNS,
+    WINDOW_S,
+    Associations,
+    Piece,
+    VerdictCache,
+    associate,
+    plane_points,
+)
 from .problems import Problems
 from .scans import scan_step
 from .sensors_file import SensorSet, take_off_offsets
@@ -293,6 +301,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
     numbers = np.array([], dtype=np.int64)  # each buffered row's number in the recording
     plane = np.empty((0, PLANE_COLUMNS))  # each buffered row's plane point (association)
     window = min(WINDOW_S, gap_s / 2)  # a pair's evidence is final before its tracks are
+    verdicts: VerdictCache = {}  # final verdicts of pairs still buffered (not computed again)
     pieces_done: dict[str, int] = {}
     memory: TrackMemory = {}
     seen, latest = 0, -np.inf
@@ -331,7 +340,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
             pieces[key] = _Piece(first, last < horizon and not near, str(base[members[0]]),
                                  members)
         found = (_associations(buffer, base, ground, plane, sensor_idx, pieces, max_speed,
-                               window, horizon)
+                               window, horizon, numbers, verdicts)
                  if associate_tracks else None)
         complete = _complete(pieces, found)
         if not complete:
@@ -398,7 +407,8 @@ def _plane_of(rows: PlotRows, sensors: SensorSet, index: dict[str, int],
 
 def _associations(rows: PlotRows, base: np.ndarray, ground: np.ndarray, plane: np.ndarray,
                   sensor_idx: np.ndarray, pieces: dict[str, _Piece], max_speed: float,
-                  window: float, final_before: float) -> _Found:
+                  window: float, final_before: float, numbers: np.ndarray,
+                  cache: VerdictCache) -> _Found:
     """:func:`solver.io.association.associate` over the pieces keyed by a sensor's track
     number (their base key ``<sensor>:track:<n>``: no address lent, no user key) off the
     ground."""
@@ -406,14 +416,15 @@ def _associations(rows: PlotRows, base: np.ndarray, ground: np.ndarray, plane: n
                          rows.track_number.astype(str))
     looked = (rows.track_number >= 0) & (rows.aircraft.astype(str) == "") & (
         base.astype(str) == tn_key) & ~ground & np.isfinite(plane[:, 0])
-    keys, found, done = [], [], []
+    keys, found, done, idents = [], [], [], []
     for key, p in pieces.items():
         if looked[p.members].all():
             keys.append(key)
             found.append(Piece.of(key, int(sensor_idx[p.members[0]]), p.members, plane, rows))
             done.append(p.done)
+            idents.append((key, int(numbers[p.members[0]])))
     return _Found(keys, found, associate(found, np.array(done, dtype=bool), max_speed, window,
-                                         final_before))
+                                         final_before, idents, cache))
 
 
 def _complete(pieces: dict[str, _Piece], found: _Found | None
