@@ -135,11 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--in-air", type=float, default=60.0)
     ap.add_argument("--seed", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--no-mode-c", action="store_true", help="the aircraft without Mode S "
+                    "report no altitude either")
     ap.add_argument("--reconstruct", action="store_true")
     ap.add_argument("--out", default=None, help="JSON report path")
     a = ap.parse_args(argv)
     spec = RecordingSpec(aircraft=a.aircraft, window_s=a.window, in_air=a.in_air, seed=a.seed,
-                         modeac_share=a.share)
+                         modeac_share=a.share, modeac_mode_c=not a.no_mode_c)
     rows, _ = simulate(spec)
     report: dict[str, Any] = {"spec": spec.__dict__, "rows": len(rows)}
     for label, on in (("before", False), ("after", True)):

@@ -95,6 +95,9 @@ class RecordingSpec:
     modeac_share: float = 0.0
     """Share of the aircraft drawn (independently of the rest) to have no Mode S: their radar
     plots carry no address and Mode 3/A 7000 (VFR), and no ADS-B sees them."""
+    modeac_mode_c: bool = True
+    """Whether the aircraft without Mode S report Mode C (False: their plots have no altitude,
+    a PSR or a transponder without an altitude encoder)."""
 
     @property
     def duration_s(self) -> float:
@@ -226,6 +229,8 @@ def simulate(spec: RecordingSpec) -> tuple[PlotRows, list[int]]:
                 cols["lat_deg"].append(p.lat_deg[keep])
                 cols["lon_deg"].append(p.lon_deg[keep])
             h = win.altitude_at(p.t[keep])  # Mode C / ADS-B level: the height, in FL
+            if address < 0 and not spec.modeac_mode_c:
+                h = np.full(n, np.nan)
             cols["flight_level"].append(np.round(h / FL_M * 4.0) / 4.0)
             cols["mode_s"].append(np.full(n, address, np.int64))
             cols["mode_3a"].append(np.full(n, mode_3a, np.int64))
