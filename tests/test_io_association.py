@@ -134,7 +134,9 @@ def test_different_codes_at_the_same_time_are_never_one_aircraft():
 
 
 def test_a_hand_over_and_a_chain_of_three_radars_are_one_aircraft():
-    """R1 sees the aircraft first, then R1 and R2, then R2 alone: one track; R1 -> R2 -> R3
+    """R1 sees the aircraft first, then R1 and R2, then R2 alone: one track (also without
+    Mode C and 30 s of overlap), but not another aircraft that R2 starts seeing 2.5 km away as
+    R1's ends; R1 -> R2 -> R3
     (R1 and R3 never at once) with R3 seeing it under two track numbers in turn (it lost and
     found it again): one track of the five, reported as four associations."""
     sensors = parse_sensors([*SENSOR_FILE[:2], R3])
@@ -143,6 +145,17 @@ def test_a_hand_over_and_a_chain_of_three_radars_are_one_aircraft():
     tracks, problems = split(rows)
     assert list(tracks) == ["R1:track:11"] and len(tracks["R1:track:11"].table) == len(rows)
     assert problems.counts == {"tracks_associated": 1}
+    # without Mode C and 30 s of overlap: the same
+    short = dataclasses.replace(f, fl=None, tracks={"R1": (11, 0, 300), "R2": (41, 270, 600)})
+    tracks, problems = split(recording([short]))
+    assert list(tracks) == ["R1:track:11"] and problems.counts == {"tracks_associated": 1}
+    # R1's aircraft ends as R2 starts seeing another 2.5 km away (4 s of overlap): too little
+    # evidence, two tracks (compared with the other's plots extrapolated up to 30 s at the
+    # speed bound, gates of up to 10 km, they were one)
+    other = Flight(32.5e3, 10e3, 0.0, 150.0, None, {"R2": (41, 296, 600)})
+    rows = recording([dataclasses.replace(f, fl=None, tracks={"R1": (11, 0, 300)}), other])
+    tracks, problems = split(rows)
+    assert sorted(tracks) == ["R1:track:11", "R2:track:41"] and not problems
     chain = Flight(-20e3, 10e3, 100.0, 100.0, 80.0, {"R1": (7, 0, 300), "R2": (8, 200, 800)})
     r3 = dataclasses.replace(chain, tracks={"R3": (31, 500, 700)})
     r3b = dataclasses.replace(chain, tracks={"R3": (32, 712, 900)})

@@ -19,12 +19,13 @@ every level) the distance is within the gate::
 ``sigma``: a radar plot's ``max(sigma_r, r sigma_psi)``, a position plot's
 ``position_sigma_m``; ``bias``: a radar's maximum systematic error ``eps_r + r eps_psi``
 (unregistered radars disagree by it); ``step``: half a plot without Mode C's shift to the
-neighbouring levels (2 km apart; 0 with Mode C); ``motion``: how far the speed bound ``v``
-lets the aircraft stray from the interpolation, ``2 v tau0 tau1 / (tau0 + tau1)`` between
-neighbours ``tau0``, ``tau1`` s away, ``v tau`` from one. Two radars' plots of one aircraft
-meet at its height; at a common height the unknown height costs no gate (a gate widened by
-each plot's whole spread over 0-20 km, 2.7 km at 40 km from a radar, let two aircraft 3 km
-apart agree). Mode C altitudes, where both have them, must agree within
+neighbouring levels (2 km apart; 0 with Mode C); ``motion``: how far the speed bound ``v`` lets
+the aircraft stray from the interpolation, ``2 v tau0 tau1 / (tau0 + tau1)`` between neighbours
+``tau0``, ``tau1`` s away, ``v tau`` from one (a plot whose ``motion`` exceeds
+:data:`MAX_MOTION_M` is not compared: such a gate tells aircraft 10 km apart from none). Two
+radars' plots of one aircraft meet at its height; at a common height the unknown height costs
+no gate (a gate widened by each plot's whole spread over 0-20 km, 2.7 km at 40 km from a radar,
+let two aircraft 3 km apart agree). Mode C altitudes, where both have them, must agree within
 :data:`ALTITUDE_GATE_M` plus :data:`CLIMB_MS` times the time between them. A plot whose Mode
 3/A code differs from each known code of the other's neighbours is a code conflict (a squawk
 change shows one radar's new code between the other's old and new: none).
@@ -76,6 +77,12 @@ ALTITUDE_GATE_M = 300 * 0.3048
 """Mode C altitudes of one aircraft seen by two radars agree to this (m, 300 ft) plus
 :data:`CLIMB_MS` times the time between the plots."""
 CLIMB_MS = 40.0
+MAX_MOTION_M = 2_000.0
+"""A plot is compared only where the speed bound's term of its gate is within this (m): a
+12-s radar's plot between a 4-s radar's (6 s each side, 1.98 km at 330 m/s), one-sided up
+to 6 s past the other track's end. Extrapolated 30 s (10 km) two aircraft 10-14 km apart
+agreed on all 27 plots compared at the ends of a 43-s overlap (the association benchmark
+without Mode C: refused only by a conflict)."""
 MIN_COMPARED = 10
 MIN_AGREEING = 0.8
 """Share of the compared plots within the gate for one aircraft (wild plots and reflections
@@ -231,7 +238,8 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> tuple[int, int, int
     dist = np.hypot(a.x - ((1.0 - wk) * b.x[c0] + wk * b.x[c1]),
                     a.z - ((1.0 - wk) * b.z[c0] + wk * b.z[c1]))
     near = np.any(dist <= gate[:, None] + a.step + worst(b.step), axis=1)
-    compared = (has0 | has1) & (gate + a.span + worst(b.span) <= CELL_M) & np.isfinite(
+    compared = (has0 | has1) & (motion <= MAX_MOTION_M) & (
+        gate + a.span + worst(b.span) <= CELL_M) & np.isfinite(
         gate + a.x[:, 0] + worst(b.x[:, 0]))
     # Mode C: the nearest neighbour used that has one
     alt0 = np.where(has0, b.alt[c0], np.nan)
