@@ -65,8 +65,9 @@ from .sensors_file import SensorSet
 from .tables import FL_M, PlotRows
 
 WINDOW_S = 30.0
-"""Plots are compared with the other track's plots at most this far in time (s), and tracks
-this far apart in time are still candidates (a few scans: a hand-over)."""
+"""A plot's neighbours in the other track are looked for this far in time (s; a few scans:
+missed detections, a hand-over), the time slot of the candidate index; what the speed bound
+allows over that time limits the comparisons further (:data:`MAX_MOTION_M`)."""
 CELL_M = 20_000.0
 """Plane cell of the candidate index (m); a gate wider than it says nothing: not compared."""
 GATE_SIGMAS = 3.0
