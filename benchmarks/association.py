@@ -2,7 +2,8 @@
 with a share of aircraft without Mode S (squawking 7000, seen by R1 and R2 alone).
 
 ``python -m benchmarks.association [--aircraft 150] [--share 0.3] [--reconstruct]``: the
-recording's rows are simulated (not encoded: the split is measured) and split with the
+recording's rows are simulated (not encoded: the split is measured; Mode C put in
+``altitude_m`` as the readers do) and split with the
 association off (before) and on (after): CPU time of :func:`solver.io.split.split_aircraft`
 on the whole and of :func:`solver.io.split.split_stream` over 32,768-row parts (the command
 line's), best of ``--repeat``; the tracks of the aircraft without Mode S against the true
@@ -20,13 +21,14 @@ import argparse
 import json
 import time
 from collections import Counter
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from solver.io.problems import Problems
 from solver.io.split import split_aircraft, split_stream
-from solver.io.tables import PlotRows
+from solver.io.tables import FL_M, PlotRows
 
 from .recording import (
     TRACK_NUMBERS,
@@ -143,6 +145,10 @@ def main(argv: list[str] | None = None) -> int:
     spec = RecordingSpec(aircraft=a.aircraft, window_s=a.window, in_air=a.in_air, seed=a.seed,
                          modeac_share=a.share, modeac_mode_c=not a.no_mode_c)
     rows, _ = simulate(spec)
+    # Mode C as the readers give it (ASTERIX I090, a table's flight_level): the pressure
+    # altitude in altitude_m (simulate's rows carry the flight level alone)
+    rows = replace(rows, altitude_m=np.where(np.isfinite(rows.altitude_m), rows.altitude_m,
+                                             rows.flight_level * FL_M))
     report: dict[str, Any] = {"spec": spec.__dict__, "rows": len(rows)}
     for label, on in (("before", False), ("after", True)):
         s = split_cpu(rows, on, a.repeat)
