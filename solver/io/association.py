@@ -11,24 +11,27 @@ keys (a code is shared by many aircraft: such a key may hold several).
 Evidence (:func:`compare`), both ways: each plot of one track is compared with the other's
 position at its time, linearly interpolated in the recording's plane between the other's
 neighbouring plots within :data:`WINDOW_S` (one-sided: its nearest). A plot agrees when at
-some common height of :data:`LEVELS` (a plot with Mode C, or a position, is at its own at
-every level) the distance is within the gate::
+some common height (the plots' positions at :data:`LEVELS`, linear between them; a plot with
+Mode C, or a position, is at its own at every height) the distance is within the gate::
 
-    G = 3 hypot(sigma_a, sigma_b) + bias_a + bias_b + step_a + step_b + motion + SLACK
+    G = 3 hypot(sigma_a, sigma_b) + bias_a + bias_b + bend_a + bend_b + motion + SLACK
 
 ``sigma``: a radar plot's ``max(sigma_r, r sigma_psi)``, a position plot's
 ``position_sigma_m``; ``bias``: a radar's maximum systematic error ``eps_r + r eps_psi``
-(unregistered radars disagree by it); ``step``: half a plot without Mode C's shift to the
-neighbouring levels (2 km apart; 0 with Mode C); ``motion``: how far the speed bound ``v`` lets
-the aircraft stray from the interpolation, ``2 v tau0 tau1 / (tau0 + tau1)`` between neighbours
-``tau0``, ``tau1`` s away, ``v tau`` from one (a plot whose ``motion`` exceeds
-:data:`MAX_MOTION_M` is not compared: such a gate tells aircraft 10 km apart from none). Two
-radars' plots of one aircraft meet at its height; at a common height the unknown height costs
-no gate (a gate widened by each plot's whole spread over 0-20 km, 2.7 km at 40 km from a radar,
-let two aircraft 3 km apart agree). Mode C altitudes, where both have them, must agree within
-:data:`ALTITUDE_GATE_M` plus :data:`CLIMB_MS` times the time between them. A plot whose Mode
-3/A code differs from each known code of the other's neighbours is a code conflict (a squawk
-change shows one radar's new code between the other's old and new: none).
+(unregistered radars disagree by it); ``bend``: how far a plot without Mode C's positions
+between two levels (2 km apart) leave their chord (the sagitta, from their second difference; 0
+with Mode C); ``motion``: how far the speed bound ``v`` lets the aircraft stray from the
+interpolation, ``2 v tau0 tau1 / (tau0 + tau1)`` between neighbours ``tau0``, ``tau1`` s away,
+``v tau`` from one (a plot whose ``motion`` exceeds :data:`MAX_MOTION_M` is not compared: such
+a gate tells aircraft 10 km apart from none). Two radars' plots of one aircraft meet at its
+height; at a common height the unknown height costs no gate (a gate widened by each plot's
+whole spread over 0-20 km, 2.7 km at 40 km from a radar, let two aircraft 3 km apart agree; one
+widened by half the 2-km step to the next level, 2.8 km near the top for a plot 20 km from its
+radar, two aircraft 12 km apart in the association benchmark without Mode C). Mode C altitudes,
+where both have them, must agree within :data:`ALTITUDE_GATE_M` plus :data:`CLIMB_MS` times the
+time between them. A plot whose Mode 3/A code differs from each known code of the other's
+neighbours is a code conflict (a squawk change shows one radar's new code between the other's
+old and new: none).
 
 Tracks of different sensors are associated when :data:`MIN_COMPARED` plots or more were
 compared, :data:`MIN_AGREEING` of them or more agree and fewer than :data:`CODE_CONFLICTS`
@@ -97,8 +100,8 @@ meet at a common height (two aircraft's, generally, at none); 2 km apart."""
 _K = LEVELS.size
 PLANE_COLUMNS = 4 + 3 * _K
 """Per row: corrected time, sigma, bias, half the span of its positions over the heights,
-then the plane ``x`` and ``z`` at each of :data:`LEVELS` and half the step to its
-neighbouring levels' (all alike for a plot with Mode C or a position) (:func:`plane_points`)."""
+then the plane ``x`` and ``z`` at each of :data:`LEVELS` and the bend there (the sagitta of
+its segments: all alike, bend 0, for a plot with Mode C or a position) (:func:`plane_points`)."""
 
 
 def plane_points(rows: PlotRows, sensors: SensorSet, sensor_idx: np.ndarray,
@@ -140,11 +143,11 @@ def plane_points(rows: PlotRows, sensors: SensorSet, sensor_idx: np.ndarray,
             out[i, 2] = 0.0
         else:
             continue
-        step = np.hypot(np.diff(x, axis=1), np.diff(z, axis=1))
+        # a segment's sagitta, from the second difference at its ends (a parabola's: 1/8)
+        bend = np.hypot(np.diff(x, 2, axis=1), np.diff(z, 2, axis=1)) / 8.0
         out[i, 3] = 0.5 * np.hypot(x[:, -1] - x[:, 0], z[:, -1] - z[:, 0])
         out[i, 4:4 + _K], out[i, 4 + _K:4 + 2 * _K] = x, z
-        out[i, 4 + 2 * _K:] = 0.5 * np.maximum(np.pad(step, ((0, 0), (1, 0))),
-                                               np.pad(step, ((0, 0), (0, 1))))
+        out[i, 4 + 2 * _K:] = np.pad(bend, ((0, 0), (1, 1)), mode="edge")
     return out
 
 
@@ -152,7 +155,7 @@ def plane_points(rows: PlotRows, sensors: SensorSet, sensor_idx: np.ndarray,
 class Piece:
     """One sensor track (a piece of a key between gaps): its ``key``, ``sensor`` index and,
     in time order, its rows (``rows``: indexes of the split's buffer) with their time, plane
-    point columns (``x``, ``z``, ``step``: one column per level), altitude (NaN: none) and
+    point columns (``x``, ``z``, ``bend``: one column per level), altitude (NaN: none) and
     Mode 3/A code (-1: none)."""
 
     key: str
@@ -164,7 +167,7 @@ class Piece:
     span: np.ndarray
     x: np.ndarray
     z: np.ndarray
-    step: np.ndarray
+    bend: np.ndarray
     alt: np.ndarray
     code: np.ndarray
 
@@ -234,11 +237,19 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> tuple[int, int, int
 
     gate = (GATE_SIGMAS * np.hypot(a.sigma, worst(b.sigma)) + a.bias + worst(b.bias)
             + motion + SLACK_M)
-    # at each common height: the other's interpolated position, both plots' level steps
+    # the difference to the other's interpolated position at each common height
     wk = w[:, None]
-    dist = np.hypot(a.x - ((1.0 - wk) * b.x[c0] + wk * b.x[c1]),
-                    a.z - ((1.0 - wk) * b.z[c0] + wk * b.z[c1]))
-    near = np.any(dist <= gate[:, None] + a.step + worst(b.step), axis=1)
+    dx = a.x - ((1.0 - wk) * b.x[c0] + wk * b.x[c1])
+    dz = a.z - ((1.0 - wk) * b.z[c0] + wk * b.z[c1])
+    if dx.shape[1] == 1:
+        near = np.hypot(dx[:, 0], dz[:, 0]) <= gate
+    else:  # its least length over the heights: on each segment between levels
+        ex, ez = np.diff(dx, axis=1), np.diff(dz, axis=1)
+        u = np.clip(-(dx[:, :-1] * ex + dz[:, :-1] * ez) / np.maximum(ex * ex + ez * ez,
+                                                                     1e-9), 0.0, 1.0)
+        least = np.hypot(dx[:, :-1] + u * ex, dz[:, :-1] + u * ez)
+        bend = a.bend + worst(b.bend)
+        near = np.any(least <= gate[:, None] + np.maximum(bend[:, :-1], bend[:, 1:]), axis=1)
     compared = (has0 | has1) & (motion <= MAX_MOTION_M) & (
         gate + a.span + worst(b.span) <= CELL_M) & np.isfinite(
         gate + a.x[:, 0] + worst(b.x[:, 0]))
@@ -265,7 +276,7 @@ def _near(p: Piece, t0: float, t1: float, levels: bool) -> Piece:
     j = int(np.searchsorted(p.t, t1, side="right"))
     k = slice(None) if levels else slice(0, 1)
     return Piece(p.key, p.sensor, p.rows[i:j], p.t[i:j], p.sigma[i:j], p.bias[i:j],
-                 p.span[i:j], p.x[i:j, k], p.z[i:j, k], p.step[i:j, k], p.alt[i:j],
+                 p.span[i:j], p.x[i:j, k], p.z[i:j, k], p.bend[i:j, k], p.alt[i:j],
                  p.code[i:j])
 
 
