@@ -16,7 +16,8 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 - with the recording's date (``--date``, else a capture's packet times or a table's
   ``timestamp``: :mod:`solver.io.dates`) ``time_utc`` beside ``t`` in every output;
 - ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
-  with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
+  with ``--samples STEP`` ``samples.parquet/`` (at most :data:`solver.config.MAX_SAMPLES`
+  a track: one that would have more keeps none, with a warning; streamed as tracks finish; a rerun
   resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
   ``tracks.geojsonl`` (one GeoJSON feature per aircraft, for maps) and ``manoeuvres.csv``
   (every track's turns and speed changes) (:mod:`solver.outputs`);
@@ -61,7 +62,7 @@ from .batch import (
     quiet_interrupted_sync,
     reconstruct_many,
 )
-from .config import FILTER_GATE_SIGMA, MIN_TRIAL_STEP_S, ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, MAX_SAMPLES, MIN_TRIAL_STEP_S, ReconstructionConfig
 from .inputs import Bounds, InputError
 from .io.altitudes import offsets_summary
 from .io.asterix import edition_choices, parse_edition
@@ -200,7 +201,7 @@ def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loa
     task = partial(assess_track, figures_dir=figures, filters=settings.filters,
                    filter_gate=settings.filter_gate_sigma,
                    times_of_day=bool(loaded.times_of_day), date=loaded.date,
-                   samples=settings.sample_step_s is not None)
+                   samples=settings.sample_step_s is not None, max_samples=MAX_SAMPLES)
     summary: BatchSummary = reconstruct_many(
         loaded.tracks, out, config=config, executor=client,
         time_limit_s=args.time_limit or None, retry_failed=args.retry_failed,
@@ -385,7 +386,9 @@ def parser() -> argparse.ArgumentParser:
                      "hold makes the exit status 2 after the others are written")
     rec.add_argument("--samples", type=_seconds, default=None, metavar="STEP",
                      help="also write every track's state every STEP seconds (from its first "
-                     "plot to its last, with the covariance) into --out/samples.parquet")
+                     "plot to its last, with the covariance) into --out/samples.parquet; a "
+                     f"track that would have {MAX_SAMPLES:,} samples or more keeps none, with "
+                     "a warning (warnings.csv)")
     rec.add_argument("--figures", action="store_true", help="also draw every track's figure")
     rec.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
                      "an earlier run")

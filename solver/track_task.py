@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .batch import TrackOutcome, solve_track
-from .config import FILTER_GATE_SIGMA, ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, MAX_SAMPLES, ReconstructionConfig
 from .figure_data import figure_rows, from_reconstruction
 from .plots import PlotTable
 from .results import Reconstruction
@@ -36,7 +36,7 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
                  time_limit_s: float | None, figures_dir: str | None = None,
                  filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
                  times_of_day: bool = False, samples: bool = False,
-                 max_samples: int | None = None, figure_data: bool = False,
+                 max_samples: int | None = MAX_SAMPLES, figure_data: bool = False,
                  date: str | None = None) -> AssessedTrack:
     """:func:`solver.batch.solve_track` (with its keyword arguments) plus the
     per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the

@@ -1288,3 +1288,26 @@ def test_a_track_across_the_antimeridian_is_cut_there_in_the_geojson():
         assert max(abs(a - b) for a, b in itertools.pairwise(lons)) < 180.0
     near = [[14.0, 46.0], [14.1, 46.1], [14.3, 46.0]]
     assert line_geometry(near) == {"type": "LineString", "coordinates": near}
+
+
+def test_samples_are_capped_per_track_with_a_warning(recording, tmp_path, capsys, scheduler):
+    """``--samples 0.001`` asked 2.6 M samples of a tester's 44-min track (a MemoryError, exit
+    1; 0.01 wrote 43 MB for it): the command line had no cap, where the service has
+    ``max_samples``. Now every track over the shared cap keeps none, each with a warning
+    (counted in the summary, listed in warnings.csv), and the tracks themselves are done."""
+    from solver.config import MAX_SAMPLES
+
+    d, _ = recording
+    out = tmp_path / "out"
+    assert main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
+                 "--scheduler", scheduler, "--no-progress", "--samples", "0.001"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["done"] == summary["tracks"] > 0 and summary["failures"] == {}
+    assert summary["output"]["tracks_with_warnings"] == summary["tracks"]
+    warned = list(csv.DictReader((out / "warnings.csv").open()))
+    capped = [w for w in warned if w["warning"].startswith("samples: none kept")]
+    assert sorted(w["aircraft"] for w in capped) == sorted(
+        pq.read_table(out / "tracks.parquet").column("aircraft").unique().to_pylist())
+    assert all(f"the limit is {MAX_SAMPLES}" in w["warning"] for w in capped)
+    samples = out / "samples.parquet"
+    assert not samples.exists() or pq.read_table(samples).num_rows == 0
