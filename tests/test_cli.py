@@ -1311,3 +1311,42 @@ def test_samples_are_capped_per_track_with_a_warning(recording, tmp_path, capsys
     assert all(f"the limit is {MAX_SAMPLES}" in w["warning"] for w in capped)
     samples = out / "samples.parquet"
     assert not samples.exists() or pq.read_table(samples).num_rows == 0
+
+
+def _compressed(data: bytes) -> dict[str, bytes]:
+    """``data`` as each compressed file a recording may come in (zstd: the zstd tool's frame of
+    b"abc", Python 3.11 has no zstd; only its first bytes matter)."""
+    import bz2
+    import gzip
+    import io
+    import lzma
+    import zipfile
+
+    z = io.BytesIO()
+    with zipfile.ZipFile(z, "w", zipfile.ZIP_DEFLATED) as f:
+        f.writestr("day.ast", data)
+    return {"gzip": gzip.compress(data), "bzip2": bz2.compress(data), "xz": lzma.compress(data),
+            "zip": z.getvalue(), "zstd": bytes.fromhex("28b52ffd0458190000616263990977ad")}
+
+
+def test_a_compressed_recording_is_refused_naming_its_compression(recording, tmp_path, capsys):
+    """A gzipped plot table or capture was decoded as raw ASTERIX (gzip's 1f 8b read as a
+    CAT031 header): 459 made-up problems and "no aircraft's track could be read" (a
+    tester's). Every compression, of an ASTERIX file or a table, under a compressed name or a
+    table's: one line naming it, by ``reconstruct`` (before a cluster starts) and ``plot``;
+    the files uncompressed are read (the other tests)."""
+    d, _ = recording
+    table = b"t,sensor,lat_deg,lon_deg\n0,ADSB,48.1,16.5\n"
+    for kind, packed in _compressed((d / "day.ast").read_bytes()).items():
+        for name, data in (("day.ast.x", packed), ("plots.csv",
+                                                    _compressed(table)[kind])):
+            path = tmp_path / f"{kind}-{name}"
+            path.write_bytes(data)
+            common = [str(path), "--sensors", str(d / "sensors.json"), "--out",
+                      str(tmp_path / "out")]
+            for args in (["reconstruct", *common, "--no-progress"],
+                         ["plot", *common, "--aircraft", "ABC123"]):
+                code = main(args)
+                err = capsys.readouterr().err
+                assert code == 2 and err.count("\n") == 1, (kind, name, args[0], err)
+                assert f"recording is compressed with {kind}: decompress it first" in err, err

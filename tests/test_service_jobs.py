@@ -1741,3 +1741,17 @@ def test_a_track_figure_of_a_running_job_and_one_drawn_while_its_job_is_deleted(
     gone = client.get(f"{loc}/tracks/{done}/figure.png")
     assert gone.status_code == 404 and "deleted" in gone.json()["message"], gone.text
     assert not runner.job_dir(job_id).exists()
+
+
+def test_a_compressed_recording_is_refused_at_the_upload(client):
+    """A gzipped table or capture was taken as raw ASTERIX (gzip's 1f 8b a CAT031 header) and
+    read into made-up problems (a tester's, through the reader the command line shares): a
+    422 naming the compression, under a compressed name or a table's."""
+    import gzip
+
+    data = gzip.compress(b"t,sensor,lat_deg,lon_deg\n0,ADSB,48.1,16.5\n")
+    for name in ("plots.csv.gz", "plots.csv", "day.ast"):
+        r = upload(client, data, name=name)
+        assert r.status_code == 422, (name, r.text)
+        assert r.json()["message"].startswith("recording is compressed with gzip: decompress "
+                                              "it first"), r.json()
