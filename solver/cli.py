@@ -30,7 +30,8 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 - ``sensors.png``: each radar's range and azimuth residuals over range and azimuth
   (:mod:`solver.assessment`);
 - ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
-  (every track with the radar sites), ``figures/<track>.png`` with ``--figures``,
+  (every track with the radar sites), ``figures/<track>.png`` with ``--figures`` (named by
+  :func:`solver.track_task.track_file_name`: distinct keys, distinct files),
   ``summary.json``; a summary is printed at the end (tracks, plots, failures, plots/s).
 
 ``plot`` draws ``figures/<aircraft>.png`` for the named aircraft and, with ``--map``,

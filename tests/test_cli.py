@@ -1350,3 +1350,32 @@ def test_a_compressed_recording_is_refused_naming_its_compression(recording, tmp
                 err = capsys.readouterr().err
                 assert code == 2 and err.count("\n") == 1, (kind, name, args[0], err)
                 assert f"recording is compressed with {kind}: decompress it first" in err, err
+
+
+def test_keys_a_file_name_cannot_tell_apart_get_a_figure_each(recording, tmp_path, capsys,
+                                                              scheduler):
+    """Keys ``AB 1`` and ``AB/1`` are two tracks, but both figures were ``figures/AB_1.png``,
+    one over the other (a tester's): a key that is no safe file name gets a short hash of
+    itself beside its readable form (``reconstruct --figures``; ``plot`` names by the same
+    function); a Mode S address stays its own name."""
+    from solver.track_task import track_file_name
+
+    d, _ = recording
+    rec = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE))
+    write_table(rec.rows, tmp_path / "plots.csv")
+    table = pacsv.read_csv(tmp_path / "plots.csv")
+    names = {f"{f.address:06X}": n for f, n in zip(FLIGHTS, ("AB 1", "AB/1"), strict=False)}
+    keep = pc.is_in(table.column("mode_s"), pa.array(list(names)))
+    table = table.filter(keep)
+    table = table.set_column(table.column_names.index("aircraft"), "aircraft", pa.array(
+        [names[k] for k in table.column("mode_s").to_pylist()]))
+    pacsv.write_csv(table, tmp_path / "keys.csv")
+    out = tmp_path / "out"
+    args = [str(tmp_path / "keys.csv"), "--sensors", str(d / "sensors.json"), "--out", str(out)]
+    assert main([*args, "--scheduler", scheduler, "--no-progress", "--figures"]) == 0
+    files = {track_file_name(k) + ".png" for k in ("AB 1", "AB/1")}
+    assert len(files) == 2 and all(f.startswith("AB_1-") for f in files)
+    assert {p.name for p in (out / "figures").iterdir()} == files
+    assert track_file_name("3C6DD4") == "3C6DD4" and track_file_name("a.b_c-1") == "a.b_c-1"
+    made = track_file_name("AB 1")  # a safe key of a made name's form is made a name too
+    assert track_file_name(made) != made
