@@ -519,9 +519,10 @@ def _bounds(ap: argparse.ArgumentParser, default: list[str] | None) -> None:
                                               "run's in --out"))
 
 
-def plot(args: argparse.Namespace) -> list[Path]:
-    """The figures of ``trajrecon plot``; raises :class:`InputError` for an aircraft not in
-    the recording or a map without tracks."""
+def plot(args: argparse.Namespace) -> tuple[list[Path], list[str]]:
+    """The figures of ``trajrecon plot`` written, and the aircraft named that the recording
+    does not hold (the map is drawn all the same, as ``reconstruct --aircraft`` writes the
+    others); raises :class:`InputError` for a map without tracks."""
     from .figures import save, track_figure
     from .reconstruct import reconstruct
 
@@ -550,10 +551,6 @@ def plot(args: argparse.Namespace) -> list[Path]:
             wanted.discard(track.key)
             if not wanted:
                 break
-        if wanted:
-            raise InputError(("aircraft",), f"{', '.join(sorted(wanted))} not in the "
-                             f"recording (or too short to reconstruct: {out}/problems.txt "
-                             "of a reconstruct run names them)")
     if args.map:
         path = write_map(out, loaded.sensors, frame=loaded.frame)
         if path is None:
@@ -563,7 +560,7 @@ def plot(args: argparse.Namespace) -> list[Path]:
         radars = write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
         if radars is not None:
             written.append(radars)
-    return written
+    return written, sorted(wanted)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -578,10 +575,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     if args.command == "plot":
         try:
-            for path in plot(args):
-                print(path)
+            written, missing = plot(args)
         except (InputError, *UNUSABLE_PATH) as e:
             print(f"trajrecon: {e}", file=sys.stderr)
+            return 2
+        for path in written:
+            print(path)
+        if missing:  # after the others are written, as reconstruct --aircraft
+            print(f"trajrecon: aircraft {', '.join(missing)} not in the recording (or too "
+                  f"short to reconstruct: {args.out}/problems.txt of a reconstruct run names "
+                  "them)", file=sys.stderr)
             return 2
         return 0
     quiet_interrupted_sync()

@@ -252,6 +252,16 @@ def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys, sche
     assert main(["plot", *args, "--map"]) == 2
     assert "holds no reconstructed track" in capsys.readouterr().err
     assert main(["reconstruct", *args, "--scheduler", scheduler, "--no-progress"]) == 0
+    # an unknown aircraft beside a known one and --map: the map drawn all the same, then exit
+    # 2 naming it (the map was left undrawn, and nothing said so: a tester's)
+    (out / "map.png").unlink()
+    (out / "sensors.png").unlink()
+    capsys.readouterr()
+    assert main(["plot", *args, "--aircraft", key, "ABC123", "--map"]) == 2
+    printed = capsys.readouterr()
+    assert printed.out.split() == [str(out / "figures" / f"{key}.png"), str(out / "map.png"),
+                                   str(out / "sensors.png")]
+    assert "ABC123 not in the recording" in printed.err and printed.err.count("\n") == 1
     (out / "map.png").unlink()
     (out / "sensors.png").unlink()
     assert main(["plot", *args, "--map"]) == 0
