@@ -1755,3 +1755,22 @@ def test_a_compressed_recording_is_refused_at_the_upload(client):
         assert r.status_code == 422, (name, r.text)
         assert r.json()["message"].startswith("recording is compressed with gzip: decompress "
                                               "it first"), r.json()
+
+
+def test_a_json_job_takes_plots_west_of_the_antimeridian(client):
+    """A JSON job's plots are checked as the single request's and read as a table's: one
+    longitude limit, [-360, 360], so -180.0006 is taken by both (it was a 422 here and a
+    bad_value in a table, while 180.0006 was taken), the answer's longitudes in [-180, 180)."""
+    lons = [-179.99 - 0.002 * i for i in range(10)]  # 92 m/s west at 65.5 N, past -180
+    sensors = [{"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}]
+    tracks = {"W": [{"t": float(i), "sensor": "ADSB", "lat_deg": 65.5, "lon_deg": lon,
+                     "altitude_m": 10_000.0} for i, lon in enumerate(lons)]}
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": tracks})
+    assert r.status_code == 202, r.text
+    status = wait(client, r.headers["location"])
+    assert status["state"] == "done" and status["tracks_done"] == 1, status
+    assert status["problems"]["counts"] == {}, status
+    at_plots = client.get(r.headers["location"] + "/tracks/W").json()["trajectory"]["at_plots"]
+    got = np.array([s["lon_deg"] for s in at_plots])
+    assert len(got) == 10 and np.all((got >= -180.0) & (got < 180.0))
+    assert np.all(np.abs((got - np.array(lons) + 180.0) % 360.0 - 180.0) < 0.002)
