@@ -1266,40 +1266,6 @@ def test_odd_tables_and_sensor_files_get_a_line_not_a_traceback(recording, tmp_p
     assert done["plots"] == rows.t.size
 
 
-def test_a_gap_piece_and_another_aircraft_get_their_own_figure_and_selection():
-    """``KEY#2`` (a piece after a time gap) and ``KEY~2`` (another aircraft under the key) both
-    became the file name ``KEY_2`` (one figure over the other), and ``--aircraft 4ca2d1~2``
-    matched nothing (a reviewer's)."""
-    from solver.io.reading import normal_key
-    from solver.track_task import track_file_name
-
-    names = {track_file_name(k) for k in ("R1:track:30", "R1:track:30#2", "R1:track:30~2")}
-    assert len(names) == 3
-    assert normal_key("4ca2d1~2") == "4CA2D1~2" and normal_key("4ca2d1#2") == "4CA2D1#2"
-
-
-def test_a_track_across_the_antimeridian_is_cut_there_in_the_geojson():
-    """A tester's Fiji track drew a 359.997-deg step across the whole world (RFC 7946,
-    3.1.9: cut the line there). Both ways round, the parts meet at +-180 deg at the latitude
-    between the two points; a track that does not cross stays one LineString."""
-    from solver.outputs import line_geometry
-
-    east = [[179.8, -17.0], [179.9, -17.0], [-179.9, -16.8], [-179.8, -16.8]]
-    g = line_geometry(east)
-    assert g["type"] == "MultiLineString"
-    assert g["coordinates"] == [[[179.8, -17.0], [179.9, -17.0], [180.0, -16.9]],
-                                [[-180.0, -16.9], [-179.9, -16.8], [-179.8, -16.8]]]
-    west = line_geometry([[-179.95, 52.0], [179.85, 52.4], [-179.9, 52.5], [-179.7, 52.6]])
-    assert [len(p) for p in west["coordinates"]] == [2, 3, 3]  # across and back
-    assert west["coordinates"][0][-1] == [-180.0, 52.1]  # a quarter of the way
-    assert west["coordinates"][1][0] == [180.0, 52.1]
-    for part in west["coordinates"]:
-        lons = [p[0] for p in part]
-        assert max(abs(a - b) for a, b in itertools.pairwise(lons)) < 180.0
-    near = [[14.0, 46.0], [14.1, 46.1], [14.3, 46.0]]
-    assert line_geometry(near) == {"type": "LineString", "coordinates": near}
-
-
 def test_samples_are_capped_per_track_with_a_warning(recording, tmp_path, capsys, scheduler):
     """``--samples 0.001`` asked 2.6 M samples of a tester's 44-min track (a MemoryError, exit
     1; 0.01 wrote 43 MB for it): the command line had no cap, where the service has
@@ -1389,3 +1355,36 @@ def test_keys_a_file_name_cannot_tell_apart_get_a_figure_each(recording, tmp_pat
     assert track_file_name("3C6DD4") == "3C6DD4" and track_file_name("a.b_c-1") == "a.b_c-1"
     made = track_file_name("AB 1")  # a safe key of a made name's form is made a name too
     assert track_file_name(made) != made
+
+def test_a_gap_piece_and_another_aircraft_get_their_own_figure_and_selection():
+    """``KEY#2`` (a piece after a time gap) and ``KEY~2`` (another aircraft under the key) both
+    became the file name ``KEY_2`` (one figure over the other), and ``--aircraft 4ca2d1~2``
+    matched nothing (a reviewer's)."""
+    from solver.io.reading import normal_key
+    from solver.track_task import track_file_name
+
+    names = {track_file_name(k) for k in ("R1:track:30", "R1:track:30#2", "R1:track:30~2")}
+    assert len(names) == 3
+    assert normal_key("4ca2d1~2") == "4CA2D1~2" and normal_key("4ca2d1#2") == "4CA2D1#2"
+
+
+def test_a_track_across_the_antimeridian_is_cut_there_in_the_geojson():
+    """A tester's Fiji track drew a 359.997-deg step across the whole world (RFC 7946,
+    3.1.9: cut the line there). Both ways round, the parts meet at +-180 deg at the latitude
+    between the two points; a track that does not cross stays one LineString."""
+    from solver.outputs import line_geometry
+
+    east = [[179.8, -17.0], [179.9, -17.0], [-179.9, -16.8], [-179.8, -16.8]]
+    g = line_geometry(east)
+    assert g["type"] == "MultiLineString"
+    assert g["coordinates"] == [[[179.8, -17.0], [179.9, -17.0], [180.0, -16.9]],
+                                [[-180.0, -16.9], [-179.9, -16.8], [-179.8, -16.8]]]
+    west = line_geometry([[-179.95, 52.0], [179.85, 52.4], [-179.9, 52.5], [-179.7, 52.6]])
+    assert [len(p) for p in west["coordinates"]] == [2, 3, 3]  # across and back
+    assert west["coordinates"][0][-1] == [-180.0, 52.1]  # a quarter of the way
+    assert west["coordinates"][1][0] == [180.0, 52.1]
+    for part in west["coordinates"]:
+        lons = [p[0] for p in part]
+        assert max(abs(a - b) for a, b in itertools.pairwise(lons)) < 180.0
+    near = [[14.0, 46.0], [14.1, 46.1], [14.3, 46.0]]
+    assert line_geometry(near) == {"type": "LineString", "coordinates": near}
