@@ -27,7 +27,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from solver.inputs import Bounds, InputError
 from solver.io.dates import UTC, iso_utc, midnight_us
-from solver.io.reading import RECORDING_HEAD_BYTES, check_recording_head
+from solver.io.reading import RECORDING_HEAD_BYTES, check_not_compressed, check_recording_head
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
 from solver.io.tables import PIECE_NAME, PlotRows, write_table
@@ -355,6 +355,7 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
     head = src.read(RECORDING_HEAD_BYTES)
     if not head:
         raise InputError(("recording",), "is empty")
+    check_not_compressed(head)  # whatever its name: a gzip read as CAT031 blocks, or a table
     suffix = TABLE_SUFFIXES.get(Path(recording.filename or "").suffix.lower())
     if suffix is None:
         suffix = ".parquet" if head[:4] == b"PAR1" else ".csv" if _looks_like_csv(head) \

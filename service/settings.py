@@ -14,6 +14,8 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from solver.config import MAX_SAMPLES
+
 
 def _cores() -> int:
     """CPUs this process may run on (the affinity mask, not the machine's count)."""
@@ -51,7 +53,7 @@ class Settings(BaseSettings):
     max_nodes: int = Field(50_000, ge=16, description="Most node intervals of a refinement "
                            "(every plot, gaps cut to refine.max_node_step_s): long gaps cost "
                            "nodes, so a small body can ask for hours of work; beyond: 422.")
-    max_samples: int = Field(100_000, ge=1, description="Most regular samples in one answer "
+    max_samples: int = Field(MAX_SAMPLES, ge=1, description="Most regular samples in one answer "
                              "(track duration / sample_step_s).")
     solve_time_limit_s: float = Field(
         300.0, ge=0, description="Longest one reconstruction may run in a worker (s); longer "

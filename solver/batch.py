@@ -38,6 +38,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import json
 import logging
+import math
 import os
 import re
 import time
@@ -51,7 +52,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from .config import FILTER_GATE_SIGMA, ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, MAX_SAMPLES, ReconstructionConfig
 from .figure_data import FIGURE_DATA
 from .inputs import FloatArray
 from .io.dates import UTC, utc_times
@@ -199,7 +200,7 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
                 extras: Callable[[Any], dict[str, Any]] | None = None, *,
                 filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
                 times_of_day: bool = False, samples: bool = False,
-                max_samples: int | None = None, date: str | None = None) -> TrackOutcome:
+                max_samples: int | None = MAX_SAMPLES, date: str | None = None) -> TrackOutcome:
     """Reconstruct one track (runs on a worker). Any ``Exception`` of the track (bad input,
     solver failure, the deadline ``time_limit_s`` after the start) is returned as a failed
     outcome naming it; the result's rows come back as Arrow tables. ``extras(reconstruction)``
@@ -210,7 +211,9 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
     ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled);
     ``date``: that midnight's UTC date (``time_utc`` is filled; :mod:`solver.io.dates`).
     ``samples``: keep the states every ``config.sample_step_s`` (:data:`SAMPLE_COLUMNS`);
-    a track that would have ``max_samples`` or more keeps none, with a warning."""
+    a track that would have ``max_samples`` (default :data:`solver.config.MAX_SAMPLES`; None: no
+    limit) or more keeps none, with a warning. A failure's reason is one line
+    (:func:`failure_reason`)."""
     from .reconstruct import reconstruct
 
     start, cpu = time.perf_counter(), time.thread_time()
@@ -222,8 +225,10 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
             span = float(table.t.max() - table.t.min())
             if span / config.sample_step_s >= max_samples:
                 warnings.append(f"samples: none kept: sample_step_s {config.sample_step_s:g} "
-                                f"gives {max_samples} or more over the {span:g}-s track (the "
-                                "limit max_samples); ask a larger step")
+                                f"gives {math.floor(span / config.sample_step_s) + 1} samples "
+                                f"over the {span:g}-s track, the limit is {max_samples} (max_"
+                                "samples); ask a step of at least "
+                                f"{span / (max_samples - 1) if max_samples > 1 else span:.3g} s")
                 samples, config = False, replace(config, sample_step_s=span / 2 or 1.0)
         rec = reconstruct(table, config=config, deadline=deadline)
         bad = non_finite_part(rec)
@@ -248,11 +253,24 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
                     {"m": float(rec.altitude_m), "sigma_m": float(rec.altitude_sigma_m or 0.0)})
     except Exception as e:  # isolated: one track's failure is its own
         return TrackOutcome(key, "failed", len(table), time.perf_counter() - start,
-                            f"{type(e).__name__}: {e}", cpu_s=time.thread_time() - cpu)
+                            failure_reason(key, e), cpu_s=time.thread_time() - cpu)
     return TrackOutcome(key, "done", len(table), time.perf_counter() - start, None,
                         warnings, states, segments, more, filtered, sampled,
                         cpu_s=time.thread_time() - cpu, diagnostics=diagnostics,
                         altitude=altitude)
+
+
+def failure_reason(key: str, error: BaseException) -> str:
+    """A track's failure as one line, ``Type: first line of the message`` (the summary's and
+    ``progress.jsonl``'s reason); a longer message (Dask's error for a result it could not
+    pickle holds a whole traceback: 2.9 KB over 40 lines for a tester's track) is logged
+    whole here, with the traceback, and the line says so."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    reason = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
+    if len(lines) > 1:
+        LOG.error("track %s failed: %s", key, error, exc_info=error)
+        reason += " (the rest in the log)"
+    return reason
 
 
 Clock = tuple[bool, str | None]
@@ -556,8 +574,9 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                 key = pending.pop(fut)
                 try:
                     outcome: TrackOutcome = fut.result()
-                except Exception as e:  # the task itself failed: a worker died repeatedly
-                    outcome = TrackOutcome(key, "failed", 0, 0.0, f"{type(e).__name__}: {e}")
+                except Exception as e:  # the task itself failed: a worker died repeatedly,
+                    # or its result could not be sent back (Dask's error holds a traceback)
+                    outcome = TrackOutcome(key, "failed", 0, 0.0, failure_reason(key, e))
                 source = names.pop(key, None)
                 if source is not None and outcome.states is not None:
                     outcome = replace(outcome, states=with_sources(outcome.states, source))

@@ -16,7 +16,8 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 - with the recording's date (``--date``, else a capture's packet times or a table's
   ``timestamp``: :mod:`solver.io.dates`) ``time_utc`` beside ``t`` in every output;
 - ``tracks.parquet/``, ``segments.parquet/``, with ``--filters`` ``filters.parquet/`` and
-  with ``--samples STEP`` ``samples.parquet/`` (streamed as tracks finish; a rerun
+  with ``--samples STEP`` ``samples.parquet/`` (at most :data:`solver.config.MAX_SAMPLES`
+  a track: one that would have more keeps none, with a warning; streamed as tracks finish; a rerun
   resumes), ``progress.jsonl`` (:mod:`solver.batch`), and at the end ``tracks.csv`` and
   ``tracks.geojsonl`` (one GeoJSON feature per aircraft, for maps) and ``manoeuvres.csv``
   (every track's turns and speed changes) (:mod:`solver.outputs`);
@@ -29,7 +30,8 @@ as it reads (:mod:`solver.io.reading`), reconstructs every track on Dask (an emb
 - ``sensors.png``: each radar's range and azimuth residuals over range and azimuth
   (:mod:`solver.assessment`);
 - ``problems.txt`` (everything left out of the recording, located and counted), ``map.png``
-  (every track with the radar sites), ``figures/<track>.png`` with ``--figures``,
+  (every track with the radar sites), ``figures/<track>.png`` with ``--figures`` (named by
+  :func:`solver.track_task.track_file_name`: distinct keys, distinct files),
   ``summary.json``; a summary is printed at the end (tracks, plots, failures, plots/s).
 
 ``plot`` draws ``figures/<aircraft>.png`` for the named aircraft and, with ``--map``,
@@ -61,7 +63,7 @@ from .batch import (
     quiet_interrupted_sync,
     reconstruct_many,
 )
-from .config import FILTER_GATE_SIGMA, MIN_TRIAL_STEP_S, ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, MAX_SAMPLES, MIN_TRIAL_STEP_S, ReconstructionConfig
 from .inputs import Bounds, InputError
 from .io.altitudes import offsets_summary
 from .io.asterix import edition_choices, parse_edition
@@ -200,7 +202,7 @@ def _reconstruct(args: argparse.Namespace, settings: RunSettings, out: Path, loa
     task = partial(assess_track, figures_dir=figures, filters=settings.filters,
                    filter_gate=settings.filter_gate_sigma,
                    times_of_day=bool(loaded.times_of_day), date=loaded.date,
-                   samples=settings.sample_step_s is not None)
+                   samples=settings.sample_step_s is not None, max_samples=MAX_SAMPLES)
     summary: BatchSummary = reconstruct_many(
         loaded.tracks, out, config=config, executor=client,
         time_limit_s=args.time_limit or None, retry_failed=args.retry_failed,
@@ -387,7 +389,9 @@ def parser() -> argparse.ArgumentParser:
                      "others are written")
     rec.add_argument("--samples", type=_seconds, default=None, metavar="STEP",
                      help="also write every track's state every STEP seconds (from its first "
-                     "plot to its last, with the covariance) into --out/samples.parquet")
+                     "plot to its last, with the covariance) into --out/samples.parquet; a "
+                     f"track that would have {MAX_SAMPLES:,} samples or more keeps none, with "
+                     "a warning (warnings.csv)")
     rec.add_argument("--figures", action="store_true", help="also draw every track's figure")
     rec.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
                      "an earlier run")
@@ -517,9 +521,10 @@ def _bounds(ap: argparse.ArgumentParser, default: list[str] | None) -> None:
                                               "run's in --out"))
 
 
-def plot(args: argparse.Namespace) -> list[Path]:
-    """The figures of ``trajrecon plot``; raises :class:`InputError` for an aircraft not in
-    the recording or a map without tracks."""
+def plot(args: argparse.Namespace) -> tuple[list[Path], list[str]]:
+    """The figures of ``trajrecon plot`` written, and the aircraft named that the recording
+    does not hold (the map is drawn all the same, as ``reconstruct --aircraft`` writes the
+    others); raises :class:`InputError` for a map without tracks."""
     from .figures import save, track_figure
     from .reconstruct import reconstruct
 
@@ -548,10 +553,6 @@ def plot(args: argparse.Namespace) -> list[Path]:
             wanted.discard(track.key)
             if not wanted:
                 break
-        if wanted:
-            raise InputError(("aircraft",), f"{', '.join(sorted(wanted))} not in the "
-                             f"recording (or too short to reconstruct: {out}/problems.txt "
-                             "of a reconstruct run names them)")
     if args.map:
         path = write_map(out, loaded.sensors, frame=loaded.frame)
         if path is None:
@@ -561,7 +562,7 @@ def plot(args: argparse.Namespace) -> list[Path]:
         radars = write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
         if radars is not None:
             written.append(radars)
-    return written
+    return written, sorted(wanted)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -576,10 +577,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     if args.command == "plot":
         try:
-            for path in plot(args):
-                print(path)
+            written, missing = plot(args)
         except (InputError, *UNUSABLE_PATH) as e:
             print(f"trajrecon: {e}", file=sys.stderr)
+            return 2
+        for path in written:
+            print(path)
+        if missing:  # after the others are written, as reconstruct --aircraft
+            print(f"trajrecon: aircraft {', '.join(missing)} not in the recording (or too "
+                  f"short to reconstruct: {args.out}/problems.txt of a reconstruct run names "
+                  "them)", file=sys.stderr)
             return 2
         return 0
     quiet_interrupted_sync()

@@ -21,6 +21,13 @@ ones (an operator's sigmas are seldom exact) made it leave out up to 33 genuine 
 and cost up to 9.4 % RMS on clean plots, where 6 sigma left out at most 1.6 per 1,000 and cost
 at most 1 %. Looking ahead keeps far genuine plots (turns) either way."""
 
+MAX_SAMPLES = 100_000
+"""Most regular samples one track keeps (its span / ``sample_step_s``): a track that would
+have this many or more keeps none, with a warning (:func:`solver.batch.solve_track`); the
+default of the command line and of the service's ``max_samples`` setting. A tester's 2,511-plot,
+44-min track with ``--samples 0.001`` (2.6 M samples) ended in a MemoryError while Dask pickled
+its result, and ``--samples 0.01`` wrote 43 MB for it; at 0.0262 s (99,930 samples) 19 MB."""
+
 MIN_TRIAL_STEP_S = 1 / 128
 """The finest spacing of the sliding windows' trial start points (s): the time stamps of a
 recording are no finer (ASTERIX I140: 1/128 s), so no switch time lies between two closer

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from pyproj import CRS, Geod, Proj, Transformer
 
-from .inputs import FloatArray, InputError
+from .inputs import MAX_LON_DEG, FloatArray, InputError, wrap_lon
 
 _GEOD = Geod(ellps="WGS84")
 
@@ -57,9 +57,11 @@ def _topocentric(lat0: float, lon0: float, h0: float) -> Transformer:
 def check_lat_lon(lat: FloatArray | float, lon: FloatArray | float,
                   loc: tuple[str | int, ...]) -> None:
     """Raise :class:`InputError` at ``loc`` (``+ (index,)`` for arrays) for a latitude outside
-    [-90, 90] or a longitude outside [-180, 360) or non-finite values."""
+    [-90, 90] or a longitude outside [-360, 360] (:data:`solver.inputs.MAX_LON_DEG`) or
+    non-finite values."""
     lat_a, lon_a = np.atleast_1d(np.asarray(lat, float)), np.atleast_1d(np.asarray(lon, float))
-    for name, arr, lo, hi in (("lat_deg", lat_a, -90.0, 90.0), ("lon_deg", lon_a, -180.0, 360.0)):
+    for name, arr, lo, hi in (("lat_deg", lat_a, -90.0, 90.0),
+                              ("lon_deg", lon_a, -MAX_LON_DEG, MAX_LON_DEG)):
         bad = np.flatnonzero(~(np.isfinite(arr) & (arr >= lo) & (arr <= hi)))
         if bad.size:
             where = loc if np.ndim(lat) == 0 else (*loc[:1], int(bad[0]), *loc[1:])
@@ -87,9 +89,11 @@ class LocalFrame:
         return np.asarray(north, float), np.asarray(east, float)
 
     def to_geodetic(self, x: FloatArray, z: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Plane ``(x north, z east)`` -> geodetic ``(lat_deg, lon_deg)``."""
+        """Plane ``(x north, z east)`` -> geodetic ``(lat_deg, lon_deg)``, the longitude in
+        [-180, 180) as the plots' are read (PROJ gave -180.00000000000028 near the
+        antimeridian)."""
         lon, lat = _plane(self.lat_deg, self.lon_deg)[1].transform(z, x)
-        return np.asarray(lat, float), np.asarray(lon, float)
+        return np.asarray(lat, float), np.asarray(wrap_lon(lon), float)
 
     def _factors(self, x: FloatArray, z: FloatArray) -> Any:
         """PROJ's factors of the plane at ``(x, z)`` (scale, meridian convergence)."""

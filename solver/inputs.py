@@ -24,6 +24,11 @@ MIN_ALTITUDE_SIGMA_M = 1e-3  # a radar's altitude_sigma_m when not 0 (as a posit
 MAX_ACCELERATION = 100.0  # m/s^2 (10 g): the bounds on u and w
 MAX_SPEED = 2000.0  # m/s: the bound on v
 MAX_AZIMUTH_DEG = 1e6  # a plot's azimuth: normalised to [0, 360) to 1e-10 degrees
+MAX_LON_DEG = 360.0
+"""A longitude (degrees) is accepted in [-MAX_LON_DEG, MAX_LON_DEG] (east and west of either
+convention, [-180, 180] or [0, 360)) and a plot's wrapped to [-180, 180) (:func:`wrap_lon`).
+It was [-180, 360]: a fix at -180.0006 (a hair west of the antimeridian, as a conversion with
+noise writes it) was a bad value, 180.0006 and 359.9 accepted (a tester's)."""
 
 
 class InputError(ValueError):
@@ -135,6 +140,14 @@ def wrap_azimuth(azimuth_rad: ArrayLike, loc: tuple[str | int, ...] = ("plots",)
                          f"+-{MAX_AZIMUTH_DEG:g} degrees ({np.rad2deg(a[bad[0]]):g}); it is "
                          "normalised to [0, 360)")
     return np.mod(a, 2 * np.pi)
+
+
+def wrap_lon(lon_deg: FloatArray) -> FloatArray:
+    """Longitudes wrapped to [-180, 180) (NaN stays NaN): ``(lon + 180) mod 360 - 180`` for
+    those outside, those inside as they are (the modulo moved 179.9994 by 4e-14)."""
+    lon = np.asarray(lon_deg, dtype=float)
+    inside = (lon >= -180.0) & (lon < 180.0)
+    return np.where(inside | np.isnan(lon), lon, np.mod(lon + 180.0, 360.0) - 180.0)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .frames import LocalFrame, check_lat_lon
-from .inputs import MAX_RANGE_M, FloatArray, InputError, Plots, Radar, wrap_azimuth
+from .inputs import (
+    MAX_LON_DEG,
+    MAX_RANGE_M,
+    FloatArray,
+    InputError,
+    Plots,
+    Radar,
+    wrap_azimuth,
+    wrap_lon,
+)
 from .sensors import PlaneFixes, PositionSensor, RadarSensor, Sensor
 
 IntArray = np.ndarray
@@ -73,6 +82,7 @@ class PlotTable:
             raise InputError(("plots",), "must contain at least one plot")
         idx = _sensor_index(sensors, sensor, n)
         lat, lon = _column(lat_deg, n), _column(lon_deg, n)
+        lon = np.where(np.abs(lon) <= MAX_LON_DEG, wrap_lon(lon), lon)  # beyond: refused below
         frame = reference
         if frame is None:
             sited = [s for s in sensors if isinstance(s, RadarSensor) and s.site is not None]

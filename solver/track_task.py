@@ -9,6 +9,7 @@ and what it imports, not the command line's.
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from .batch import TrackOutcome, solve_track
-from .config import FILTER_GATE_SIGMA, ReconstructionConfig
+from .config import FILTER_GATE_SIGMA, MAX_SAMPLES, ReconstructionConfig
 from .figure_data import figure_rows, from_reconstruction
 from .plots import PlotTable
 from .results import Reconstruction
@@ -36,7 +37,7 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
                  time_limit_s: float | None, figures_dir: str | None = None,
                  filters: Sequence[str] = (), filter_gate: float | None = FILTER_GATE_SIGMA,
                  times_of_day: bool = False, samples: bool = False,
-                 max_samples: int | None = None, figure_data: bool = False,
+                 max_samples: int | None = MAX_SAMPLES, figure_data: bool = False,
                  date: str | None = None) -> AssessedTrack:
     """:func:`solver.batch.solve_track` (with its keyword arguments) plus the
     per-sensor statistics and, with ``figures_dir``, the track's figure (drawn on the
@@ -68,7 +69,19 @@ def assess_track(key: str, table: PlotTable, config: ReconstructionConfig | None
 
 
 def track_file_name(key: str) -> str:
-    """A file name for a track's key: a gap piece's ``#n`` and another aircraft's ``~n``
-    apart (both became ``_n``: one figure over the other, a reviewer's)."""
-    key = key.replace("#", "-gap").replace("~", "-apart")
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", key)[:120]
+    """A file name for a track's key, distinct for distinct keys and readable: the key itself
+    when it is a safe name ([A-Za-z0-9_.-], 1-120 characters; a Mode S address ``3C6DD4``),
+    else the key made safe (a gap piece's ``#n`` as ``-gapn``, another aircraft's ``~n`` as
+    ``-apartn``, other characters as ``_``, cut at 120) and ``-`` the first 10 hex digits of
+    the key's SHA-256 (so too a safe key ending like that): keys ``AB 1`` and ``AB/1`` were
+    both ``AB_1``, one figure over the other (a tester's). The same key always gives the same
+    name (a rerun's figure replaces its own)."""
+    if _SAFE.fullmatch(key) and not _HASHED.search(key):  # never a made name's form
+        return key
+    safe = _UNSAFE.sub("_", key.replace("#", "-gap").replace("~", "-apart"))[:120]
+    return f"{safe}-{hashlib.sha256(key.encode()).hexdigest()[:10]}"
+
+
+_SAFE = re.compile(r"(?![.]{1,2}$)[A-Za-z0-9_.-]{1,120}")
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.-]+")
+_HASHED = re.compile(r"-[0-9a-f]{10}$")

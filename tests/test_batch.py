@@ -388,3 +388,49 @@ def test_a_run_resumed_over_parts_of_before_a_column_keeps_it(tmp_path, tracks):
     assert all(s is None for s, k in zip(source, keys, strict=True) if k == tracks[0].key)
     assert all(s.startswith("byte ") for s, k in zip(source, keys, strict=True)
                if k == tracks[2].key)
+
+
+def _unpicklable(rec) -> dict:
+    """A track's extras Dask cannot send back (a lock pickles in no way)."""
+    import threading
+
+    return {"lock": threading.Lock()}
+
+
+def test_a_result_dask_cannot_send_back_fails_in_one_line(tmp_path, tracks, client, caplog):
+    """A tester's track whose result Dask could not pickle (a MemoryError then) failed with
+    Dask's 40-line message, a whole traceback, as its reason in summary.json: the reason is
+    one line, the whole message (with its traceback) in the log."""
+    from functools import partial
+
+    with caplog.at_level("ERROR", logger="solver.batch"):
+        summary = reconstruct_many(tracks[:1], tmp_path, executor=client,
+                                   task=partial(solve_track, extras=_unpicklable))
+    reason = summary.failures[tracks[0].key]
+    assert summary.failed == 1 and "\n" not in reason and "Traceback" not in reason
+    assert reason.startswith("TypeError: ") and reason.endswith("(the rest in the log)")
+    assert [json.loads(line)["error"] for line in (tmp_path / PROGRESS).read_text().splitlines()
+            ] == [reason]
+    assert any("Traceback" in r.getMessage() and tracks[0].key in r.getMessage()
+               for r in caplog.records)
+
+
+def test_samples_are_capped_by_default(tracks):
+    """``solve_track`` without ``max_samples`` kept every sample asked (the command line
+    passed none: a 44-min track with ``--samples 0.001`` asked 2.6 M): the shared default
+    (:data:`solver.config.MAX_SAMPLES`) keeps none of a track over it, with a warning that
+    counts them; under it, every sample is kept."""
+    from dataclasses import replace as with_
+
+    from solver.config import MAX_SAMPLES, ReconstructionConfig
+
+    t = tracks[0].table
+    span = float(t.t.max() - t.t.min())
+    step = span / MAX_SAMPLES  # MAX_SAMPLES + 1 samples
+    out = solve_track("A", t, with_(ReconstructionConfig(), sample_step_s=step), samples=True)
+    assert out.status == "done" and out.samples is None
+    (warning,) = [w for w in out.warnings if w.startswith("samples:")]
+    assert f"gives {MAX_SAMPLES + 1} samples" in warning and f"limit is {MAX_SAMPLES}" in warning
+    kept = solve_track("A", t, with_(ReconstructionConfig(), sample_step_s=span / 10),
+                       samples=True)
+    assert kept.samples is not None and kept.samples.num_rows == 11

@@ -252,6 +252,16 @@ def test_plot_draws_named_aircraft_and_the_map(recording, tmp_path, capsys, sche
     assert main(["plot", *args, "--map"]) == 2
     assert "holds no reconstructed track" in capsys.readouterr().err
     assert main(["reconstruct", *args, "--scheduler", scheduler, "--no-progress"]) == 0
+    # an unknown aircraft beside a known one and --map: the map drawn all the same, then exit
+    # 2 naming it (the map was left undrawn, and nothing said so: a tester's)
+    (out / "map.png").unlink()
+    (out / "sensors.png").unlink()
+    capsys.readouterr()
+    assert main(["plot", *args, "--aircraft", key, "ABC123", "--map"]) == 2
+    printed = capsys.readouterr()
+    assert printed.out.split() == [str(out / "figures" / f"{key}.png"), str(out / "map.png"),
+                                   str(out / "sensors.png")]
+    assert "ABC123 not in the recording" in printed.err and printed.err.count("\n") == 1
     (out / "map.png").unlink()
     (out / "sensors.png").unlink()
     assert main(["plot", *args, "--map"]) == 0
@@ -1256,6 +1266,96 @@ def test_odd_tables_and_sensor_files_get_a_line_not_a_traceback(recording, tmp_p
     done = json.loads((tmp_path / "out-cr.csv" / "summary.json").read_text())
     assert done["plots"] == rows.t.size
 
+
+def test_samples_are_capped_per_track_with_a_warning(recording, tmp_path, capsys, scheduler):
+    """``--samples 0.001`` asked 2.6 M samples of a tester's 44-min track (a MemoryError, exit
+    1; 0.01 wrote 43 MB for it): the command line had no cap, where the service has
+    ``max_samples``. Now every track over the shared cap keeps none, each with a warning
+    (counted in the summary, listed in warnings.csv), and the tracks themselves are done."""
+    from solver.config import MAX_SAMPLES
+
+    d, _ = recording
+    out = tmp_path / "out"
+    assert main([str(d / "day.ast"), "--sensors", str(d / "sensors.json"), "--out", str(out),
+                 "--scheduler", scheduler, "--no-progress", "--samples", "0.001"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["done"] == summary["tracks"] > 0 and summary["failures"] == {}
+    assert summary["output"]["tracks_with_warnings"] == summary["tracks"]
+    warned = list(csv.DictReader((out / "warnings.csv").open()))
+    capped = [w for w in warned if w["warning"].startswith("samples: none kept")]
+    assert sorted(w["aircraft"] for w in capped) == sorted(
+        pq.read_table(out / "tracks.parquet").column("aircraft").unique().to_pylist())
+    assert all(f"the limit is {MAX_SAMPLES}" in w["warning"] for w in capped)
+    samples = out / "samples.parquet"
+    assert not samples.exists() or pq.read_table(samples).num_rows == 0
+
+
+def _compressed(data: bytes) -> dict[str, bytes]:
+    """``data`` as each compressed file a recording may come in (zstd: the zstd tool's frame of
+    b"abc", Python 3.11 has no zstd; only its first bytes matter)."""
+    import bz2
+    import gzip
+    import io
+    import lzma
+    import zipfile
+
+    z = io.BytesIO()
+    with zipfile.ZipFile(z, "w", zipfile.ZIP_DEFLATED) as f:
+        f.writestr("day.ast", data)
+    return {"gzip": gzip.compress(data), "bzip2": bz2.compress(data), "xz": lzma.compress(data),
+            "zip": z.getvalue(), "zstd": bytes.fromhex("28b52ffd0458190000616263990977ad")}
+
+
+def test_a_compressed_recording_is_refused_naming_its_compression(recording, tmp_path, capsys):
+    """A gzipped plot table or capture was decoded as raw ASTERIX (gzip's 1f 8b read as a
+    CAT031 header): 459 made-up problems and "no aircraft's track could be read" (a
+    tester's). Every compression, of an ASTERIX file or a table, under a compressed name or a
+    table's: one line naming it, by ``reconstruct`` (before a cluster starts) and ``plot``;
+    the files uncompressed are read (the other tests)."""
+    d, _ = recording
+    table = b"t,sensor,lat_deg,lon_deg\n0,ADSB,48.1,16.5\n"
+    for kind, packed in _compressed((d / "day.ast").read_bytes()).items():
+        for name, data in (("day.ast.x", packed), ("plots.csv",
+                                                    _compressed(table)[kind])):
+            path = tmp_path / f"{kind}-{name}"
+            path.write_bytes(data)
+            common = [str(path), "--sensors", str(d / "sensors.json"), "--out",
+                      str(tmp_path / "out")]
+            for args in (["reconstruct", *common, "--no-progress"],
+                         ["plot", *common, "--aircraft", "ABC123"]):
+                code = main(args)
+                err = capsys.readouterr().err
+                assert code == 2 and err.count("\n") == 1, (kind, name, args[0], err)
+                assert f"recording is compressed with {kind}: decompress it first" in err, err
+
+
+def test_keys_a_file_name_cannot_tell_apart_get_a_figure_each(recording, tmp_path, capsys,
+                                                              scheduler):
+    """Keys ``AB 1`` and ``AB/1`` are two tracks, but both figures were ``figures/AB_1.png``,
+    one over the other (a tester's): a key that is no safe file name gets a short hash of
+    itself beside its readable form (``reconstruct --figures``; ``plot`` names by the same
+    function); a Mode S address stays its own name."""
+    from solver.track_task import track_file_name
+
+    d, _ = recording
+    rec = read_recording(d / "day.ast", parse_sensors(SENSOR_FILE))
+    write_table(rec.rows, tmp_path / "plots.csv")
+    table = pacsv.read_csv(tmp_path / "plots.csv")
+    names = {f"{f.address:06X}": n for f, n in zip(FLIGHTS, ("AB 1", "AB/1"), strict=False)}
+    keep = pc.is_in(table.column("mode_s"), pa.array(list(names)))
+    table = table.filter(keep)
+    table = table.set_column(table.column_names.index("aircraft"), "aircraft", pa.array(
+        [names[k] for k in table.column("mode_s").to_pylist()]))
+    pacsv.write_csv(table, tmp_path / "keys.csv")
+    out = tmp_path / "out"
+    args = [str(tmp_path / "keys.csv"), "--sensors", str(d / "sensors.json"), "--out", str(out)]
+    assert main([*args, "--scheduler", scheduler, "--no-progress", "--figures"]) == 0
+    files = {track_file_name(k) + ".png" for k in ("AB 1", "AB/1")}
+    assert len(files) == 2 and all(f.startswith("AB_1-") for f in files)
+    assert {p.name for p in (out / "figures").iterdir()} == files
+    assert track_file_name("3C6DD4") == "3C6DD4" and track_file_name("a.b_c-1") == "a.b_c-1"
+    made = track_file_name("AB 1")  # a safe key of a made name's form is made a name too
+    assert track_file_name(made) != made
 
 def test_a_gap_piece_and_another_aircraft_get_their_own_figure_and_selection():
     """``KEY#2`` (a piece after a time gap) and ``KEY~2`` (another aircraft under the key) both

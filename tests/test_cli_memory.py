@@ -138,7 +138,7 @@ def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monke
 
 
 def _stub_task(key, table, config, time_limit_s, figures_dir=None, filters=(),
-               filter_gate=None, times_of_day=False, samples=False, date=None):
+               filter_gate=None, times_of_day=False, samples=False, max_samples=None, date=None):
     """What :func:`solver.track_task.assess_track` returns, without the reconstruction: the
     track's rows and its sensor's statistics."""
     import pyarrow as pa

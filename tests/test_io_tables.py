@@ -383,3 +383,20 @@ def test_on_ground_is_read_and_written(tmp_path):
         pq.write_table(table.append_column("on_ground", column), path)
         rows, problems = read_table(path)
         assert rows.on_ground.tolist() == said and not problems
+
+
+def test_longitudes_either_side_of_the_antimeridian_are_read_and_wrapped(tmp_path):
+    """-180.0006 (a fix a hair west of the antimeridian) was a bad value while 180.0006 and
+    359.9 were accepted (a tester's): [-360, 360] is accepted and wrapped to [-180, 180),
+    a longitude already there kept bit for bit, beyond +-360 refused naming the range."""
+    lons = [179.9994, -180.0006, 180.0006, 359.9, -359.9, -180.0, 360.0, -360.5, 360.5]
+    path = tmp_path / "lon.csv"
+    path.write_text("t,sensor,lat_deg,lon_deg\n" + "".join(
+        f"{i},ADSB,65.5,{lon!r}\n" for i, lon in enumerate(lons)))
+    rows, problems = read_table(path)
+    want = [179.9994, 179.9994, -179.9994, -0.1, 0.1, -180.0, 0.0]
+    np.testing.assert_allclose(rows.lon_deg, want, rtol=0, atol=1e-9)
+    assert rows.lon_deg[0] == 179.9994 and rows.lon_deg[5] == -180.0
+    assert np.all((rows.lon_deg >= -180.0) & (rows.lon_deg < 180.0))
+    assert problems.counts == {"bad_value": 2}
+    assert "lon_deg: must be in [-360, 360]" in problems.summary()

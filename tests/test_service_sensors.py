@@ -534,3 +534,23 @@ def test_a_solve_past_its_time_limit_names_its_cost(estimate_bias):
     job = to_job(ReconstructionRequest.model_validate(late), "sqpmethod", 20_000, 100_000)
     msg = solve(job, 0.0, time_limit_s=1e-6).error_message
     assert "of the nodes fill long gaps between plots (one every 20 s)" in msg
+
+
+def test_position_plots_west_of_the_antimeridian_are_taken(client):
+    """ADS-B plots crossing the antimeridian written west of -180 (-180.0006: a conversion
+    with noise) were a 422 at plots[k].lon_deg, where 180.0006 was taken: the single request
+    takes [-360, 360] as the tables do (one limit), and answers on [-180, 180)."""
+    lons = [-179.99 - 0.002 * i for i in range(10)]  # 92 m/s west at 65.5 N, past -180
+    body = {"sensors": [{"id": "ADSB", "kind": "position", "position_sigma_m": 30.0}],
+            "plots": [{"t": float(i), "sensor": "ADSB", "lat_deg": 65.5, "lon_deg": lon,
+                       "altitude_m": 10_000.0} for i, lon in enumerate(lons)]}
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 200, res.text
+    got = [s["lon_deg"] for s in res.json()["trajectory"]["at_plots"]]
+    assert all(-180.0 <= g < 180.0 for g in got)
+    apart = (np.array(got) - np.array(lons) + 180.0) % 360.0 - 180.0  # across +-180 too
+    assert np.all(np.abs(apart) < 0.002)  # 30-m plots, 92 m apart
+    body["plots"][0]["lon_deg"] = -360.5
+    res = client.post("/v1/reconstructions", json=body)
+    assert res.status_code == 422 and res.json()["detail"][0]["loc"] == ["plots", 0, "lon_deg"]
+    assert "[-360, 360]" in res.json()["detail"][0]["msg"], res.text

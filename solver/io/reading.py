@@ -81,6 +81,8 @@ def load(recording: Path, sensors_path: Path, max_speed: float = MAX_SPEED_MS, *
     ``date``: the date given for it (:func:`recording_date`)."""
     sensors = load_sensors(sensors_path)
     periods: dict[str, float] = {}
+    with open(recording, "rb") as f:
+        check_not_compressed(f.read(RECORDING_HEAD_BYTES))
     if recording.suffix.lower() in TABLE_SUFFIXES:
         rows, problems = read_table(recording)
     else:
@@ -173,6 +175,9 @@ def stream(recording: Path, sensors_path: Path, *, read_ahead: int = READ_AHEAD_
 
 def _row_parts(recording: Path, out: Streamed, executor: Any = None,
                editions: Mapping[int, Any] | None = None) -> Iterator[PlotRows]:
+    with open(recording, "rb") as f:
+        head = f.read(RECORDING_HEAD_BYTES)
+    check_not_compressed(head)  # a table too (`plots.csv` holding gzip)
     if recording.suffix.lower() in TABLE_SUFFIXES:
         back = time_disorder_s(recording)
         if back <= DISORDER_S:
@@ -186,8 +191,7 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None,
         yield from _sorted_parts(rows, out, "unordered_table", f"rows up to {back:.0f} s",
                                  "a table")
         return
-    with open(recording, "rb") as f:
-        check_recording_head(f.read(RECORDING_HEAD_BYTES))
+    check_recording_head(head)
     out.times_of_day = True  # ASTERIX: times of day, t from the midnight before the first
     back = asterix_time_disorder_s(recording, out.sensors, editions=editions)
     if back > DISORDER_S:  # e.g. two recordings concatenated: read whole, sorted
@@ -209,23 +213,53 @@ def _row_parts(recording: Path, out: Streamed, executor: Any = None,
 
 
 def check_recording(recording: Path) -> None:
-    """Raise :class:`InputError` at ``recording`` when the file is missing, unreadable or
-    (not a plot table by its name) no ASTERIX recording nor capture by its first bytes."""
+    """Raise :class:`InputError` at ``recording`` when the file is missing, unreadable,
+    compressed (:func:`check_not_compressed`) or (not a plot table by its name) no ASTERIX
+    recording nor capture by its first bytes."""
     try:
         with open(recording, "rb") as f:
             head = f.read(RECORDING_HEAD_BYTES)
     except OSError as e:
         raise InputError(("recording",), f"{recording}: {e.strerror or e}") from None
-    if recording.suffix.lower() not in TABLE_SUFFIXES:
-        try:
+    try:
+        check_not_compressed(head)
+        if recording.suffix.lower() not in TABLE_SUFFIXES:
             check_recording_head(head)
-        except InputError as e:
-            raise InputError(e.loc, f"{e.message} (in {recording})") from None
+    except InputError as e:
+        raise InputError(e.loc, f"{e.message} (in {recording})") from None
+
+
+COMPRESSED = (
+    (re.compile(rb"\x1f\x8b\x08[\x00-\x1f]", re.DOTALL), "gzip", "gunzip"),  # RFC 1952
+    (re.compile(rb"PK(\x03\x04|\x05\x06|\x07\x08)"), "zip", "unzip"),  # APPNOTE 4.3.7
+    (re.compile(rb"BZh[1-9](\x31\x41\x59\x26\x53\x59|\x17\x72\x45\x38\x50\x90)"), "bzip2",
+     "bunzip2"),
+    (re.compile(rb"\xfd7zXZ\x00"), "xz", "unxz"),
+    (re.compile(rb"\x28\xb5\x2f\xfd"), "zstd", "unzstd"),  # RFC 8878
+)
+"""The signatures of the compressed files a recording may come in, with the tool that
+undoes each. Read as ASTERIX, gzip's ``1f 8b`` is a CAT031 header: a tester's gzipped plot
+table was decoded into 459 made-up problems (truncated blocks, unknown sensors) and "no
+aircraft's track could be read". They are refused rather than decompressed: a recording is
+read by random access (an ASTERIX file memory-mapped, its time order checked in a first
+pass, its units decoded on the cluster by byte range; a Parquet table's footer first), which
+a compressed stream does not give without a decompressed copy on disk."""
+
+
+def check_not_compressed(head: bytes) -> None:
+    """Raise :class:`InputError` at ``recording`` when ``head`` (a file's first bytes) starts
+    a compressed file (:data:`COMPRESSED`), naming the compression."""
+    for signature, name, tool in COMPRESSED:
+        if signature.match(head):
+            raise InputError(("recording",), f"is compressed with {name}: decompress it first "
+                             f"(e.g. {tool} FILE)")
 
 
 def check_recording_head(head: bytes) -> None:
     """Raise :class:`InputError` at ``recording`` unless ``head`` (a file's first
-    :data:`RECORDING_HEAD_BYTES`, or all of it) starts an ASTERIX recording or a capture."""
+    :data:`RECORDING_HEAD_BYTES`, or all of it) starts an ASTERIX recording or a capture
+    (a compressed file is named as such: :func:`check_not_compressed`)."""
+    check_not_compressed(head)
     if not looks_like_recording(head):
         raise InputError(("recording",), f"is not an ASTERIX recording (its first bytes "
                          f"{head[:8].hex(' ')} are no data block header followed by another), "

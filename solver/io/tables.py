@@ -71,7 +71,7 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from ..inputs import MAX_AZIMUTH_DEG, FloatArray, InputError
+from ..inputs import MAX_AZIMUTH_DEG, MAX_LON_DEG, FloatArray, InputError, wrap_lon
 from .dates import iso_utc, utc_times
 from .problems import Problems
 
@@ -743,7 +743,7 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
                "lat_deg + lon_deg)")
     for name, lo, hi in (("range_m", 0.0, 1e7), ("azimuth_deg", -MAX_AZIMUTH_DEG, MAX_AZIMUTH_DEG),
                          ("lat_deg", -90.0, 90.0),
-                         ("lon_deg", -180.0, 360.0), ("altitude_m", -1000.0, 100_000.0),
+                         ("lon_deg", -MAX_LON_DEG, MAX_LON_DEG), ("altitude_m", -1000.0, 100_000.0),
                          ("flight_level", -20.0, 1000.0)):
         v = cols[name]
         out = np.flatnonzero(np.isfinite(v) & ((v < lo) | (v > hi) | (v == 0.0 if
@@ -812,7 +812,7 @@ def rows_from_arrow(table: pa.Table, *, strict: bool = False, problems: Problems
         n, "row", date if time_name == "timestamp" else None, t=t, time_of_day_s=tod,
         sensor=np.array(["" if s is None else s for s in sensor], dtype=object),
         range_m=cols["range_m"], azimuth_deg=cols["azimuth_deg"], lat_deg=cols["lat_deg"],
-        lon_deg=cols["lon_deg"], altitude_m=altitude, flight_level=fl, aircraft=aircraft,
+        lon_deg=wrap_lon(cols["lon_deg"]), altitude_m=altitude, flight_level=fl, aircraft=aircraft,
         origin=row_of.copy(), on_ground=ground, **ints)
     return rows.take(keep), problems
 
