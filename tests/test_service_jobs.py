@@ -757,6 +757,47 @@ def test_a_jobs_track_has_no_altitude_where_the_single_answer_has_none(client):
     assert estimated["ALONE"] is False, estimated
 
 
+def test_a_jobs_track_with_flight_levels_is_the_single_answer(client):
+    """Every plot field a single request takes reaches a JSON job's track: `flight_level`
+    was dropped (a tester's Mode C track: 655 m RMS as a job, 49.6 m as a single request).
+    The radars' Mode C reads 250 m low (flight level only), the ADS-B gives the geometric
+    height and its flight level: the job's track has the single answer's states, and its
+    `summary.json` the +250 m offset the single answer's warning states (it was null)."""
+    from dataclasses import fields
+
+    from service.models import PlotIn
+    from solver.io.tables import PlotRows
+
+    assert set(PlotIn.model_fields) <= {f.name for f in fields(PlotRows)}
+    low = 250.0 / 30.48  # flight levels
+    enc = encode_recording(duration=40.0)
+    sensors, tracks = json_tracks(enc)
+    plots = []
+    for p, fl in zip(tracks["A"], (q["fl"] for q in enc.plots if q["flight"] == 0),
+                     strict=True):
+        plots.append(p | ({"flight_level": fl - low} if "range_m" in p else
+                          {"altitude_m": fl * 30.48, "flight_level": fl - low}))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"A": plots}})
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    assert wait(client, loc)["state"] == "done"
+    got = client.get(f"{loc}/tracks/A").json()["trajectory"]["at_plots"]
+    single = client.post("/v1/reconstructions", json={"sensors": sensors, "plots": plots})
+    assert single.status_code == 200, single.text
+    want = single.json()
+    assert any("made geometric by the aircraft's ADS-B: +250.0 m" in w
+               for w in want["diagnostics"]["warnings"]), want["diagnostics"]["warnings"]
+    assert len(got) == len(want["trajectory"]["at_plots"]) == len(plots)
+    for field in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg"):
+        np.testing.assert_allclose([s[field] for s in got],
+                                   [s[field] for s in want["trajectory"]["at_plots"]],
+                                   rtol=0, atol=1e-6, err_msg=field)
+    offsets = client.get(loc + "/results/summary.json").json()["mode_c_offsets"]
+    assert offsets is not None and offsets["tracks"] == 1, offsets
+    assert offsets["median_m"] == pytest.approx(250.0, abs=0.01)
+    assert client.delete(loc).status_code == 204
+
+
 def test_upload_over_the_limit_is_413(client):
     r = upload(client, b"\x30" * (UPLOAD_LIMIT + 1))
     assert r.status_code == 413
