@@ -3,6 +3,7 @@ background by :class:`service.jobs.JobRunner` (contract: ``../shared/spec/record
 
 from __future__ import annotations
 
+import codecs
 import datetime as dt
 import json
 import os
@@ -359,6 +360,13 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
     head = src.read(RECORDING_HEAD_BYTES)
     if not head:
         raise InputError(("recording",), "is empty")
+    if _looks_like_json(head):  # a compact one was taken for a CSV header ("," and "sensor"),
+        # accepted, then failed as a table
+        try:
+            check_recording_head(head)
+        except InputError as e:
+            raise InputError(e.loc, f"{e.message}; it is JSON: plots as JSON are a job's "
+                             "application/json body of tracks") from None
     suffix = TABLE_SUFFIXES.get(Path(recording.filename or "").suffix.lower())
     if suffix is None:
         suffix = ".parquet" if head[:4] == b"PAR1" else ".csv" if _looks_like_csv(head) \
@@ -370,6 +378,17 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
         shutil.copyfileobj(src, f, 1 << 20)
     (inputs / "sensors.json").write_text(sensors_text, encoding="utf-8")
     (inputs / "params.json").write_text(params + "\n", encoding="utf-8")
+
+
+def _looks_like_json(head: bytes) -> bool:
+    """UTF-8 text (the head may end inside a character) whose first non-blank character opens
+    a JSON object or array (a table's header line names columns; ASTERIX has no categories
+    123 and 91)."""
+    try:
+        text = codecs.getincrementaldecoder("utf-8-sig")().decode(head, final=False)
+    except UnicodeDecodeError:
+        return False
+    return text.lstrip(" \t\r\n")[:1] in ("{", "[")
 
 
 def _looks_like_csv(head: bytes) -> bool:

@@ -836,6 +836,13 @@ def test_a_json_body_of_tracks_has_its_own_smaller_limit(tmp_path):
      "sensors[0].range_error_m"),
     ({"recording": ("r.ast", b""), "sensors": ("s.json", json.dumps(SENSOR_FILE))},
      "recording"),
+    # JSON of any layout and name: a compact one was accepted, then failed as a CSV table
+    *(({"recording": (name, text), "sensors": ("s.json", json.dumps(SENSOR_FILE))},
+       "recording is not an ASTERIX recording (its first bytes ")
+      for name in ("r.ast", "x.json", "recording", "t.csv")
+      for text in (json.dumps({"sensors": SENSOR_FILE}).encode(),
+                   json.dumps(SENSOR_FILE, indent=2).encode(),
+                   b"\xef\xbb\xbf\n " + json.dumps({"sensors": SENSOR_FILE}).encode())),
     ({"recording": ("r.ast", b"\x30"), "sensors": ("s.json", json.dumps(SENSOR_FILE)),
       "extra": ("e", b"1")}, "extra"),
     *(({"recording": ("r.ast", b"\x30\x00\x03"), "sensors": ("s.json", json.dumps(SENSOR_FILE)),
