@@ -31,7 +31,7 @@ from solver.io.dates import UTC, iso_utc, midnight_us
 from solver.io.reading import RECORDING_HEAD_BYTES, check_recording_head
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
-from solver.io.tables import PIECE_NAME, PlotRows, write_table
+from solver.io.tables import APART_NAME, PIECE_NAME, PlotRows, write_table
 from solver.json_keys import TWICE, duplicate_key
 from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
@@ -437,9 +437,11 @@ def _save_tracks(body: bytes, inputs: Path, max_tracks: int) -> None:
         if key.endswith("/figure.png"):  # its URL would be another track's figure
             raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
                              "/figure.png (the track figure's path)")
-        if PIECE_NAME.search(key):  # it would merge with another key's piece after a gap
+        if PIECE_NAME.search(key) or APART_NAME.search(key):  # it would merge with another
+            # key's piece after a gap, or (the table's reader refuses both) be dropped whole
             raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
-                             "#<number> (the name of a track's piece after a time gap)")
+                             "#<number> or ~<number> (the names of a track's piece after a "
+                             "time gap and of another aircraft found under its key)")
         if not plots:
             raise InputError(("tracks", key), "has no plots (a track needs at least 3)")
         for i, p in enumerate(plots):

@@ -1509,14 +1509,18 @@ def test_a_json_track_key_may_not_end_like_the_figures_path(client):
                                    "/figure.png (the track figure's path)"), r.json()
 
 
-def test_a_json_track_key_may_not_look_like_a_piece(client):
+@pytest.mark.parametrize("key", ["A#2", "A~2"])
+def test_a_json_track_key_may_not_look_like_a_piece(client, key):
     """`A#2` names key `A`'s piece after a time gap: a track so named merged with it (a fuzz
-    helper, through a table). Refused at submission."""
+    helper, through a table); `A~2` another aircraft found under key `A`: a track so named
+    was accepted, then all its plots dropped as bad values "at row N" (a tester's). Refused
+    at submission."""
     sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
     plot = {"t": 0.0, "sensor": sensors[0]["id"], "range_m": 5e4, "azimuth_deg": 10.0}
-    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"A#2": [plot] * 3}})
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {key: [plot] * 3}})
     assert r.status_code == 422, r.text
-    assert "may not end in #<number>" in r.json()["message"], r.json()
+    assert r.json()["detail"][0]["loc"] == ["tracks", key], r.json()
+    assert "may not end in #<number> or ~<number>" in r.json()["message"], r.json()
 
 
 @pytest.mark.parametrize(("key", "said"), [("B1 ", "white space"), (" B1", "white space"),
