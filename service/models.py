@@ -307,7 +307,9 @@ class ReconstructionRequest(_In):
 # ---------------------------------------------------------------------------------- response
 
 Cov = list[list[float]]
-_COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2. It does not "
+_COV = ("Covariance (4x4, row-major) of (x, z, vx, vz) in m^2, m^2/s, m^2/s^2, in the plane's "
+        "metres as x, z, vx, vz are (far from `reference` the plane's scale times the ground's; "
+        "divide by its square for ground metres). It does not "
         "include the bias away from the radar that plots without `altitude_m` carry (about "
         "h^2 / 2d for the single flat radar, h^2 / 2d + h d / 2R on the earth: a constant "
         "altitude is not observable from 2-D plots)")

@@ -339,10 +339,12 @@ class PositionSensor:
 
     def fixes(self, frame: LocalFrame, lat_deg: FloatArray, lon_deg: FloatArray) -> PlaneFixes:
         """Plane positions with a circle of radius ``position_sigma_m`` times the plane's scale
-        (at most 1.0003 within 250 km of the reference, so taken as 1)."""
+        at the plot, in plane metres as the radars' ellipses (taken as 1 it left every
+        covariance in ground metres: with the reference 4,300 km away, scale 1.122, the states'
+        sigmas grew 1.013 times where x, z, vx, vz grew 1.122 times; a tester's)."""
         x, z = frame.to_plane(lat_deg, lon_deg)
         n = x.size
-        sig = np.full(n, float(self.position_sigma_m))
+        sig = float(self.position_sigma_m) * np.asarray(frame.scale(x, z), float)
         ell = Ellipses(x, z, np.zeros(n), sig, sig)
         poly = np.zeros((n, 2, ALTITUDE_FIT_DEGREE + 1))
         poly[:, 0, 0], poly[:, 1, 0] = x, z

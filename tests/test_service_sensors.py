@@ -317,6 +317,36 @@ def test_a_reference_far_from_the_track_warns_of_the_planes_scale():
     assert "lies up to 1991 km" in far[0] and "up to 2.5 % larger there" in far[0], far
 
 
+def test_covariances_far_from_the_reference_are_in_the_planes_metres():
+    """`cov` is over `(x, z, vx, vz)` in the plane's metres: with the reference 4,300 km from
+    the track (the plane's scale 1.12) every sigma is the near reference's times the plane's
+    scale at the state (:meth:`LocalFrame.scale`), as `x`, `z`, `vx`, `vz` are. The ADS-B
+    circles, the refinement's control prior and the filters' process noise were ground
+    metres: the sigmas grew 1.013 (refined) and 1.006 (IMM smoother) times (a tester's)."""
+    from service.convert import to_job
+    from service.models import ReconstructionRequest
+    from solver.estimation import run_filters
+    from solver.reconstruct import reconstruct
+
+    body = _body()
+    sigmas, scales = {}, None
+    for reference in ((46.0, 14.8), (7.3, 14.8)):
+        req = ReconstructionRequest.model_validate(
+            {**body, "reference": {"lat_deg": reference[0], "lon_deg": reference[1]},
+             "omit": ["samples"]})
+        job = to_job(req, "sqpmethod", 20_000, 50_000)
+        rec = reconstruct(job.table, config=job.config)
+        states = {"refined": rec.at_plots, **{k: e.states for k, e in run_filters(
+            ["cv_rts", "imm_smoother"], job.table).items()}}
+        sigmas[reference] = {k: np.sqrt(np.diagonal(s.cov, axis1=1, axis2=2))
+                             for k, s in states.items()}
+        scales = np.asarray(job.table.frame.scale(rec.at_plots.x, rec.at_plots.z))
+    assert scales is not None and 1.11 < np.median(scales) < 1.13, np.median(scales)
+    for name, near in sigmas[(46.0, 14.8)].items():
+        ratio = sigmas[(7.3, 14.8)][name] / (near * scales[:, None])
+        np.testing.assert_allclose(ratio, 1.0, atol=0.01, err_msg=name)
+
+
 def test_sensors_without_plots_are_left_out_with_a_note(client):
     """A site list shared by many requests: a radar (listed first, without `reference`: the
     plane's tangent point) and an ADS-B receiver that saw nothing of this track are left out,
