@@ -176,7 +176,8 @@ _CREATE_BODY = {
              responses={202: {"headers": {"Location": {
                             "description": "The job's URL.", "schema": {"type": "string"}}}},
                         413: _err("Upload over the jobs' size limit."),
-                        415: _err("Neither multipart/form-data nor JSON."),
+                        415: _err("Neither multipart/form-data nor JSON, or a Content-Encoding "
+                                 "other than identity."),
                         422: _err("Invalid input; the message names the part or field."),
                         503: _err("Too many jobs queued, running or being received, or too "
                                   "many bytes of JSON bodies being received and checked "
