@@ -47,7 +47,7 @@ import numpy as np
 from ..frames import LocalFrame
 from ..inputs import Bounds, FloatArray, InputError, format_loc
 from ..plots import PlotTable
-from ..sensors import ALTITUDE_RANGE_M, RadarSensor
+from ..sensors import RadarSensor
 from .altitudes import MAX_OFFSET_M, geometric_altitudes
 from .problems import Problems
 from .scans import scan_step
@@ -537,7 +537,7 @@ def _jumps(table: PlotTable, max_speed: float) -> bool:
     the plots, a reviewer's). A sensor whose plots all are one aircraft's cannot part them."""
     from ..refine.gate import reach_m
 
-    lo, hi = ALTITUDE_RANGE_M
+    lo, hi = table.heights()
     for k, s in enumerate(table.sensors):
         rows = np.flatnonzero(table.sensor == k)
         if rows.size < 2:
@@ -595,8 +595,9 @@ def _apart(track: AircraftTrack | None, rows: PlotRows, sensors: SensorSet,
     from ..refine.gate import aircraft_apart
 
     fx = table.fixes()
-    lo = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[0]))
-    hi = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[1]))
+    low, high = table.heights()
+    lo = fx.centre_at(np.full(m.size, low))
+    hi = fx.centre_at(np.full(m.size, high))
     spread = np.where(fx.altitude_free, np.hypot(*(hi - lo).T), 0.0)
     sigma = np.maximum(fx.ellipses.A, fx.ellipses.B)
     centre = fx.centre_at(fx.h_mid)
