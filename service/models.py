@@ -291,7 +291,9 @@ class ReconstructionRequest(_In):
     filters: list[FilterName] = Field(  # type: ignore[valid-type]
         default_factory=list, description="Recursive estimators to run beside the "
         "reconstruction, each answered under `filters.<name>`. Default: none (the "
-        f"reconstruction alone). Known: {', '.join(FILTER_NAMES)}.",
+        f"reconstruction alone). Known: {', '.join(FILTER_NAMES)}. `alpha_beta`'s `cov` is its "
+        "gains' noise on a straight line only, over-confident in manoeuvres (its 95 % ellipse "
+        "held the truth 42-57 % of the time on a calibration flight, the others' 85-98 %).",
         examples=[["singer", "quasi_optimal"]])
     filter_gate_sigma: float | None = filter_gate_field()
     sample_step_s: float = Field(
