@@ -761,8 +761,8 @@ def test_a_jobs_track_with_flight_levels_is_the_single_answer(client):
     """Every plot field a single request takes reaches a JSON job's track: `flight_level`
     was dropped (a tester's Mode C track: 655 m RMS as a job, 49.6 m as a single request).
     The radars' Mode C reads 250 m low (flight level only), the ADS-B gives the geometric
-    height and its flight level: the job's track has the single answer's states, and its
-    `summary.json` the +250 m offset the single answer's warning states (it was null)."""
+    height and its flight level: the job's track has the single answer's states and
+    warnings, and its `summary.json` the +250 m offset (it was null)."""
     from dataclasses import fields
 
     from service.models import PlotIn
@@ -781,12 +781,15 @@ def test_a_jobs_track_with_flight_levels_is_the_single_answer(client):
     assert r.status_code == 202, r.text
     loc = r.headers["location"]
     assert wait(client, loc)["state"] == "done"
-    got = client.get(f"{loc}/tracks/A").json()["trajectory"]["at_plots"]
+    track = client.get(f"{loc}/tracks/A").json()
+    got = track["trajectory"]["at_plots"]
     single = client.post("/v1/reconstructions", json={"sensors": sensors, "plots": plots})
     assert single.status_code == 200, single.text
     want = single.json()
     assert any("made geometric by the aircraft's ADS-B: +250.0 m" in w
                for w in want["diagnostics"]["warnings"]), want["diagnostics"]["warnings"]
+    # the same words in the job's track (it had none: the offset only in summary.json)
+    assert track["diagnostics"]["warnings"] == want["diagnostics"]["warnings"]
     assert len(got) == len(want["trajectory"]["at_plots"]) == len(plots)
     for field in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg"):
         np.testing.assert_allclose([s[field] for s in got],

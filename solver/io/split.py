@@ -48,7 +48,7 @@ from ..frames import LocalFrame
 from ..inputs import Bounds, FloatArray, InputError, format_loc
 from ..plots import PlotTable
 from ..sensors import RadarSensor
-from .altitudes import MAX_OFFSET_M, geometric_altitudes
+from .altitudes import MAX_OFFSET_M, geometric_altitudes, moved_note
 from .problems import Problems
 from .scans import scan_step
 from .sensors_file import SensorSet, take_off_offsets
@@ -79,6 +79,9 @@ class AircraftTrack:
     pressure_offset_m: float | None = None
     """The median geometric minus pressure altitude its ADS-B gave, by which its Mode C
     altitudes were moved (:mod:`solver.io.altitudes`); None: none moved."""
+    notes: tuple[str, ...] = ()
+    """What the track's answer says before its reconstruction's warnings (its Mode C made
+    geometric, as a single request's answer says it: :func:`solver.batch.run_batch`)."""
 
 
 def recording_frame(sensors: SensorSet, rows: PlotRows) -> LocalFrame | None:
@@ -488,8 +491,10 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
             problems.add("bad_track", f"aircraft {key}", f"{e}: left out",
                          dropped=int(m.size))
             return None
+        moved = moved_note(heights)
         return AircraftTrack(key, table, m, rows.origin[m], rows.origin_unit,
-                             heights.median_m if heights.corrected else None)
+                             heights.median_m if heights.corrected else None,
+                             () if moved is None else (moved,))
     problems.add("bad_track", f"aircraft {key}", f"more than {_MAX_ROW_RETRIES} bad plots: "
                  "left out", dropped=int(m.size))
     return None
