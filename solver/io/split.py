@@ -494,7 +494,7 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
         moved = moved_note(heights)
         return AircraftTrack(key, table, m, rows.origin[m], rows.origin_unit,
                              heights.median_m if heights.corrected else None,
-                             () if moved is None else (moved,))
+                             notes=() if moved is None else (moved,))
     problems.add("bad_track", f"aircraft {key}", f"more than {_MAX_ROW_RETRIES} bad plots: "
                  "left out", dropped=int(m.size))
     return None
