@@ -7,19 +7,20 @@ from the file to Parquet.
 
 The recording (:func:`build`). Aircraft ``i`` flies a window of ``window_s`` seconds of the
 real truth ``i mod 6`` (the window's start drawn in the truth), rotated about the plane's
-reference by a drawn angle (the truth's ``(x, z)`` and velocity turn together, so speeds,
-turn rates and the range from the first radar are the truth's) and shifted in time to a
-start drawn uniformly over the recording, whose length is set so that ``in_air`` aircraft
-fly at once on average. Every aircraft has its own Mode S address, Mode 3/A code and a
-track number per radar. Sensors (one plane about :data:`REFERENCE`, near Vienna): radar
-``R1`` at the reference (4 s scan, 50 m / 0.08 deg, Pd 0.97), ``R2`` 45 km south-east on a
-hill (6 s, 70 m / 0.1 deg, Pd 0.95), both with Mode C, and ``ADSB`` (5 s reports, 30 m,
-outages), simulated through the curved earth by :func:`benchmarks.earth.simulate_sensor`.
-The plots are ordered by 4-s stretches, sensor, time (each sensor's times increase; across
-sensors they are out of order by less than 4 s) and encoded as raw ASTERIX CAT048 / CAT021
-with :func:`solver.io.asterix.encode_rows` (encoded in parallel by time slices), with a
-CAT034 north marker (I041 rotation period) per radar every 8 minutes. Written as
-``recording.ast`` beside ``sensors.json``. Deterministic per (aircraft, seed).
+reference by a drawn angle (the truth's ``(x, z)`` and velocity turn together, so speeds, turn
+rates and the range from the first radar are the truth's) and shifted in time to a start drawn
+uniformly over the recording, whose length is set so that ``in_air`` aircraft fly at once on
+average. Every aircraft has its own Mode S address, Mode 3/A code and a track number per radar
+(``modeac_share``: a drawn share of the aircraft has no Mode S, squawks 7000 and is seen by the
+radars alone). Sensors (one plane about :data:`REFERENCE`, near Vienna): radar ``R1`` at the
+reference (4 s scan, 50 m / 0.08 deg, Pd 0.97), ``R2`` 45 km south-east on a hill (6 s, 70 m /
+0.1 deg, Pd 0.95), both with Mode C, and ``ADSB`` (5 s reports, 30 m, outages), simulated
+through the curved earth by :func:`benchmarks.earth.simulate_sensor`. The plots are ordered by
+4-s stretches, sensor, time (each sensor's times increase; across sensors they are out of order
+by less than 4 s) and encoded as raw ASTERIX CAT048 / CAT021 with
+:func:`solver.io.asterix.encode_rows` (encoded in parallel by time slices), with a CAT034 north
+marker (I041 rotation period) per radar every 8 minutes. Written as ``recording.ast`` beside
+``sensors.json``. Deterministic per (aircraft, seed).
 
 Measured (:func:`measure`), all in one run: the command line with 1 and with 2 Dask workers
 (wall time of the process from start to exit, plots reconstructed, plots/s; the peak RSS of
@@ -91,6 +92,12 @@ class RecordingSpec:
     in_air: float = 60.0
     seed: int = 16
     start_tod_s: float = 6 * 3600.0
+    modeac_share: float = 0.0
+    """Share of the aircraft drawn (independently of the rest) to have no Mode S: their radar
+    plots carry no address and Mode 3/A 7000 (VFR), and no ADS-B sees them."""
+    modeac_mode_c: bool = True
+    """Whether the aircraft without Mode S report Mode C (False: their plots have no altitude,
+    a PSR or a transponder without an altitude encoder)."""
 
     @property
     def duration_s(self) -> float:
@@ -173,9 +180,18 @@ def aircraft_truths(spec: RecordingSpec) -> list[tuple[Truth, float, float]]:
     return out
 
 
+def modeac_aircraft(spec: RecordingSpec) -> set[int]:
+    """The aircraft without Mode S (:attr:`RecordingSpec.modeac_share`), by index."""
+    if spec.modeac_share <= 0:
+        return set()
+    rng = np.random.default_rng([spec.seed, spec.aircraft, 2])
+    return set(np.flatnonzero(rng.random(spec.aircraft) < spec.modeac_share).tolist())
+
+
 def simulate(spec: RecordingSpec) -> tuple[PlotRows, list[int]]:
     """Every aircraft's plots by every sensor as recording rows (ordered as the module
-    docstring says), and the aircraft's Mode S addresses."""
+    docstring says), and the Mode S addresses of the aircraft that have one. Aircraft ``i``'s
+    track number on radar ``k`` is ``(3 i + k) mod 4096``."""
     frame = LocalFrame(*REFERENCE)
     s1, s2 = sites()
     rng = np.random.default_rng([spec.seed, spec.aircraft, 1])
@@ -183,12 +199,18 @@ def simulate(spec: RecordingSpec) -> tuple[PlotRows, list[int]]:
         "t", "sensor", "range_m", "azimuth_deg", "lat_deg", "lon_deg", "flight_level",
         "mode_s", "mode_3a", "track_number")}
     addresses = []
+    modeac = modeac_aircraft(spec)
     for i, (win, w0, w1) in enumerate(aircraft_truths(spec)):
         et = EarthTruth(win, frame, (s1, s2))
         address = ADDRESS0 + i
-        addresses.append(address)
         mode_3a = int(rng.integers(0, 0o10000))
+        if i in modeac:
+            address, mode_3a = -1, 0o7000
+        else:
+            addresses.append(address)
         for k, sspec in enumerate(SPECS):
+            if address < 0 and sspec.kind == "position":
+                continue
             p = simulate_sensor(et, sspec, PROFILE, spec.seed)
             keep = (p.t >= w0) & (p.t <= w1)
             n = int(keep.sum())
@@ -207,6 +229,8 @@ def simulate(spec: RecordingSpec) -> tuple[PlotRows, list[int]]:
                 cols["lat_deg"].append(p.lat_deg[keep])
                 cols["lon_deg"].append(p.lon_deg[keep])
             h = win.altitude_at(p.t[keep])  # Mode C / ADS-B level: the height, in FL
+            if address < 0 and not spec.modeac_mode_c:
+                h = np.full(n, np.nan)
             cols["flight_level"].append(np.round(h / FL_M * 4.0) / 4.0)
             cols["mode_s"].append(np.full(n, address, np.int64))
             cols["mode_3a"].append(np.full(n, mode_3a, np.int64))

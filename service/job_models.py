@@ -114,7 +114,9 @@ class JobOptions(_In):
     aircraft: list[Annotated[str, StringConstraints(min_length=1, max_length=200)]] | None = \
         Field(None, min_length=1, max_length=10_000, description="Reconstruct only these "
               "aircraft of the recording (keys as in its tracks, e.g. a Mode S address "
-              "`3C6DD4` in either case; a key takes its later pieces `KEY#2` ... too): an "
+              "`3C6DD4` in either case; a key takes its later pieces `KEY#2` ... too, and a "
+              "radar track associated into another's key, e.g. `R2:track:40` in "
+              "`R1:track:12`, that aircraft): an "
               "incident's aircraft out of a long recording. A key the recording does not hold "
               "is an `aircraft_not_found` problem of the job. Default: every aircraft.")
     editions: Annotated[dict[EditionCategory, str], AfterValidator(_known_editions)] = Field(

@@ -381,8 +381,10 @@ def parser() -> argparse.ArgumentParser:
     rec.add_argument("--aircraft", nargs="+", default=None, metavar="KEY",
                      help="reconstruct only these aircraft (keys as in tracks.parquet, e.g. a "
                      "Mode S address 3C6DD4, in either case; a key takes its later pieces "
-                     "KEY#2 ... too); the whole recording is still read, and a key it does not "
-                     "hold makes the exit status 2 after the others are written")
+                     "KEY#2 ... too, a radar track associated into another's key, e.g. "
+                     "R2:track:40 in R1:track:12, that aircraft); the whole recording is "
+                     "still read, and a key it does not hold makes the exit status 2 after the "
+                     "others are written")
     rec.add_argument("--samples", type=_seconds, default=None, metavar="STEP",
                      help="also write every track's state every STEP seconds (from its first "
                      "plot to its last, with the covariance) into --out/samples.parquet")

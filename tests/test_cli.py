@@ -1030,7 +1030,8 @@ def test_a_selection_takes_a_keys_later_pieces():
 
     chosen = Selection(["4ca2d1", "R1:track:101"])
     names = ["4CA2D1", "3C6DD4", "4CA2D1#2", "4CA2D12", "R1:track:101#3", "R1:track:1011"]
-    got = [t.key for t in chosen.filter(iter(SimpleNamespace(key=k) for k in names))]
+    got = [t.key for t in chosen.filter(iter(SimpleNamespace(key=k, members=())
+                                             for k in names))]
     assert got == ["4CA2D1", "4CA2D1#2", "R1:track:101#3"]
     assert chosen.missing() == []
     assert Selection(["ABC123"]).missing() == ["ABC123"]
@@ -1288,3 +1289,36 @@ def test_a_track_across_the_antimeridian_is_cut_there_in_the_geojson():
         assert max(abs(a - b) for a, b in itertools.pairwise(lons)) < 180.0
     near = [[14.0, 46.0], [14.1, 46.1], [14.3, 46.0]]
     assert line_geometry(near) == {"type": "LineString", "coordinates": near}
+
+
+def test_mode_ac_aircraft_seen_by_two_radars_are_one_track_each(tmp_path, capsys, scheduler):
+    """Issue 16 end to end: an ASTERIX recording (libasterix) of three aircraft without Mode
+    S, all squawking 7000 at FL 50 (two 3 km apart in parallel, one crossing them), each seen
+    by R1 and R2 under their own track numbers: three tracks (not six), each reconstructed
+    from both radars' plots, the associations counted in the summary, and each radar's
+    statistics from the three tracks, every one of which holds both radars' plots."""
+    from test_io_association import recording, three_aircraft
+
+    from solver.io.asterix import encode_rows
+    from solver.sensor_stats import iter_stats
+
+    rows = recording(three_aircraft())
+    (tmp_path / "modeac.ast").write_bytes(encode_rows(rows, parse_sensors(SENSOR_FILE)))
+    (tmp_path / "sensors.json").write_text(json.dumps(SENSOR_FILE))
+    out = tmp_path / "out"
+    assert main([str(tmp_path / "modeac.ast"), "--sensors", str(tmp_path / "sensors.json"),
+                 "--out", str(out), "--scheduler", scheduler, "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["problems"] == {"tracks_associated": 3}
+    states = pq.read_table(out / "tracks.parquet", columns=["aircraft"]).to_pydict()
+    assert sorted(set(states["aircraft"])) == ["R1:track:11", "R1:track:12", "R1:track:13"]
+    per_track = list(iter_stats(out / "sensor_stats.jsonl"))
+    assert len(per_track) == 3
+    for reports in per_track:
+        assert {r["id"]: r["plots"] > 0 for r in reports} == {"R1": True, "R2": True}
+    sensors = {x["sensor"]: x for x in summary["sensors"]}
+    for s in ("R1", "R2"):
+        assert sensors[s]["tracks"] == 3
+        assert sensors[s]["plots"] == int(np.sum(rows.sensor == s))
+        assert sensors[s]["plots_wild"] == 0
+        assert sensors[s]["range_residual_sigma_m"] < 100.0, sensors[s]  # noise 50 m

@@ -77,6 +77,38 @@ def test_streamed_reading_memory_is_flat_in_the_recording_length(tmp_path, monke
     assert whole > 2 * peak_l, (whole, peak_l)
 
 
+def _radar_table(path, aircraft: int) -> int:
+    """:func:`_table`'s timing (200-s flights, one every 50 s) for aircraft without Mode S
+    that R1 and R2 both see (each under its own track number): one track each by the
+    association."""
+    from test_io_association import Flight, recording
+
+    flights = [Flight(20e3 + 100.0 * k - 200.0 * 50.0 * k, 10e3 + 1_000.0 * (k % 7), 200.0,
+                      0.0, 50.0, {"R1": (k, 50.0 * k, 50.0 * k + 200.0),
+                                  "R2": (1000 + k, 50.0 * k, 50.0 * k + 200.0)})
+               for k in range(aircraft)]
+    rows = recording(flights)
+    write_table(rows, path)
+    return len(rows)
+
+
+def test_streamed_association_memory_is_flat_in_the_recording_length(tmp_path, monkeypatch):
+    """Sensor tracks without Mode S are held until their associations are decided (issue
+    16): still the aircraft in the air, a recording 6x as long peaks as high, each aircraft
+    one track of both radars."""
+    monkeypatch.setattr(reading, "STREAM_BATCH_ROWS", 300)
+    sensors = tmp_path / "sensors.json"
+    sensors.write_text(json.dumps(SENSOR_FILE))
+    short, long = tmp_path / "short.csv", tmp_path / "long.csv"
+    n_short, n_long = _radar_table(short, 16), _radar_table(long, 96)
+    _radar_table(tmp_path / "warm.csv", 3)
+    _peak_while_streaming(tmp_path / "warm.csv", sensors)
+    tracks_s, plots_s, peak_s = _peak_while_streaming(short, sensors)
+    tracks_l, plots_l, peak_l = _peak_while_streaming(long, sensors)
+    assert (tracks_s, plots_s, tracks_l, plots_l) == (16, n_short, 96, n_long)
+    assert peak_l < 1.5 * peak_s, (peak_s, peak_l)
+
+
 def _asterix(path, aircraft: int) -> int:
     """:func:`_table`'s flights as a raw ASTERIX recording (CAT021, libasterix encodes)."""
     from solver.io.asterix import encode_rows

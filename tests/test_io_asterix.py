@@ -409,11 +409,18 @@ def test_two_aircraft_become_two_tracks_merged_across_sensors():
 
 
 def test_without_mode_s_radar_tracks_split_by_track_number():
+    """Radar plots without Mode S are keyed by their radar's track number; each aircraft's
+    two radar tracks are associated into one (issue 16: solver.io.association), apart from
+    its ADS-B's (a Mode S key is never associated)."""
     enc = encode_recording(with_mode_s=False)
     rec = read_recording(enc.data, SENSORS)
-    keys = sorted(tr.key for tr in split_aircraft(rec.rows, SENSORS))
-    assert keys == ["3C6DD4", "4CA2D1", "R1:track:101", "R1:track:102", "R2:track:201",
-                    "R2:track:202"]
+    tracks = {tr.key: tr for tr in split_aircraft(rec.rows, SENSORS)}
+    assert sorted(tracks) == ["3C6DD4", "4CA2D1", "R1:track:101", "R1:track:102"]
+    assert tracks["R1:track:101"].members == ("R1:track:101", "R2:track:201")
+    assert {s.id for s in tracks["R1:track:102"].table.sensors} == {"R1", "R2"}
+    apart = sorted(tr.key for tr in split_aircraft(rec.rows, SENSORS, associate_tracks=False))
+    assert apart == ["3C6DD4", "4CA2D1", "R1:track:101", "R1:track:102", "R2:track:201",
+                     "R2:track:202"]
 
 
 def test_truncated_block_in_a_raw_file_reports_its_offset_and_the_rest_is_read():

@@ -296,8 +296,10 @@ def _read_ahead(items: Iterator[Any], size: int) -> Iterator[Any]:
 class Selection:
     """The aircraft keys to reconstruct (the command line's ``--aircraft``, a job's
     ``aircraft``; None: all). A key selects its track
-    and the later pieces of it (``KEY#2`` ...: the same key after a gap, :mod:`solver.io.split`);
-    a Mode S address matches in either case (``4ca2d1`` is ``4CA2D1``)."""
+    and the later pieces of it (``KEY#2`` ...: the same key after a gap, :mod:`solver.io.split`),
+    and the sensor tracks associated into another's key (``R2:track:40`` selects
+    ``R1:track:12`` that holds it: :attr:`AircraftTrack.members`); a Mode S address matches in
+    either case (``4ca2d1`` is ``4CA2D1``)."""
 
     def __init__(self, keys: Sequence[str] | None):
         self.keys = None if not keys else {normal_key(k) for k in keys}
@@ -308,8 +310,9 @@ class Selection:
             yield from tracks
             return
         for track in tracks:
-            base = track.key.rsplit("#", 1)[0] if re.search(r"#\d+$", track.key) else track.key
-            hit = next((k for k in (track.key, base) if k in self.keys), None)
+            names = [n for k in (track.key, *track.members)
+                     for n in (k, k.rsplit("#", 1)[0] if re.search(r"#\d+$", k) else k)]
+            hit = next((k for k in names if k in self.keys), None)
             if hit is not None:
                 self.found.add(hit)
                 yield track

@@ -8,6 +8,13 @@ Aircraft key of a row (``../shared/spec/recordings.md``), first that applies:
 3. the sensor's track number: ``<sensor>:track:<number>``;
 4. the Mode 3/A code: ``<sensor>:mode3a:<octal code>``.
 
+Sensor tracks without Mode S (3., pieces after the gap split, off the ground) of different
+sensors that are one aircraft by their plots (positions, Mode C, Mode 3/A:
+:mod:`solver.io.association`) are joined under their smallest key (``R1:track:12`` with
+``R2:track:40``: ``R1:track:12``), each join reported (``tracks_associated``: the keys, plots
+compared, share agreeing; a join refused: ``association_refused``); never the user's keys,
+Mode S keys or Mode 3/A keys.
+
 Before keying, a sensor's track (sensor, track number; pieces split at ``gap_s``) whose plots
 carry one single Mode S address lends it to its plots without one, so a track with an
 intermittent address stays one aircraft. Every key is split where the aircraft is not seen
@@ -22,7 +29,8 @@ aircraft under it is ``KEY~2``, ``KEY~3`` ... (``aircraft_apart``).
 :func:`split_stream` does the same on a recording that arrives in pieces and yields each
 aircraft once no later plot can change it (the same tracks, tested on random recordings):
 memory then holds the aircraft in the air, and those within ``gap_s`` of a sensor track
-without Mode S that is still in the air (its plots could still be lent an address).
+without Mode S that is still in the air (its plots could still be lent an address), and the
+sensor tracks associated (or still comparable) with one in the air.
 
 Each aircraft's rows are put in time order (stable); a sensor's second plot at the same time
 of the same aircraft is reported (``duplicate_time``) and left out (the first is kept), as are
@@ -49,6 +57,15 @@ from ..inputs import Bounds, FloatArray, InputError, format_loc
 from ..plots import PlotTable
 from ..sensors import RadarSensor
 from .altitudes import MAX_OFFSET_M, geometric_altitudes, moved_note
+from .association import (
+    PLANE_COLUMNS,
+    WINDOW_S,
+    Associations,
+    Piece,
+    VerdictCache,
+    associate,
+    plane_points,
+)
 from .problems import Problems
 from .scans import scan_step
 from .sensors_file import SensorSet, take_off_offsets
@@ -79,6 +96,9 @@ class AircraftTrack:
     pressure_offset_m: float | None = None
     """The median geometric minus pressure altitude its ADS-B gave, by which its Mode C
     altitudes were moved (:mod:`solver.io.altitudes`); None: none moved."""
+    members: tuple[str, ...] = ()
+    """The keys of the sensor tracks associated into it (:mod:`solver.io.association`), its
+    own among them; empty: none associated."""
     notes: tuple[str, ...] = ()
     """What the track's answer says before its reconstruction's warnings (its Mode C made
     geometric, as a single request's answer says it: :func:`solver.batch.run_batch`)."""
@@ -247,27 +267,30 @@ def _on_ground(said: np.ndarray, t: np.ndarray, gap: np.ndarray, vote_s: float =
 
 def split_aircraft(rows: PlotRows, sensors: SensorSet, *, reference: LocalFrame | None = None,
                    min_plots: int = MIN_PLOTS, gap_s: float = GAP_S,
-                   problems: Problems | None = None, max_speed: float = MAX_SPEED_MS
-                   ) -> Iterator[AircraftTrack]:
+                   problems: Problems | None = None, max_speed: float = MAX_SPEED_MS,
+                   associate_tracks: bool = True) -> Iterator[AircraftTrack]:
     """Yield one :class:`AircraftTrack` per aircraft (in order of first plot), recording every
     row left out in ``problems`` (see the module docstring). ``reference``: the plane (default
-    :func:`recording_frame`). ``AircraftTrack.rows`` index ``rows``."""
+    :func:`recording_frame`). ``AircraftTrack.rows`` index ``rows``. ``associate_tracks``:
+    False keeps each sensor's tracks without Mode S apart (measurements)."""
     frame = reference if reference is not None else recording_frame(sensors, rows)
     yield from split_stream([rows], sensors, reference=frame, min_plots=min_plots,
                             gap_s=gap_s, disorder_s=np.inf, problems=problems,
-                            max_speed=max_speed)
+                            max_speed=max_speed, associate_tracks=associate_tracks)
 
 
 def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                  reference: LocalFrame | None = None, min_plots: int = MIN_PLOTS,
                  gap_s: float = GAP_S, disorder_s: float = DISORDER_S,
-                 problems: Problems | None = None, max_speed: float = MAX_SPEED_MS
-                 ) -> Iterator[AircraftTrack]:
+                 problems: Problems | None = None, max_speed: float = MAX_SPEED_MS,
+                 associate_tracks: bool = True) -> Iterator[AircraftTrack]:
     """:func:`split_aircraft` over a recording that arrives in pieces (in recording order):
     an aircraft is yielded as soon as no later plot can change it: the recording has moved
     ``gap_s + disorder_s`` past its last plot (a later plot of its key starts a new piece), no
     plot without Mode S of a sensor track that may still get plots lies within ``gap_s`` of it
-    (it could still be lent its address, or lose it), and its key's earlier pieces are out. So
+    (it could still be lent its address, or lose it), its key's earlier pieces are out and,
+    for a sensor track without Mode S, every track associated with it, or still comparable
+    with one that is (:func:`solver.io.association.associate`), can go too. So
     memory holds the aircraft in the air (and those near a sensor track without Mode S in the
     air). The same tracks, keys, rows and problems as :func:`split_aircraft` on the whole when
     no row arrives more than ``disorder_s`` after a later-timed one. ``AircraftTrack.rows``
@@ -279,6 +302,9 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
     is_radar_sensor = np.array([isinstance(s, RadarSensor) for s in sensors.sensors] + [False])
     buffer: PlotRows | None = None
     numbers = np.array([], dtype=np.int64)  # each buffered row's number in the recording
+    plane = np.empty((0, PLANE_COLUMNS))  # each buffered row's plane point (association)
+    window = min(WINDOW_S, gap_s / 2)  # a pair's evidence is final before its tracks are
+    verdicts: VerdictCache = {}  # final verdicts of pairs still buffered (not computed again)
     pieces_done: dict[str, int] = {}
     memory: TrackMemory = {}
     seen, latest = 0, -np.inf
@@ -291,6 +317,8 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
             _report_late(part, latest, disorder_s, problems)
             buffer = part if buffer is None else PlotRows.concat([buffer, part])
             numbers = np.concatenate([numbers, seen + np.flatnonzero(keep)])
+            if associate_tracks:
+                plane = np.concatenate([plane, _plane_of(part, sensors, index, frame)])
             seen += len(rows)
             if len(part):
                 latest = max(latest, float(np.max(part.t)))
@@ -304,29 +332,28 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
         # a plot without Mode S of a sensor track that may still get plots may still be lent
         # an address (or lose it): no aircraft within gap_s of such a plot is final yet
         pending = np.sort(buffer.t[_undecided(buffer, memory, gap_s, horizon)])
-        pieces: dict[str, list[tuple[float, bool, str, np.ndarray]]] = {}
         # the pieces a landing or take-off cuts come out with their whole piece between time
         # gaps: their rows' ground states are voted over its rows (_on_ground)
         spans = _gap_piece_ends(base, buffer.t, gap_s)
+        pieces: dict[str, _Piece] = {}
         for key, members in _groups(keys):
             first, last = float(np.min(buffer.t[members])), float(spans[members].max())
             near = np.searchsorted(pending, first - gap_s, side="left") < np.searchsorted(
                 pending, last + gap_s, side="right")
-            pieces.setdefault(str(base[members[0]]), []).append(
-                (first, bool(last < horizon and not near), key, members))
-        complete = []
-        for group in pieces.values():  # a key's pieces go in time order (their numbers)
-            for _, done, key, members in sorted(group, key=lambda g: g[0]):
-                if not done:
-                    break
-                complete.append((int(members[0]), key, members))
+            pieces[key] = _Piece(first, last < horizon and not near, str(base[members[0]]),
+                                 members)
+        found = (_associations(buffer, base, ground, plane, sensor_idx, pieces, max_speed,
+                               window, horizon, numbers, verdicts)
+                 if associate_tracks else None)
+        complete = _complete(pieces, found)
         if not complete:
             continue
         taken = np.zeros(len(buffer), dtype=bool)
-        for _, key, members in sorted(complete, key=lambda c: c[0]):
+        for key, names, members in complete:
             taken[members] = True
-            b = str(base[members[0]])
-            pieces_done[b] = pieces_done.get(b, 0) + 1
+            for name in names:
+                b = pieces[name].base
+                pieces_done[b] = pieces_done.get(b, 0) + 1
             if ground[members].any():  # the aircraft on the ground: no flight to fit
                 for i in members[ground[members]].tolist():
                     problems.add("on_ground", buffer.where(i), f"aircraft {key}: report of "
@@ -338,10 +365,136 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                            problems) if members.size else None
             for part in _apart(track, buffer, sensors, sensor_idx, frame, min_plots, gap_s,
                                max_speed, problems):
-                yield replace(part, rows=numbers[part.rows])
+                joined = tuple(sorted(names)) if len(names) > 1 and part.key == key else ()
+                yield replace(part, rows=numbers[part.rows], members=joined)
+        if found is not None:
+            _report_associations(found, taken, problems)
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
         buffer = buffer.take(~taken)
         numbers = numbers[~taken]
+        if associate_tracks:
+            plane = plane[~taken]
+
+
+@dataclass
+class _Piece:
+    """A key's piece between gaps (or ground changes) in the split's buffer: its first time,
+    whether no later plot can change it, its key before the split and its rows."""
+
+    first: float
+    done: bool
+    base: str
+    members: np.ndarray
+
+
+@dataclass
+class _Found:
+    """The association of the buffer's sensor tracks: the pieces looked at (their keys in
+    the order of :attr:`Associations` indexes) and the answer."""
+
+    keys: list[str]
+    pieces: list[Piece]
+    answer: Associations
+
+
+def _plane_of(rows: PlotRows, sensors: SensorSet, index: dict[str, int],
+              frame: LocalFrame | None) -> np.ndarray:
+    """Plane points (:func:`solver.io.association.plane_points`) of rows that may be a
+    sensor track without Mode S (track number, no address, no user key), computed once as
+    they arrive."""
+    sensor_idx = np.array([index[s] for s in rows.sensor.tolist()], dtype=int)
+    which = (rows.track_number >= 0) & (rows.mode_s < 0) & (rows.aircraft.astype(str) == "")
+    return plane_points(rows, sensors, sensor_idx, frame, which,
+                        _corrected(rows, sensors, sensor_idx))
+
+
+def _associations(rows: PlotRows, base: np.ndarray, ground: np.ndarray, plane: np.ndarray,
+                  sensor_idx: np.ndarray, pieces: dict[str, _Piece], max_speed: float,
+                  window: float, final_before: float, numbers: np.ndarray,
+                  cache: VerdictCache) -> _Found:
+    """:func:`solver.io.association.associate` over the pieces keyed by a sensor's track
+    number (their base key ``<sensor>:track:<n>``: no address lent, no user key) off the
+    ground."""
+    tn_key = np.char.add(np.char.add(rows.sensor.astype(str), ":track:"),
+                         rows.track_number.astype(str))
+    looked = (rows.track_number >= 0) & (rows.aircraft.astype(str) == "") & (
+        base.astype(str) == tn_key) & ~ground & np.isfinite(plane[:, 0])
+    keys, found, done, idents = [], [], [], []
+    for key, p in pieces.items():
+        if looked[p.members].all():
+            keys.append(key)
+            found.append(Piece.of(key, int(sensor_idx[p.members[0]]), p.members, plane, rows))
+            done.append(p.done)
+            idents.append((key, int(numbers[p.members[0]])))
+    return _Found(keys, found, associate(found, np.array(done, dtype=bool), max_speed, window,
+                                         final_before, idents, cache))
+
+
+def _complete(pieces: dict[str, _Piece], found: _Found | None
+              ) -> list[tuple[str, list[str], np.ndarray]]:
+    """The aircraft to yield now, in order of their first row: ``(key, piece keys, rows)``.
+    A key's pieces go in time order (their numbers) up to the first that is not done; the
+    tracks of a component of associations go all together or wait (whose tracks wait, and
+    with them their key's later pieces)."""
+    done = {k: p.done for k, p in pieces.items()}
+    groups: list[list[str]] = []
+    aircraft: dict[str, tuple[str, list[str]]] = {}  # piece key -> (aircraft key, its pieces)
+    if found is not None:
+        for i in found.answer.waiting:
+            done[found.keys[i]] = False
+        for comp in found.answer.components:
+            groups.append([found.keys[i] for i in comp.members])
+            for ac in comp.aircraft:
+                names = [found.keys[i] for i in ac.members]
+                for n in names:
+                    aircraft[n] = (ac.key, names)
+    by_base: dict[str, list[tuple[float, str]]] = {}
+    for k, p in pieces.items():
+        by_base.setdefault(p.base, []).append((p.first, k))
+    while True:
+        taken: set[str] = set()
+        for group in by_base.values():
+            for _, k in sorted(group):
+                if not done[k]:
+                    break
+                taken.add(k)
+        held = [g for g in groups if not taken.issuperset(g) and taken.intersection(g)]
+        if not held:
+            break
+        for g in held:
+            for k in g:
+                done[k] = False
+    out: list[tuple[str, list[str], np.ndarray]] = []
+    for k in taken:
+        if k in aircraft:
+            key, names = aircraft[k]
+            if k == min(names):
+                members = np.sort(np.concatenate([pieces[n].members for n in names]))
+                out.append((key, names, members))
+        else:
+            out.append((k, [k], pieces[k].members))
+    return sorted(out, key=lambda c: int(c[2][0]))
+
+
+def _report_associations(found: _Found, taken: np.ndarray, problems: Problems) -> None:
+    """Each association made (``tracks_associated``) and refused (``association_refused``)
+    of the components yielded, as its aircraft came out: keys, plots compared, share
+    agreeing."""
+    for comp in found.answer.components:
+        if not taken[found.pieces[comp.members[0]].rows[0]]:
+            continue
+        for ac in comp.aircraft:
+            for j in ac.joins:
+                v = j.verdict
+                problems.add("tracks_associated", f"aircraft {ac.key}", f"{j.a} and {j.b}: "
+                             f"{v.compared} plots compared, {v.agreeing} ({v.share:.0%}) within "
+                             "the gate: one aircraft without Mode S seen by several sensors, "
+                             f"reconstructed as {ac.key}")
+        for j in comp.refused:
+            v = j.verdict
+            problems.add("association_refused", f"aircraft {j.a}", f"{j.a} and {j.b}: "
+                         f"{v.compared} plots compared, {v.agreeing} ({v.share:.0%}) within the "
+                         f"gate, but {j.refused}: kept apart")
 
 
 def _report_late(rows: PlotRows, latest: float, disorder_s: float, problems: Problems
