@@ -63,8 +63,9 @@ the index (`plots[17].t is not after plots[16].t (38.2 <= 40.0)`); `detail` list
 422: malformed or physically impossible input (NaN and Infinity included; JSON syntax errors
 with line and column), or a solve over the service's time or memory limit; 413: body over the
 size limit; 400: a request HTTP cannot parse, or with both `Content-Length` and
-`Transfer-Encoding` (the connection is closed); 408: a request that did not arrive in time;
-503: all solvers busy and the queue full (see `Retry-After`).
+`Transfer-Encoding` (the connection is closed); 415: a body not sent as JSON, or with a
+`Content-Encoding` other than `identity` (bodies are read uncompressed); 408: a request that
+did not arrive in time; 503: all solvers busy and the queue full (see `Retry-After`).
 """
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
@@ -74,7 +75,8 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
           "connection is closed)."},
     413: {"model": ErrorResponse, "description": "Request body over the size limit."},
     415: {"model": ErrorResponse, "description": "The body is not sent as JSON (its "
-          "Content-Type is not application/json)."},
+          "Content-Type is not application/json), or with a Content-Encoding other than "
+          "identity."},
     422: {"model": ErrorResponse, "description": "Invalid input; the message names the field "
           "and plot index."},
     500: {"model": ErrorResponse, "description": "Internal error (a bug; never bad input)."},
@@ -247,6 +249,33 @@ class Framing:
         await self.app(scope, receive, send)
 
 
+class ContentCoding:
+    """Answer 415 naming ``Content-Encoding`` to a request whose body has a content coding
+    other than ``identity``: bodies are read as sent, so a gzip body was refused as "could not
+    be decoded as UTF-8 JSON" and an uncompressed one labelled ``br`` was read as if
+    unlabelled (a tester's); RFC 9110 section 8.4.1 asks for the 415. Nothing is decoded, so
+    the cost stays the body limit's."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            codings = [c.strip().lower() for name, value in scope["headers"]
+                       if name == b"content-encoding"
+                       for c in value.decode("latin-1").split(",")]
+            other = [c for c in codings if c not in ("", "identity")]
+            if other:
+                msg = (f"Content-Encoding {', '.join(other)[:80]!r} is not supported: send the "
+                       "body uncompressed (no Content-Encoding, or identity)")
+                response = _error(415, msg,
+                                  [{"loc": ["headers", "content-encoding"], "msg": msg,
+                                    "type": "unsupported_content_encoding"}])
+                await response(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
 class HeadAsGet:
     """Answer ``HEAD`` as ``GET`` without its body where no route takes ``HEAD`` itself
     (FastAPI routes a ``GET`` route for ``GET`` only: figures, results and a job's status
@@ -405,6 +434,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(JobsBodyLimit, limit=BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=1)
     app.add_middleware(HeadAsGet, routes=app.router.routes)
+    app.add_middleware(ContentCoding)
     app.add_middleware(Framing)
     app.add_middleware(Observe, metrics=metrics, access_log=settings.access_log,
                        routes=app.router.routes)

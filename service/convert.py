@@ -17,7 +17,7 @@ from solver.estimation import FUSION_NAMES
 from solver.estimation.gating import gate_warnings
 from solver.frames import LocalFrame
 from solver.inputs import Bounds, InputError, Plots, Radar, format_loc
-from solver.io.altitudes import MAX_OFFSET_M, OFFSET_WINDOW_S, geometric_altitudes
+from solver.io.altitudes import MAX_OFFSET_M, geometric_altitudes, moved_note
 from solver.io.sensors_file import KnownOffsets, offset_arrays, take_off_offsets
 from solver.io.tables import FL_M
 from solver.manoeuvres import from_segments
@@ -312,12 +312,11 @@ def _geometric(t: np.ndarray, altitude: np.ndarray, flight_level: np.ndarray,
         notes.append(f"{got.rejected} geometric height(s) differ from the aircraft's barometric "
                      f"altitude by more than {MAX_OFFSET_M:g} m: not used to make its Mode C "
                      "geometric")
-    if not got.corrected:
+    moved = moved_note(got)
+    if moved is None:
         return altitude
     if notes is not None:
-        notes.append(f"{got.corrected} pressure altitude(s) made geometric by the aircraft's "
-                     f"ADS-B: {got.median_m:+.1f} m (median of {got.pairs} pairs; running "
-                     f"median over {OFFSET_WINDOW_S:g} s)")
+        notes.append(moved)
     out = np.empty_like(altitude)
     out[order] = got.altitude_m
     return out

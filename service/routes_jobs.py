@@ -3,6 +3,7 @@ background by :class:`service.jobs.JobRunner` (contract: ``../shared/spec/record
 
 from __future__ import annotations
 
+import codecs
 import datetime as dt
 import json
 import os
@@ -30,7 +31,7 @@ from solver.io.dates import UTC, iso_utc, midnight_us
 from solver.io.reading import RECORDING_HEAD_BYTES, check_not_compressed, check_recording_head
 from solver.io.sensors_file import SensorSet, parse_sensors
 from solver.io.split import recording_frame
-from solver.io.tables import PIECE_NAME, PlotRows, write_table
+from solver.io.tables import APART_NAME, PIECE_NAME, PlotRows, write_table
 from solver.json_keys import TWICE, duplicate_key
 from solver.manoeuvres import from_segment_rows
 from solver.run_settings import RunSettings
@@ -48,7 +49,7 @@ from .job_models import (
     SensorSummaryOut,
 )
 from .jobs import FINISHED, RESULT_FILES, Full, JobRecord, JobRunner
-from .models import ErrorResponse, shortened
+from .models import ErrorResponse, PlotIn, shortened
 from .settings import Settings
 
 JOBS_PATH = "/v1/jobs"
@@ -60,6 +61,10 @@ MAX_TRACK_KEY_CHARS = 200
 TABLE_SUFFIXES = {".csv": ".csv", ".parquet": ".parquet", ".pq": ".parquet"}
 MAX_SENSORS_PART = 16 << 20  # a sensor file sent as a plain form field (bytes)
 _COV_NAMES = ("x", "z", "vx", "vz")
+TRACK_COLUMNS = (*PlotIn.model_fields, "aircraft")
+"""The plot table's columns a JSON job stores: every field of a request's plot (a list of its
+own had left out `flight_level`: a Mode C track came out 655 m RMS instead of 49.6 m) and the
+track's key."""
 
 
 def _err(description: str) -> dict[str, Any]:
@@ -171,7 +176,8 @@ _CREATE_BODY = {
              responses={202: {"headers": {"Location": {
                             "description": "The job's URL.", "schema": {"type": "string"}}}},
                         413: _err("Upload over the jobs' size limit."),
-                        415: _err("Neither multipart/form-data nor JSON."),
+                        415: _err("Neither multipart/form-data nor JSON, or a Content-Encoding "
+                                 "other than identity."),
                         422: _err("Invalid input; the message names the part or field."),
                         503: _err("Too many jobs queued, running or being received, or too "
                                   "many bytes of JSON bodies being received and checked "
@@ -356,6 +362,13 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
     if not head:
         raise InputError(("recording",), "is empty")
     check_not_compressed(head)  # whatever its name: a gzip read as CAT031 blocks, or a table
+    if _looks_like_json(head):  # a compact one was taken for a CSV header ("," and "sensor"),
+        # accepted, then failed as a table
+        try:
+            check_recording_head(head)
+        except InputError as e:
+            raise InputError(e.loc, f"{e.message}; it is JSON: plots as JSON are a job's "
+                             "application/json body of tracks") from None
     suffix = TABLE_SUFFIXES.get(Path(recording.filename or "").suffix.lower())
     if suffix is None:
         suffix = ".parquet" if head[:4] == b"PAR1" else ".csv" if _looks_like_csv(head) \
@@ -367,6 +380,17 @@ def _store_upload(recording: UploadFile, sensors_text: str, options: JobOptions,
         shutil.copyfileobj(src, f, 1 << 20)
     (inputs / "sensors.json").write_text(sensors_text, encoding="utf-8")
     (inputs / "params.json").write_text(params + "\n", encoding="utf-8")
+
+
+def _looks_like_json(head: bytes) -> bool:
+    """UTF-8 text (the head may end inside a character) whose first non-blank character opens
+    a JSON object or array (a table's header line names columns; ASTERIX has no categories
+    123 and 91)."""
+    try:
+        text = codecs.getincrementaldecoder("utf-8-sig")().decode(head, final=False)
+    except UnicodeDecodeError:
+        return False
+    return text.lstrip(" \t\r\n")[:1] in ("{", "[")
 
 
 def _looks_like_csv(head: bytes) -> bool:
@@ -394,9 +418,7 @@ def _save_tracks(body: bytes, inputs: Path, max_tracks: int) -> None:
     sensors = parse_sensors(doc)
     params = _params(req)
     radar = {s.id: isinstance(s, RadarSensor) for s in sensors.sensors}
-    cols: dict[str, list[Any]] = {k: [] for k in ("t", "sensor", "range_m", "azimuth_deg",
-                                                  "lat_deg", "lon_deg", "altitude_m",
-                                                  "aircraft")}
+    cols: dict[str, list[Any]] = {k: [] for k in TRACK_COLUMNS}
     if len(req.tracks) > max_tracks:
         raise InputError(("tracks",), f"has {len(req.tracks)} tracks; a job may hold at most "
                          f"{max_tracks} (TRAJRECON_JOBS_MAX_TRACKS)")
@@ -417,9 +439,11 @@ def _save_tracks(body: bytes, inputs: Path, max_tracks: int) -> None:
         if key.endswith("/figure.png"):  # its URL would be another track's figure
             raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
                              "/figure.png (the track figure's path)")
-        if PIECE_NAME.search(key):  # it would merge with another key's piece after a gap
+        if PIECE_NAME.search(key) or APART_NAME.search(key):  # it would merge with another
+            # key's piece after a gap, or (the table's reader refuses both) be dropped whole
             raise InputError(("tracks", key[:40]), "is not a track name: it may not end in "
-                             "#<number> (the name of a track's piece after a time gap)")
+                             "#<number> or ~<number> (the names of a track's piece after a "
+                             "time gap and of another aircraft found under its key)")
         if not plots:
             raise InputError(("tracks", key), "has no plots (a track needs at least 3)")
         for i, p in enumerate(plots):

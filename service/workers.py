@@ -18,6 +18,8 @@ import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 
+import numpy as np
+
 from solver.config import ReconstructionConfig
 from solver.estimation.measurements import at_estimated_heights
 from solver.inputs import InputError
@@ -155,6 +157,7 @@ def _time_limit(signum: int, frame: object) -> None:
         raise _TimeLimit
 
 
+DEFAULT_WINDOW_PLOTS = ReconstructionConfig().window_plots
 GAP_NODES_SHARE = 0.5
 """Nodes added in gaps beyond this share of the plots are named as a cost in :func:`remedy`."""
 
@@ -164,9 +167,10 @@ def remedy(job: Job) -> str:
     refinement, the offsets estimated with them (``estimate_bias``), the nodes long gaps add.
     A tester's 16 radars with ``estimate_bias`` (2,000 plots, no gap longer than 2 s) were
     told of gaps when the 48 offsets were the cost."""
-    if job.config.method == "sliding":
-        return "split the track or raise window.trial_step_s"
     table = job.table
+    if job.config.method == "sliding":
+        return _sliding_remedy(np.sort(table.t), job.config.window_plots,
+                               job.config.trial_step_s)
     step = job.config.refine.max_node_step_s
     nodes = refinement_nodes(table.t, step) if len(table) > 1 else 0
     biased = [s.id for s in table.sensors if s.estimate_bias] if len(table.sensors) > 1 else []
@@ -183,6 +187,26 @@ def remedy(job: Job) -> str:
     advice = ("estimate_bias on fewer sensors or over a shorter stretch of the track, or split "
               "the track") if biased else "split the track"
     return f"{said}; {advice}"
+
+
+def _sliding_remedy(t: np.ndarray, plots: int, step: float) -> str:
+    """The sliding windows' cost: every step fits one trial window of ``m`` plots per plot of
+    the current window and per ``trial_step_s`` over its span (:func:`solver.sliding.
+    candidate_times`), so a step's work grows with ``m`` times ``m + span / step``: the
+    tester's 200-plot windows were told to raise only the trial step."""
+    m = max(min(plots, t.size - 1), 1)
+    span = float(np.median(t[m - 1:] - t[:t.size - m + 1])) if t.size > 1 else 0.0
+    trials = m + span / step
+    said = (f"each sliding step fits about {trials:.0f} trial windows of {m} plots (one per "
+            f"plot of the window, window.plots, and one every window.trial_step_s {step:g} s "
+            f"over its {span:.4g} s)")
+    advice = ["split the track"]
+    if m > DEFAULT_WINDOW_PLOTS:
+        advice.append(f"lower window.plots (default {DEFAULT_WINDOW_PLOTS})")
+    if span / step >= 1:
+        advice.append("raise window.trial_step_s")
+    return f"{said}; {', '.join(advice[:-1])} or {advice[-1]}" if len(advice) > 1 \
+        else f"{said}; {advice[0]}"
 
 
 def _too_long(job: Job, time_limit_s: float) -> Outcome:

@@ -554,7 +554,8 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
     (default :func:`solve_track`). ``sources(problem)``: the names of its plots in the input,
     ``tracks.parquet``'s ``source`` (default: from the problem's ``origin`` and
     ``origin_unit`` where it has them, as :class:`solver.io.split.AircraftTrack`, by
-    :func:`source_names`; else null).
+    :func:`source_names`; else null). A problem's ``notes`` (where it has them) come first in
+    its done track's warnings.
     """
     sources = sources or _origin_sources
     store = _Store(Path(out_dir))
@@ -564,6 +565,7 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
         limit = max_in_flight or max(2 * n_workers, 2)
         pending: dict[Any, str] = {}
         names: dict[str, pa.Array | None] = {}  # the pending tracks' plots' sources
+        notes: dict[str, tuple[str, ...]] = {}  # what their answers say first (problem.notes)
         buffer: list[TrackOutcome] = []
         last_flush = time.monotonic()
         seen: set[str] = set()
@@ -580,6 +582,9 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
                 source = names.pop(key, None)
                 if source is not None and outcome.states is not None:
                     outcome = replace(outcome, states=with_sources(outcome.states, source))
+                said = notes.pop(key, ())
+                if said and outcome.status == "done":
+                    outcome = replace(outcome, warnings=[*said, *outcome.warnings])
                 summary.done += outcome.status == "done"
                 summary.failed += outcome.status == "failed"
                 summary.plots += outcome.plots if outcome.status == "done" else 0
@@ -612,6 +617,7 @@ def reconstruct_many(problems: Iterable[TrackProblem | Any], out_dir: str | Path
             while len(pending) >= limit:
                 collect(wait(list(pending)))
             names[key] = sources(problem)
+            notes[key] = tuple(getattr(problem, "notes", ()))
             pending[submit(task, key, problem.table, config, time_limit_s)] = key
         while pending:
             collect(wait(list(pending)))

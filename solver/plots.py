@@ -25,7 +25,15 @@ from .inputs import (
     wrap_azimuth,
     wrap_lon,
 )
-from .sensors import PlaneFixes, PositionSensor, RadarSensor, Sensor
+from .sensors import (
+    ALTITUDE_RANGE_M,
+    ALTITUDE_SIGMA_RADAR_M,
+    KNOWN_ALTITUDE_MARGIN_M,
+    PlaneFixes,
+    PositionSensor,
+    RadarSensor,
+    Sensor,
+)
 
 IntArray = np.ndarray
 
@@ -261,15 +269,34 @@ class PlotTable:
             psi[rows] = np.mod(psi[rows] - b_psi, 2 * np.pi)
         return replace(self, range_m=r, azimuth_rad=psi)
 
+    def altitude_sigmas(self) -> FloatArray:
+        """``(n,)`` sigma (m) of each plot's altitude as a measurement of the height: its
+        sensor's ``altitude_sigma_m``, :data:`ALTITUDE_SIGMA_RADAR_M` for a radar's of 0."""
+        return np.array([s.altitude_sigma_m if isinstance(s, PositionSensor)
+                         or s.altitude_sigma_m > 0 else ALTITUDE_SIGMA_RADAR_M
+                         for s in self.sensors], dtype=float)[self.sensor]
+
+    def heights(self) -> tuple[float, float]:
+        """The heights the aircraft may take: the general range (:data:`ALTITUDE_RANGE_M`)
+        widened to the known altitudes (ADS-B at 17 km was held at 15 km, 2 km low) by
+        :data:`KNOWN_ALTITUDE_MARGIN_M` plus 5 of their sigmas. The estimated height and every
+        plot's reach (:meth:`RadarSensor.fixes`) take the same."""
+        known = np.isfinite(self.altitude_m)
+        margin = KNOWN_ALTITUDE_MARGIN_M + 5 * self.altitude_sigmas()[known]
+        return (float(np.min(np.append(self.altitude_m[known] - margin, ALTITUDE_RANGE_M[0]))),
+                float(np.max(np.append(self.altitude_m[known] + margin, ALTITUDE_RANGE_M[1]))))
+
     def fixes(self) -> PlaneFixes:
         """Every plot as a fix in the local plane (rows in table order)."""
         est = self.estimate_altitude()
+        heights = self.heights()
         parts: list[tuple[np.ndarray, PlaneFixes]] = []
         for k, s in enumerate(self.sensors):
             rows = np.flatnonzero(self.sensor == k)
             if isinstance(s, RadarSensor):
                 parts.append((rows, s.fixes(self.frame, self.range_m[rows],
-                                            self.azimuth_rad[rows], self.altitude_m[rows], est)))
+                                            self.azimuth_rad[rows], self.altitude_m[rows], est,
+                                            heights)))
             else:
                 assert self.frame is not None
                 parts.append((rows, s.fixes(self.frame, self.lat_deg[rows], self.lon_deg[rows])))

@@ -29,8 +29,14 @@ from .inputs import MAX_RANGE_ERROR_M, FloatArray, InputError, Radar
 ALTITUDE_RANGE_M = (-500.0, 20_000.0)
 """Heights above the ellipsoid an unknown altitude may take (m) when it is estimated: up to
 FL650, the top of controlled airspace (15 km cut business jets at FL510: 0.5-3 km low and
-kilometres off, a tester measured). Known altitudes widen it for their track
-(:meth:`solver.refine.nodes.NodeData.assemble`)."""
+kilometres off, a tester measured). Known altitudes widen it for their track, for the
+estimated height and every plot's reach alike (:meth:`solver.plots.PlotTable.heights`)."""
+KNOWN_ALTITUDE_MARGIN_M = 500.0
+"""The heights may go this far (plus 5 sigmas) beyond the track's known altitudes."""
+ALTITUDE_SIGMA_RADAR_M = 30.0
+"""m: a radar plot's reported altitude (Mode C: 100-ft steps, 25 ft with Mode S; pressure,
+not geometric, altitude) as a measurement of the height in the altitude-estimating variant,
+when its radar's ``altitude_sigma_m`` is 0 (exact for the plot's placement); else that."""
 MAX_ELEVATION_FRACTION = 0.96
 """A plot's reach: the heights within ``0.96 r`` of its radar's at slant range ``r`` (elevations
 within 74 deg: an aircraft at 10 km passing 3 km from the radar), where its centre follows the
@@ -211,14 +217,16 @@ class RadarSensor(Radar):
         return frame.to_plane(lat, lon)
 
     def fixes(self, frame: LocalFrame | None, range_m: FloatArray, azimuth_rad: FloatArray,
-              altitude_m: FloatArray, estimate_altitude: bool) -> PlaneFixes:
+              altitude_m: FloatArray, estimate_altitude: bool,
+              heights: tuple[float, float] = ALTITUDE_RANGE_M) -> PlaneFixes:
         """Plots ``(r, psi, h or NaN)`` as plane fixes.
 
         Known altitude: the exact position at that height. Unknown: at the site's height (the
         slant range taken for the ground range, the seed's convention, whose bias, ``h^2 / 2d``
         flat and ``h^2 / 2d + h d / 2R`` on the earth, a single radar cannot remove), and with
         ``estimate_altitude`` the position as a function of the height (:class:`PlaneFixes`).
-        One-sigma ellipse: along the ray ``sigma_r |dc/dr|``
+        ``heights``: the heights the track may take (:meth:`solver.plots.PlotTable.heights`),
+        which bound each plot's reach. One-sigma ellipse: along the ray ``sigma_r |dc/dr|``
         (at most ``sqrt(2 r sigma_r) |dc/dr| d / r`` overhead, :func:`ground_range_error`) and,
         where the altitude is known, the ``hypot`` of that and ``altitude_sigma_m |dc/dh|``
         (:meth:`_height_term`); across ``max(sigma_psi |dc/dpsi|, 1 m)``.
@@ -256,10 +264,12 @@ class RadarSensor(Radar):
         free = ~known & estimate_altitude
         poly = np.zeros((n, 2, ALTITUDE_FIT_DEGREE + 1))
         poly[:, 0, 0], poly[:, 1, 0] = x0, z0
-        # the plot's reach: within the general range, and within the elevation cap both ways
-        # (heights below the site by more than the slant range have no position at all)
-        h_lo = np.maximum(ALTITUDE_RANGE_M[0], site_h - MAX_ELEVATION_FRACTION * r)
-        h_hi = np.minimum(ALTITUDE_RANGE_M[1], site_h + MAX_ELEVATION_FRACTION * r)
+        # the plot's reach: within the track's heights, and within the elevation cap both ways
+        # (heights below the site by more than the slant range have no position at all); the
+        # general range alone held known heights below -500 m out of every plot's reach (all
+        # radar plots dropped as "above 74 deg elevation" at 40-100 km, a tester's)
+        h_lo = np.maximum(heights[0], site_h - MAX_ELEVATION_FRACTION * r)
+        h_hi = np.minimum(heights[1], site_h + MAX_ELEVATION_FRACTION * r)
         h_hi = np.maximum(h_hi, h_lo + 1e-3)
         h_mid, h_half = (h_hi + h_lo) / 2, (h_hi - h_lo) / 2
         slant = np.where(free, r, 0.0)
@@ -339,10 +349,12 @@ class PositionSensor:
 
     def fixes(self, frame: LocalFrame, lat_deg: FloatArray, lon_deg: FloatArray) -> PlaneFixes:
         """Plane positions with a circle of radius ``position_sigma_m`` times the plane's scale
-        (at most 1.0003 within 250 km of the reference, so taken as 1)."""
+        at the plot, in plane metres as the radars' ellipses (taken as 1 it left every
+        covariance in ground metres: with the reference 4,300 km away, scale 1.122, the states'
+        sigmas grew 1.013 times where x, z, vx, vz grew 1.122 times; a tester's)."""
         x, z = frame.to_plane(lat_deg, lon_deg)
         n = x.size
-        sig = np.full(n, float(self.position_sigma_m))
+        sig = float(self.position_sigma_m) * np.asarray(frame.scale(x, z), float)
         ell = Ellipses(x, z, np.zeros(n), sig, sig)
         poly = np.zeros((n, 2, ALTITUDE_FIT_DEGREE + 1))
         poly[:, 0, 0], poly[:, 1, 0] = x, z

@@ -206,7 +206,9 @@ def test_two_sensors_at_one_instant_equal_one_combined_update(name, params):
         np.testing.assert_allclose(est.states[half], ref.states, rtol=0, atol=1e-5)
         np.testing.assert_allclose(est.cov[half], ref.cov, rtol=1e-7, atol=1e-7)
     # the first instant in closed form: prior = plot a (velocity unknown), then plot b
-    R1, R2 = 30.0**2 * np.eye(2), 60.0**2 * np.eye(2)
+    # the sensors' sigmas in plane metres: times the plane's scale at the plot
+    k1, k2 = (float(np.asarray(FRAME.scale(*p[0]))) for p in (p1, p2))
+    R1, R2 = (30.0 * k1) ** 2 * np.eye(2), (60.0 * k2) ** 2 * np.eye(2)
     P = np.linalg.inv(np.linalg.inv(R1) + np.linalg.inv(R2))
     x = P @ (np.linalg.solve(R1, p1[0]) + np.linalg.solve(R2, p2[0]))
     if not params.get("smooth", True) or name == "singer":
@@ -312,7 +314,8 @@ def test_alpha_beta_on_several_sensors_is_weighted_least_squares():
                             lat_deg=np.concatenate([geo[0][0], geo[1][0]]),
                             lon_deg=np.concatenate([geo[0][1], geo[1][1]]), reference=FRAME)
     y = np.column_stack(FRAME.to_plane(table.lat_deg, table.lon_deg))
-    sig = np.where(table.sensor == 0, s1, s2)
+    # the sensors' sigmas in plane metres: times the plane's scale at the plot
+    sig = np.where(table.sensor == 0, s1, s2) * np.asarray(FRAME.scale(y[:, 0], y[:, 1]))
     k_max = 4
     span = np.array([(k_max - 0.5) * np.median(np.diff(t1)),
                      (k_max - 0.5) * np.median(np.diff(t2))])

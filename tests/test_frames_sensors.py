@@ -116,7 +116,9 @@ def test_position_sensor_fix_is_a_circle_at_the_plane_position():
     f = PositionSensor("ADSB", 30.0).fixes(frame, np.array([46.1]), np.array([14.9]))
     x, z = frame.to_plane(np.array([46.1]), np.array([14.9]))
     assert f.ellipses.cx[0] == pytest.approx(x[0]) and f.ellipses.cz[0] == pytest.approx(z[0])
-    assert f.ellipses.A[0] == f.ellipses.B[0] == 30.0
+    # in plane metres, as the radars' ellipses: the sigma times the plane's scale there
+    k = float(np.asarray(frame.scale(x, z))[0])
+    assert k > 1.0 and f.ellipses.A[0] == f.ellipses.B[0] == pytest.approx(30.0 * k, rel=1e-12)
 
 
 # ------------------------------------------------------------------------ the plots table

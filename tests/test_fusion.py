@@ -93,7 +93,10 @@ def test_fusion_a_by_hand():
     # variance c1^2 s1^2 + c2^2 s2^2 = 64 + 64 on the position
     row0 = int(np.flatnonzero(t_rows == 0.0)[0])
     row1 = int(np.flatnonzero(t_rows == 1.0)[0])
-    assert est.cov[row0, 0, 0] == pytest.approx(S1**2) and est.cov[row0, 2, 2] == 300.0**2
+    # the velocity's start spread, 300 m/s on the ground: the plane's scale times it
+    k = float(np.asarray(table.frame.scale(est.x[row0], est.z[row0])))
+    assert est.cov[row0, 0, 0] == pytest.approx(S1**2)
+    assert est.cov[row0, 2, 2] == pytest.approx((300.0 * k) ** 2, rel=1e-6) and k > 1.0
     assert est.cov[row1, 0, 0] == pytest.approx(128.0)
     assert est.cov[row1, 1, 1] == pytest.approx(128.0)
 
@@ -148,7 +151,9 @@ def test_fusion_c_skips_a_stale_coarse_source():
     np.testing.assert_allclose(got[3:], x, atol=1e-6)
     np.testing.assert_allclose(got[2], x[0], atol=1e-6)  # the coarse plot at the first step
     np.testing.assert_allclose(got[:2], y[:2], atol=1e-9)
-    assert est.cov[0, 0, 0] == pytest.approx(50.0**2) and est.cov[0, 2, 2] == 300.0**2
+    k = float(np.asarray(table.frame.scale(est.x[0], est.z[0])))  # as in fusion_a
+    assert est.cov[0, 0, 0] == pytest.approx(50.0**2)
+    assert est.cov[0, 2, 2] == pytest.approx((300.0 * k) ** 2, rel=1e-6) and k > 1.0
 
 
 @pytest.mark.parametrize("name", FUSION_NAMES)

@@ -207,6 +207,26 @@ def test_answers_are_gzip_compressed_when_accepted(server):
         assert got["diagnostics"]["warnings"] == want["diagnostics"]["warnings"]
 
 
+def test_a_compressed_request_body_is_415_naming_content_encoding(server):
+    """Bodies are read as sent: a gzip body got 422 "could not be decoded as UTF-8 JSON" and an
+    uncompressed one labelled `br` was read (200; a tester's). Any content coding but identity
+    is a 415 naming the header, on both POST routes; `identity` is read as before."""
+    body = dict(SEED_BATCH, plots=SEED_BATCH["plots"][:20], omit=["samples"])
+    data = json.dumps(body).encode()
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        for path in ("/v1/reconstructions", "/v1/jobs"):
+            for coding, content in (("gzip", gzip.compress(data)), ("br", data),
+                                    ("identity, gzip", gzip.compress(data))):
+                r = c.post(path, content=content, headers={
+                    "content-type": "application/json", "content-encoding": coding})
+                assert r.status_code == 415, (path, coding, r.text)
+                assert r.json()["detail"][0]["loc"] == ["headers", "content-encoding"]
+                assert r.json()["message"].startswith("Content-Encoding '"), r.json()
+        r = c.post("/v1/reconstructions", content=data, headers={
+            "content-type": "application/json", "content-encoding": "identity"})
+        assert r.status_code == 200, r.text
+
+
 def test_logs_are_json_from_the_first_line_and_name_the_host(server):
     assert server.log, "no log"
     lines = [json.loads(ln) for ln in server.log]  # every line, the first included

@@ -145,6 +145,25 @@ def test_solve_time_limit_stops_sliding_windows_over_sensors():
     asyncio.run(scenario())
 
 
+@pytest.mark.parametrize(("window", "said", "advice"), [
+    ({"plots": 200, "trial_step_s": 5.0}, "about 1047 trial windows of 200 plots",
+     "lower window.plots (default 3) or raise window.trial_step_s"),
+    ({"plots": 3, "trial_step_s": 0.05}, "trial windows of 3 plots",
+     "split the track or raise window.trial_step_s")])
+def test_a_sliding_solve_past_its_time_limit_names_its_cost(window, said, advice):
+    """Sliding windows cost a step ``m`` times ``m + span / trial_step_s`` window plots: the
+    tester's 200-plot windows (the cost) were told only to raise the trial step."""
+    from service.workers import solve
+
+    body = copy.deepcopy(SEED_BATCH)
+    body.update(method="sliding", window=window)
+    out = solve(job_of(body), 0.0, time_limit_s=1e-6)
+    assert out.body is None and out.error_loc == ("plots",), out
+    assert "solve time limit of 1e-06 s" in out.error_message
+    assert said in out.error_message and out.error_message.endswith(advice), out.error_message
+    assert ("window.plots (default" in out.error_message) == (window["plots"] > 3)
+
+
 def test_trial_step_that_asks_for_billions_of_windows_is_a_422_naming_it():
     """1e-9 s is refused by the configuration's bound (MIN_TRIAL_STEP_S); a step above it that asks
     too many trial starts of long windows (plots 10 times farther apart: 380-s windows at

@@ -759,6 +759,50 @@ def test_a_jobs_track_has_no_altitude_where_the_single_answer_has_none(client):
     assert estimated["ALONE"] is False, estimated
 
 
+def test_a_jobs_track_with_flight_levels_is_the_single_answer(client):
+    """Every plot field a single request takes reaches a JSON job's track: `flight_level`
+    was dropped (a tester's Mode C track: 655 m RMS as a job, 49.6 m as a single request).
+    The radars' Mode C reads 250 m low (flight level only), the ADS-B gives the geometric
+    height and its flight level: the job's track has the single answer's states and
+    warnings, and its `summary.json` the +250 m offset (it was null)."""
+    from dataclasses import fields
+
+    from service.models import PlotIn
+    from solver.io.tables import PlotRows
+
+    assert set(PlotIn.model_fields) <= {f.name for f in fields(PlotRows)}
+    low = 250.0 / 30.48  # flight levels
+    enc = encode_recording(duration=40.0)
+    sensors, tracks = json_tracks(enc)
+    plots = []
+    for p, fl in zip(tracks["A"], (q["fl"] for q in enc.plots if q["flight"] == 0),
+                     strict=True):
+        plots.append(p | ({"flight_level": fl - low} if "range_m" in p else
+                          {"altitude_m": fl * 30.48, "flight_level": fl - low}))
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"A": plots}})
+    assert r.status_code == 202, r.text
+    loc = r.headers["location"]
+    assert wait(client, loc)["state"] == "done"
+    track = client.get(f"{loc}/tracks/A").json()
+    got = track["trajectory"]["at_plots"]
+    single = client.post("/v1/reconstructions", json={"sensors": sensors, "plots": plots})
+    assert single.status_code == 200, single.text
+    want = single.json()
+    assert any("made geometric by the aircraft's ADS-B: +250.0 m" in w
+               for w in want["diagnostics"]["warnings"]), want["diagnostics"]["warnings"]
+    # the same words in the job's track (it had none: the offset only in summary.json)
+    assert track["diagnostics"]["warnings"] == want["diagnostics"]["warnings"]
+    assert len(got) == len(want["trajectory"]["at_plots"]) == len(plots)
+    for field in ("t", "x", "z", "vx", "vz", "lat_deg", "lon_deg"):
+        np.testing.assert_allclose([s[field] for s in got],
+                                   [s[field] for s in want["trajectory"]["at_plots"]],
+                                   rtol=0, atol=1e-6, err_msg=field)
+    offsets = client.get(loc + "/results/summary.json").json()["mode_c_offsets"]
+    assert offsets is not None and offsets["tracks"] == 1, offsets
+    assert offsets["median_m"] == pytest.approx(250.0, abs=0.01)
+    assert client.delete(loc).status_code == 204
+
+
 def test_upload_over_the_limit_is_413(client):
     r = upload(client, b"\x30" * (UPLOAD_LIMIT + 1))
     assert r.status_code == 413
@@ -797,6 +841,13 @@ def test_a_json_body_of_tracks_has_its_own_smaller_limit(tmp_path):
      "sensors[0].range_error_m"),
     ({"recording": ("r.ast", b""), "sensors": ("s.json", json.dumps(SENSOR_FILE))},
      "recording"),
+    # JSON of any layout and name: a compact one was accepted, then failed as a CSV table
+    *(({"recording": (name, text), "sensors": ("s.json", json.dumps(SENSOR_FILE))},
+       "recording is not an ASTERIX recording (its first bytes ")
+      for name in ("r.ast", "x.json", "recording", "t.csv")
+      for text in (json.dumps({"sensors": SENSOR_FILE}).encode(),
+                   json.dumps(SENSOR_FILE, indent=2).encode(),
+                   b"\xef\xbb\xbf\n " + json.dumps({"sensors": SENSOR_FILE}).encode())),
     ({"recording": ("r.ast", b"\x30"), "sensors": ("s.json", json.dumps(SENSOR_FILE)),
       "extra": ("e", b"1")}, "extra"),
     *(({"recording": ("r.ast", b"\x30\x00\x03"), "sensors": ("s.json", json.dumps(SENSOR_FILE)),
@@ -1463,14 +1514,18 @@ def test_a_json_track_key_may_not_end_like_the_figures_path(client):
                                    "/figure.png (the track figure's path)"), r.json()
 
 
-def test_a_json_track_key_may_not_look_like_a_piece(client):
+@pytest.mark.parametrize("key", ["A#2", "A~2"])
+def test_a_json_track_key_may_not_look_like_a_piece(client, key):
     """`A#2` names key `A`'s piece after a time gap: a track so named merged with it (a fuzz
-    helper, through a table). Refused at submission."""
+    helper, through a table); `A~2` another aircraft found under key `A`: a track so named
+    was accepted, then all its plots dropped as bad values "at row N" (a tester's). Refused
+    at submission."""
     sensors = [{k: v for k, v in s.items() if k not in ("sac", "sic")} for s in SENSOR_FILE]
     plot = {"t": 0.0, "sensor": sensors[0]["id"], "range_m": 5e4, "azimuth_deg": 10.0}
-    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {"A#2": [plot] * 3}})
+    r = client.post("/v1/jobs", json={"sensors": sensors, "tracks": {key: [plot] * 3}})
     assert r.status_code == 422, r.text
-    assert "may not end in #<number>" in r.json()["message"], r.json()
+    assert r.json()["detail"][0]["loc"] == ["tracks", key], r.json()
+    assert "may not end in #<number> or ~<number>" in r.json()["message"], r.json()
 
 
 @pytest.mark.parametrize(("key", "said"), [("B1 ", "white space"), (" B1", "white space"),

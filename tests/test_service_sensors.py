@@ -22,8 +22,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SITES = {"LJLJ": Site(46.2237, 14.4576, 380.0), "SSR2": Site(45.5, 15.2, 900.0)}
 
 
-def _body(mode_c: bool = False, estimate_bias: bool = False) -> dict:
-    """Two radars (a PSR without altitude and an SSR) and ADS-B on one turning track."""
+def _body(mode_c: bool = False, estimate_bias: bool = False, height_m: float = 10_000.0
+          ) -> dict:
+    """Two radars (a PSR without altitude and an SSR) and ADS-B on one turning track at
+    ``height_m``."""
     segs = [Segment(0.0, 300.0, -40e3, -30e3, 0.6, 220.0, 1.0, 0.0)]
     rng = np.random.default_rng(2)
     sensors = [
@@ -38,12 +40,12 @@ def _body(mode_c: bool = False, estimate_bias: bool = False) -> dict:
     for sid, period, offset in (("LJLJ", 4.8, 0.0), ("SSR2", 4.0, 0.0), ("ADSB", 2.0, 1.0)):
         t = np.arange(offset, 300.0, period)
         st = evaluate(segs, t)
-        h = np.full(t.size, 10_000.0)
+        h = np.full(t.size, height_m)
         if sid == "ADSB":
             lat, lon = FRAME.to_geodetic(st.x + rng.normal(0, 30, t.size),
                                          st.z + rng.normal(0, 30, t.size))
             plots += [{"t": float(a), "sensor": sid, "lat_deg": float(b), "lon_deg": float(c),
-                       "altitude_m": 10_000.0} for a, b, c in zip(t, lat, lon, strict=True)]
+                       "altitude_m": height_m} for a, b, c in zip(t, lat, lon, strict=True)]
             continue
         radar = RadarSensor(150.0, np.deg2rad(0.24), id=sid, site=SITES[sid])
         r, az = radar.measure(FRAME, st.x, st.z, h)
@@ -52,7 +54,7 @@ def _body(mode_c: bool = False, estimate_bias: bool = False) -> dict:
         for a, b, c in zip(t, r, az, strict=True):
             plot = {"t": float(a), "sensor": sid, "range_m": float(b), "azimuth_deg": float(c)}
             if mode_c and sid == "SSR2":
-                plot["altitude_m"] = 10_000.0
+                plot["altitude_m"] = height_m
             plots.append(plot)
     return {"sensors": sensors, "reference": {"lat_deg": 46.0, "lon_deg": 14.8},
             "plots": plots, "filters": []}
@@ -315,6 +317,57 @@ def test_a_reference_far_from_the_track_warns_of_the_planes_scale():
         assert bool(far) == warned, rec.diagnostics.warnings
     # at the farthest plot, 1991 km on the ground (pyproj Geod; 2007 km in the plane)
     assert "lies up to 1991 km" in far[0] and "up to 2.5 % larger there" in far[0], far
+
+
+def test_covariances_far_from_the_reference_are_in_the_planes_metres():
+    """`cov` is over `(x, z, vx, vz)` in the plane's metres: with the reference 4,300 km from
+    the track (the plane's scale 1.12) every sigma is the near reference's times the plane's
+    scale at the state (:meth:`LocalFrame.scale`), as `x`, `z`, `vx`, `vz` are. The ADS-B
+    circles, the refinement's control prior and the filters' process noise were ground
+    metres: the sigmas grew 1.013 (refined) and 1.006 (IMM smoother) times (a tester's)."""
+    from service.convert import to_job
+    from service.models import ReconstructionRequest
+    from solver.estimation import run_filters
+    from solver.reconstruct import reconstruct
+
+    body = _body()
+    sigmas, scales = {}, None
+    for reference in ((46.0, 14.8), (7.3, 14.8)):
+        req = ReconstructionRequest.model_validate(
+            {**body, "reference": {"lat_deg": reference[0], "lon_deg": reference[1]},
+             "omit": ["samples"]})
+        job = to_job(req, "sqpmethod", 20_000, 50_000)
+        rec = reconstruct(job.table, config=job.config)
+        states = {"refined": rec.at_plots, **{k: e.states for k, e in run_filters(
+            ["cv_rts", "imm_smoother"], job.table).items()}}
+        sigmas[reference] = {k: np.sqrt(np.diagonal(s.cov, axis1=1, axis2=2))
+                             for k, s in states.items()}
+        scales = np.asarray(job.table.frame.scale(rec.at_plots.x, rec.at_plots.z))
+    assert scales is not None and 1.11 < np.median(scales) < 1.13, np.median(scales)
+    for name, near in sigmas[(46.0, 14.8)].items():
+        ratio = sigmas[(7.3, 14.8)][name] / (near * scales[:, None])
+        np.testing.assert_allclose(ratio, 1.0, atol=0.01, err_msg=name)
+
+
+def test_known_heights_below_the_general_range_keep_the_radar_plots(client):
+    """ADS-B at -800 m (accepted: altitude_m down to -1000 m) widens the heights the track may
+    take; the radar plots without altitude must reach them too: their reach stopped at -500 m
+    and every one of them (30-50 km from its radar) was given no weight as "above 74 deg
+    elevation" (a tester's). Now none is, the height is estimated at the ADS-B's and the
+    track is where it was flown."""
+    body = _body(height_m=-800.0)
+    res = client.post("/v1/reconstructions", json={**body, "omit": ["samples"]})
+    assert res.status_code == 200, res.text
+    got = res.json()
+    assert not [w for w in got["diagnostics"]["warnings"] if "weight" in w], got["diagnostics"]
+    assert not any(s.get("gated") for s in got["trajectory"]["at_plots"])
+    assert got["trajectory"]["altitude_m"] == pytest.approx(-800.0, abs=30.0)
+    at = got["trajectory"]["at_plots"]
+    truth = evaluate([Segment(0.0, 300.0, -40e3, -30e3, 0.6, 220.0, 1.0, 0.0)],
+                     np.array([s["t"] for s in at]))
+    error = np.hypot(np.array([s["x"] for s in at]) - truth.x,
+                     np.array([s["z"] for s in at]) - truth.z)
+    assert np.sqrt(np.mean(error**2)) < 30.0, np.sqrt(np.mean(error**2))
 
 
 def test_sensors_without_plots_are_left_out_with_a_note(client):

@@ -193,6 +193,9 @@ def run_filter(name: str, data: PlotTable | Plots, radar: Radar | None = None,
     if name not in _RUNNERS:
         raise KeyError(f"unknown filter {name!r}; choose from {', '.join(FILTER_NAMES)}")
     meas = measurement_set(data, radar)
+    k = _plane_scale(data, meas)
+    if k != 1.0 and isinstance(meas, SensorPlots):  # run on the ground's scale (its noise)
+        meas = replace(meas, centre=meas.centre / k, cov=meas.cov / k**2)
     try:
         with np.errstate(all="ignore"):
             est = _from_a_sound_start(name, meas, params)
@@ -202,7 +205,34 @@ def run_filter(name: str, data: PlotTable | Plots, radar: Radar | None = None,
             est = _fallback(name, meas, "non-finite estimate replaced by the plot points")
     except np.linalg.LinAlgError as exc:
         est = _fallback(name, meas, f"numerical failure: {exc}")
-    return _in_table_order(est, meas) if isinstance(meas, SensorPlots) else est
+    est = _in_table_order(est, meas) if isinstance(meas, SensorPlots) else est
+    return est if k == 1.0 else _scaled(est, k)
+
+
+def _plane_scale(data: PlotTable | Plots, meas: PolarPlots | SensorPlots) -> float:
+    """The plane's median scale at the plots of a table on the earth (1 on a flat plane). The
+    filters' process noise (accelerations) and start spreads are ground quantities, while the
+    plots' fixes are plane metres (their scale times the ground's): run in plane metres far
+    from the reference (scale 1.122 at 4,300 km) the states' sigmas grew 1.09 times where
+    ``x``, ``z`` grew 1.122 times (a tester's). Scaled by the median, the filter runs on the
+    ground's scale and its answer is mapped back exactly (a similarity of the plane)."""
+    if not (isinstance(data, PlotTable) and data.frame is not None
+            and isinstance(meas, SensorPlots) and len(meas) and not meas.polar.any()):
+        return 1.0
+    with np.errstate(all="ignore"):
+        k = float(np.median(data.frame.scale(meas.centre[:, 0], meas.centre[:, 1])))
+    return k if np.isfinite(k) and k > 0 else 1.0
+
+
+def _scaled(est: FilterEstimate, k: float) -> FilterEstimate:
+    """``est`` with its positions and velocities times ``k``, covariances times ``k^2``
+    (``info["filtered"]``, the filtered states of a smoother, too)."""
+    st = est.states
+    assert st.cov is not None
+    info = dict(est.info)
+    if isinstance(info.get("filtered"), np.ndarray):
+        info["filtered"] = np.asarray(info["filtered"]) * k
+    return estimate(est.name, st.t, st.states * k, st.cov * k**2, **info)
 
 
 def run_filters(names: Iterable[str], data: PlotTable | Plots, radar: Radar | None = None, *,

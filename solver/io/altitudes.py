@@ -90,6 +90,16 @@ def geometric_altitudes(t: FloatArray, altitude_m: FloatArray, flight_level: Flo
                    rejected)
 
 
+def moved_note(got: Offsets) -> str | None:
+    """What a track's answer says of its pressure altitudes made geometric (None: none
+    moved): the single request's warning, and a job's or the command line's track's."""
+    if not got.corrected or got.median_m is None:
+        return None
+    return (f"{got.corrected} pressure altitude(s) made geometric by the aircraft's ADS-B: "
+            f"{got.median_m:+.1f} m (median of {got.pairs} pairs; running median over "
+            f"{OFFSET_WINDOW_S:g} s)")
+
+
 def _matched(t: FloatArray, alt: FloatArray, fl: FloatArray, pressure: np.ndarray,
              geometric: np.ndarray) -> tuple[FloatArray, FloatArray]:
     """``(times, geometric - pressure)`` of each pressure altitude with a geometric height of

@@ -55,8 +55,8 @@ import numpy as np
 from ..frames import LocalFrame
 from ..inputs import Bounds, FloatArray, InputError, format_loc
 from ..plots import PlotTable
-from ..sensors import ALTITUDE_RANGE_M, RadarSensor
-from .altitudes import MAX_OFFSET_M, geometric_altitudes
+from ..sensors import RadarSensor
+from .altitudes import MAX_OFFSET_M, geometric_altitudes, moved_note
 from .association import (
     PLANE_COLUMNS,
     WINDOW_S,
@@ -99,6 +99,9 @@ class AircraftTrack:
     members: tuple[str, ...] = ()
     """The keys of the sensor tracks associated into it (:mod:`solver.io.association`), its
     own among them; empty: none associated."""
+    notes: tuple[str, ...] = ()
+    """What the track's answer says before its reconstruction's warnings (its Mode C made
+    geometric, as a single request's answer says it: :func:`solver.batch.run_batch`)."""
 
 
 def recording_frame(sensors: SensorSet, rows: PlotRows) -> LocalFrame | None:
@@ -641,8 +644,10 @@ def _build(key: str, members: np.ndarray, rows: PlotRows, sensors: SensorSet,
             problems.add("bad_track", f"aircraft {key}", f"{e}: left out",
                          dropped=int(m.size))
             return None
+        moved = moved_note(heights)
         return AircraftTrack(key, table, m, rows.origin[m], rows.origin_unit,
-                             heights.median_m if heights.corrected else None)
+                             heights.median_m if heights.corrected else None,
+                             notes=() if moved is None else (moved,))
     problems.add("bad_track", f"aircraft {key}", f"more than {_MAX_ROW_RETRIES} bad plots: "
                  "left out", dropped=int(m.size))
     return None
@@ -690,7 +695,7 @@ def _jumps(table: PlotTable, max_speed: float) -> bool:
     the plots, a reviewer's). A sensor whose plots all are one aircraft's cannot part them."""
     from ..refine.gate import reach_m
 
-    lo, hi = ALTITUDE_RANGE_M
+    lo, hi = table.heights()
     for k, s in enumerate(table.sensors):
         rows = np.flatnonzero(table.sensor == k)
         if rows.size < 2:
@@ -748,8 +753,9 @@ def _apart(track: AircraftTrack | None, rows: PlotRows, sensors: SensorSet,
     from ..refine.gate import aircraft_apart
 
     fx = table.fixes()
-    lo = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[0]))
-    hi = fx.centre_at(np.full(m.size, ALTITUDE_RANGE_M[1]))
+    low, high = table.heights()
+    lo = fx.centre_at(np.full(m.size, low))
+    hi = fx.centre_at(np.full(m.size, high))
     spread = np.where(fx.altitude_free, np.hypot(*(hi - lo).T), 0.0)
     sigma = np.maximum(fx.ellipses.A, fx.ellipses.B)
     centre = fx.centre_at(fx.h_mid)

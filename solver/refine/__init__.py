@@ -28,7 +28,7 @@ from ..config import ReconstructionConfig, RefineSettings
 from ..inputs import Bounds, Plots, Radar
 from ..plots import PlotTable
 from ..results import Diagnostics, Reconstruction, listed
-from ..sensors import ALTITUDE_RANGE_M, MAX_ELEVATION_DEG, Sensor
+from ..sensors import MAX_ELEVATION_DEG, Sensor
 from ..trajectory import sample_times
 from . import nlp
 from .blocks import (
@@ -118,8 +118,9 @@ def unreachable_in(table: PlotTable, data: NodeData, plot_node: np.ndarray, boun
     a, b, c = data.info[plot_node].T
     lam_min = (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b**2)
     sigma = 1.0 / np.sqrt(np.maximum(lam_min, 1e-18))
-    lo = data.centre_at(np.full(data.centre.shape[0], ALTITUDE_RANGE_M[0]))[plot_node]
-    hi = data.centre_at(np.full(data.centre.shape[0], ALTITUDE_RANGE_M[1]))[plot_node]
+    low, high = table.heights()
+    lo = data.centre_at(np.full(data.centre.shape[0], low))[plot_node]
+    hi = data.centre_at(np.full(data.centre.shape[0], high))[plot_node]
     spread = np.where(data.free[plot_node], np.hypot(*(hi - lo).T), 0.0)
     centre = data.centre_at(data.h_mid)[plot_node]
     # a sensor whose offsets are estimated is judged by its own plots alone: until they are

@@ -90,7 +90,9 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
     Q = np.zeros((n, nx, nx))
     qvar = st.covariance_scale * np.array([8 / st.switch_penalty_u**2,
                                            8 / st.switch_penalty_w**2])
-    Q[:, 4, 4], Q[:, 5, 5] = qvar
+    # the prior is on the ground's accelerations (as the bounds): the plane's are the plane's
+    # scale times those (NodeData.scaled), so their variance is its square times qvar
+    Q[:, 4, 4], Q[:, 5, 5] = (qvar[:, None] * data.plane_scale[None, :] ** 2)
     if variant.altitude:  # the change into node k + 1 has variance 1 / hd_info[k + 1]
         Q[:-1, NH + 1, NH + 1] = 1.0 / hd_info[1:]
     H, Rinv = _plot_jacobians(sol, biases, data, variant, delta)
@@ -98,8 +100,8 @@ def node_covariance(t_nodes: FloatArray, sol: np.ndarray, biases: np.ndarray, da
     R = np.zeros_like(Rinv)
     R[measured] = np.linalg.inv(Rinv[measured])
     # weak prior: uniform within the bounds for heading, speed and the controls
-    span = np.array([bounds.v[1] - bounds.v[0], bounds.u[1] - bounds.u[0],
-                     bounds.w[1] - bounds.w[0]])
+    span = data.plane_scale[0] * np.array([bounds.v[1] - bounds.v[0], bounds.u[1] - bounds.u[0],
+                                           bounds.w[1] - bounds.w[0]])
     prior = [1e12, 1e12, np.pi**2 / 3, *(span**2 / 12)]
     if variant.altitude:
         prior += [(ALTITUDE_RANGE_M[1] - ALTITUDE_RANGE_M[0]) ** 2 / 12, HD_MAX**2 / 3]

@@ -18,9 +18,7 @@ from ..plots import PlotTable
 from ..results import Reconstruction, StateSeries
 from ..sensors import (
     ALTITUDE_FIT_DEGREE,
-    ALTITUDE_RANGE_M,
     PlaneFixes,
-    PositionSensor,
     beyond_reach,
     reach,
     reach_slope,
@@ -34,8 +32,6 @@ Q_VERTICAL = 0.5
 a level-off from 10 m/s within 30 s costs about 7 chi-square units."""
 MIN_NODE_DT = 1.0  # s: the vertical-rate change across a zero-length interval is weighted as 1 s
 ALTITUDE_GUESSES = np.arange(0.0, 19_001.0, 1000.0)  # m: constant heights tried for the start
-KNOWN_ALTITUDE_MARGIN_M = 500.0
-"""The nodes' heights may go this far (plus 5 sigmas) beyond the track's known altitudes."""
 
 
 def node_grid(t_plots: FloatArray, max_step: float) -> tuple[FloatArray, np.ndarray]:
@@ -87,18 +83,12 @@ class NodeData:
         e = fixes.ellipses
         free = np.zeros(n, bool)
         free[plot_node] = fixes.altitude_free
-        # heights each node may take: the general range, widened to the track's known
-        # altitudes (ADS-B at 17 km was held at 15 km, 2 km low) (a free centre follows the
-        # height within its plot's reach only, solver.sensors.reach)
-        alt_sigma = np.array([s.altitude_sigma_m if isinstance(s, PositionSensor)
-                              or s.altitude_sigma_m > 0 else ALTITUDE_SIGMA_RADAR_M
-                              for s in table.sensors])[table.sensor]
+        # heights each node may take: the track's (a free centre follows the height within
+        # its plot's reach, solver.sensors.reach, bounded by the same)
+        lo, hi = table.heights()
+        h_lo, h_hi = np.full(n, lo), np.full(n, hi)
         known = np.isfinite(table.altitude_m)
-        margin = KNOWN_ALTITUDE_MARGIN_M + 5 * alt_sigma[known]
-        h_lo = np.full(n, np.min(np.append(table.altitude_m[known] - margin,
-                                           ALTITUDE_RANGE_M[0])))
-        h_hi = np.full(n, np.max(np.append(table.altitude_m[known] + margin,
-                                           ALTITUDE_RANGE_M[1])))
+        alt_sigma = table.altitude_sigmas()
         onehot = np.zeros((len(table), variant.biases))
         for j, k in enumerate(bias_sensors):
             onehot[table.sensor == k, j] = 1.0
@@ -235,12 +225,6 @@ class NodeData:
         d = self.residuals(sol, biases, altitude)
         a, b, c = self.info.T
         return a * d[:, 0] ** 2 + 2 * b * d[:, 0] * d[:, 1] + c * d[:, 1] ** 2
-
-
-ALTITUDE_SIGMA_RADAR_M = 30.0
-"""m: a radar plot's reported altitude (Mode C: 100-ft steps, 25 ft with Mode S; pressure,
-not geometric, altitude) as a measurement of the height in the altitude-estimating variant,
-when its radar's ``altitude_sigma_m`` is 0 (exact for the plot's placement); else that."""
 
 
 def hd_information(t_nodes: FloatArray) -> FloatArray:
