@@ -60,8 +60,8 @@ _WINDOW_DOC = ("The sliding windows' settings (`method: sliding`), as the single
 _CRITERION_DOC = "The sliding windows' fit criterion, as the single-track request's `criterion`."
 _SAMPLES_DOC = ("Keep every track's state every this many seconds (s, > 0; from its first plot "
                 "to its last, with the covariance): the track's `trajectory.samples` and "
-                "`samples.parquet`. A track that would have `max_samples` (a service setting) "
-                "or more keeps none, with a warning. Default: none kept.")
+                "`samples.parquet`. A track that would have more than `max_samples` (a service "
+                "setting) keeps none, with a warning. Default: none kept.")
 
 
 EditionCategory = Literal["21", "34", "48"]

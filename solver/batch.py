@@ -211,9 +211,9 @@ def solve_track(key: str, table: PlotTable, config: ReconstructionConfig | None 
     ``times_of_day``: ``t`` counts from a UTC midnight (``time_of_day_s`` is filled);
     ``date``: that midnight's UTC date (``time_utc`` is filled; :mod:`solver.io.dates`).
     ``samples``: keep the states every ``config.sample_step_s`` (:data:`SAMPLE_COLUMNS`);
-    a track that would have ``max_samples`` (default :data:`solver.config.MAX_SAMPLES`; None: no
-    limit) or more keeps none, with a warning. A failure's reason is one line
-    (:func:`failure_reason`)."""
+    a track that would have more than ``max_samples`` (default
+    :data:`solver.config.MAX_SAMPLES`; None: no limit) keeps none, with a warning. A failure's
+    reason is one line (:func:`failure_reason`)."""
     from .reconstruct import reconstruct
 
     start, cpu = time.perf_counter(), time.thread_time()

@@ -68,7 +68,7 @@ from .inputs import Bounds, InputError
 from .io.altitudes import offsets_summary
 from .io.asterix import edition_choices, parse_edition
 from .io.dates import parse_date
-from .io.reading import Selection, Streamed, check_recording, normal_key, stream
+from .io.reading import Selection, Streamed, check_recording, stream
 from .io.sensors_file import load_sensors
 from .outputs import output_state, write_csv_and_geojson, write_manoeuvres, write_map
 from .run_settings import RunSettings, keep_inputs, parse_bounds
@@ -390,7 +390,7 @@ def parser() -> argparse.ArgumentParser:
     rec.add_argument("--samples", type=_seconds, default=None, metavar="STEP",
                      help="also write every track's state every STEP seconds (from its first "
                      "plot to its last, with the covariance) into --out/samples.parquet; a "
-                     f"track that would have {MAX_SAMPLES:,} samples or more keeps none, with "
+                     f"track that would have more than {MAX_SAMPLES:,} samples keeps none, with "
                      "a warning (warnings.csv)")
     rec.add_argument("--figures", action="store_true", help="also draw every track's figure")
     rec.add_argument("--retry-failed", action="store_true", help="redo tracks that failed in "
@@ -532,7 +532,7 @@ def plot(args: argparse.Namespace) -> tuple[list[Path], list[str]]:
     if not args.aircraft and not args.map:
         raise InputError(("aircraft",), "name at least one aircraft, or --map")
     written: list[Path] = []
-    wanted = {normal_key(k) for k in args.aircraft}  # a Mode S address in either case
+    chosen = Selection(args.aircraft)  # an address in either case, an associated track's key
     run = stored_settings(out) or RunSettings()
     bounds = run.bounds if args.bounds is None else parse_bounds(args.bounds)
     if args.edition is not None:
@@ -540,18 +540,15 @@ def plot(args: argparse.Namespace) -> tuple[list[Path], list[str]]:
     # its plane: after the first part; its aircraft told apart as the run's
     loaded = stream(Path(args.recording), Path(args.sensors), max_speed=bounds.v[1],
                     editions=run.asterix_editions())
-    if wanted:
+    if chosen.keys:
         config = RunSettings(args.method or run.method, bounds, **_windows(args, run)).config()
-        for track in loaded.tracks:
-            if track.key not in wanted:
-                continue
+        for track in chosen.filter(loaded.tracks):
             rec = reconstruct(track.table, config=config)
             written.append(save(track_figure(track.table, rec, title=track.key,
                                              times_of_day=bool(loaded.times_of_day),
                                              date=loaded.date),
                                 out / "figures" / f"{track_file_name(track.key)}.png"))
-            wanted.discard(track.key)
-            if not wanted:
+            if chosen.found == chosen.keys:  # each key's first track drawn: the rest unread
                 break
     if args.map:
         path = write_map(out, loaded.sensors, frame=loaded.frame)
@@ -562,7 +559,7 @@ def plot(args: argparse.Namespace) -> tuple[list[Path], list[str]]:
         radars = write_sensors_figure(out, [s.id for s in loaded.sensors.sensors])
         if radars is not None:
             written.append(radars)
-    return written, sorted(wanted)
+    return written, chosen.missing()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -23,7 +23,7 @@ at most 1 %. Looking ahead keeps far genuine plots (turns) either way."""
 
 MAX_SAMPLES = 100_000
 """Most regular samples one track keeps (its span / ``sample_step_s``): a track that would
-have this many or more keeps none, with a warning (:func:`solver.batch.solve_track`); the
+have more keeps none, with a warning (:func:`solver.batch.solve_track`); the
 default of the command line and of the service's ``max_samples`` setting. A tester's 2,511-plot,
 44-min track with ``--samples 0.001`` (2.6 M samples) ended in a MemoryError while Dask pickled
 its result, and ``--samples 0.01`` wrote 43 MB for it; at 0.0262 s (99,930 samples) 19 MB."""

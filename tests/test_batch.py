@@ -434,3 +434,18 @@ def test_samples_are_capped_by_default(tracks):
     kept = solve_track("A", t, with_(ReconstructionConfig(), sample_step_s=span / 10),
                        samples=True)
     assert kept.samples is not None and kept.samples.num_rows == 11
+
+
+def test_samples_cap_keeps_exactly_max_samples(tracks):
+    """``max_samples`` is the most a track keeps: a step giving exactly that many keeps them,
+    one more keeps none (the docs said "that many or more keeps none": a reviewer's)."""
+    from dataclasses import replace as with_
+
+    from solver.config import ReconstructionConfig
+
+    t = tracks[0].table
+    config = with_(ReconstructionConfig(), sample_step_s=float(t.t.max() - t.t.min()) / 10)
+    kept = solve_track("A", t, config, samples=True, max_samples=11)  # 11 samples
+    assert kept.samples is not None and kept.samples.num_rows == 11
+    over = solve_track("A", t, config, samples=True, max_samples=10)
+    assert over.samples is None and any("gives 11 samples" in w for w in over.warnings)

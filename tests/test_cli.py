@@ -1401,6 +1401,7 @@ def test_mode_ac_aircraft_seen_by_two_radars_are_one_track_each(tmp_path, capsys
 
     from solver.io.asterix import encode_rows
     from solver.sensor_stats import iter_stats
+    from solver.track_task import track_file_name
 
     rows = recording(three_aircraft())
     (tmp_path / "modeac.ast").write_bytes(encode_rows(rows, parse_sensors(SENSOR_FILE)))
@@ -1422,3 +1423,11 @@ def test_mode_ac_aircraft_seen_by_two_radars_are_one_track_each(tmp_path, capsys
         assert sensors[s]["plots"] == int(np.sum(rows.sensor == s))
         assert sensors[s]["plots_wild"] == 0
         assert sensors[s]["range_residual_sigma_m"] < 100.0, sensors[s]  # noise 50 m
+    # `plot` finds an associated track by the key R2 gave it, as `reconstruct --aircraft` does
+    # (it matched the output's key only: exit 2, "not in the recording": a reviewer's)
+    args = ["plot", str(tmp_path / "modeac.ast"), "--sensors", str(tmp_path / "sensors.json"),
+            "--out", str(out)]
+    assert main([*args, "--aircraft", "R2:track:42"]) == 0  # the crossing aircraft
+    assert [p.name for p in (out / "figures").glob("*.png")] == [
+        f"{track_file_name('R1:track:13')}.png"]
+    assert main([*args, "--aircraft", "R2:track:99"]) == 2
