@@ -365,8 +365,8 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                            problems) if members.size else None
             for part in _apart(track, buffer, sensors, sensor_idx, frame, min_plots, gap_s,
                                max_speed, problems):
-                joined = tuple(sorted(names)) if len(names) > 1 and part.key == key else ()
-                yield replace(part, rows=numbers[part.rows], members=joined)
+                yield replace(part, rows=numbers[part.rows],
+                              members=_held(part.rows, names, pieces))
         if found is not None:
             _report_associations(found, taken, problems)
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
@@ -474,6 +474,15 @@ def _complete(pieces: dict[str, _Piece], found: _Found | None
         else:
             out.append((k, [k], pieces[k].members))
     return sorted(out, key=lambda c: int(c[2][0]))
+
+
+def _held(rows: np.ndarray, names: list[str], pieces: dict[str, _Piece]) -> tuple[str, ...]:
+    """The associated sensor tracks (``names``) whose rows a yielded part holds (after
+    :func:`_apart` a part may hold a few of them); empty when fewer than two."""
+    if len(names) < 2:
+        return ()
+    held = tuple(sorted(n for n in names if np.isin(pieces[n].members, rows).any()))
+    return held if len(held) > 1 else ()
 
 
 def _report_associations(found: _Found, taken: np.ndarray, problems: Problems) -> None:
