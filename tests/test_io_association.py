@@ -334,3 +334,22 @@ def test_a_track_agreeing_about_as_well_with_two_aircraft_joins_neither():
     assert "overlap in time" in refused[0].refused
     found, refused = run(0.45, 0.30, True)
     assert [ac.members for ac in found] == [[0, 2]]
+
+
+def test_parts_told_apart_name_the_sensor_tracks_they_hold():
+    """R1:11 with R2:41 to 300 s; from 320 s (within the gap split) another aircraft 6 km away
+    as R1:12 and R2:41 again (its number reused): one association chain, parted by the safety
+    net. Each part's members are the sensor tracks whose plots it holds (was: all on the
+    first, none on ``~2``), so a sensor track's key selects the aircraft it is in."""
+    a = Flight(30e3, 10e3, 0.0, 150.0, 80.0, {"R1": (11, 0, 300), "R2": (41, 0, 300)})
+    b = Flight(36e3, 10e3 + 150 * 320, 0.0, 150.0, 80.0,
+               {"R1": (12, 320, 620), "R2": (41, 320, 620)})
+    rows = recording([a, b])
+    tracks, problems = split(rows)
+    assert problems.counts["aircraft_apart"] == 1
+    for tr in tracks.values():
+        held = {f"{rows.sensor[i]}:track:{rows.track_number[i]}" for i in tr.rows.tolist()}
+        assert set(tr.members) == held
+    chosen = Selection(["R1:track:12"])
+    (got,) = chosen.filter(iter(tracks.values()))
+    assert rows.t[got.rows].min() > 315.0

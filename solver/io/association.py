@@ -39,17 +39,17 @@ conflict (equal codes prove nothing: 7000, 2000, 1200 and conspicuity codes are 
 aircraft's). Candidate pairs come from an index of the plots by time slot
 (:data:`WINDOW_S`) and plane cell (:data:`CELL_M`, the widest gate used): no all-pairs.
 Pairs join in order of their mean normalised distance ``mean(min(d / G, 2))`` over the plots
-compared (then plots compared; keys break ties), not of reading (the share within the gate is
-the acceptance test only: two aircraft in trail 2 km apart 150 km from the radars agree 100 %
-either way, at a mean of 0.09 rightly, 0.67 wrongly), into aircraft (chains: R1's with R2's with R3's, hand-overs), but two groups are not
-joined when that would put two overlapping tracks of one sensor in one aircraft or two
-tracks whose own comparison says apart (:func:`resolve`), and a track that agrees with two
-overlapping tracks of another sensor (two aircraft) joins neither unless the better's mean is
-:data:`AMBIGUOUS_FACTOR` times smaller ("ambiguous": none rather than a guess that swaps two
-aircraft); such a refused pair is reported
-(``association_refused``), each join too (``tracks_associated``: the keys, plots compared,
-share agreeing). The aircraft's key is its members' smallest key (``R1:track:12`` with
-``R2:track:40``): stable, one of the keys the sensors gave.
+compared (then plots compared; keys break ties), not of reading (the share within the gate
+is the acceptance test only: two aircraft in trail 2 km apart 150 km from the radars agree
+100 % either way, at a mean of 0.09 rightly, 0.67 wrongly), into aircraft (chains: R1's with
+R2's with R3's, hand-overs), but two groups are not joined when that would put two
+overlapping tracks of one sensor in one aircraft or two tracks whose own comparison says
+apart (:func:`resolve`), and a track that agrees with two overlapping tracks of another
+sensor (two aircraft) joins neither unless the better's mean is :data:`AMBIGUOUS_FACTOR`
+times smaller ("ambiguous": none rather than a guess that swaps two aircraft); such a
+refused pair is reported (``association_refused``), each join too (``tracks_associated``:
+the keys, plots compared, share agreeing). The aircraft's key is its members' smallest key
+(``R1:track:12`` with ``R2:track:40``): stable, one of the keys the sensors gave.
 
 Streaming (:func:`associate` with ``final_before``): a pair's evidence is final once the
 track that ends first can get no more plots (the split's horizon: a later plot of its key
