@@ -353,3 +353,21 @@ def test_parts_told_apart_name_the_sensor_tracks_they_hold():
     chosen = Selection(["R1:track:12"])
     (got,) = chosen.filter(iter(tracks.values()))
     assert rows.t[got.rows].min() > 315.0
+
+
+@pytest.mark.parametrize("fl", [80.0, None])
+def test_a_crossing_hand_over_and_one_each_in_trail_stay_two_aircraft(fl):
+    """Two aircraft squawking 7000 crossing at right angles 80 km out, R1 dropping A 10 s after
+    the crossing, R2 picking up B 10 s before it: 11 plots agree (was: joined, a 90-degree
+    turn), but their offset turns through the crossing (scatter 8 against one aircraft's
+    0.8-1.2). In trail 3 km apart 100 km out, R1 seeing only A and R2 only B, no Mode C:
+    the best common height wanders (scatter 4.9): two."""
+    a = Flight(80e3, 10e3 - 150 * 200, 0.0, 150.0, fl, {"R1": (11, 0, 210)})
+    b = Flight(80e3 - 150 * 200, 10e3, 150.0, 0.0, fl, {"R2": (42, 190, 400)})
+    tracks, problems = split(recording([a, b]))
+    assert sorted(tracks) == ["R1:track:11", "R2:track:42"] and not problems
+    if fl is None:
+        a = Flight(100e3, 0.0, 0.0, 150.0, None, {"R1": (11, 0, 400)})
+        b = Flight(100e3, -3e3, 0.0, 150.0, None, {"R2": (42, 0, 400)})
+        tracks, problems = split(recording([a, b]))
+        assert sorted(tracks) == ["R1:track:11", "R2:track:42"] and not problems

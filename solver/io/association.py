@@ -36,7 +36,13 @@ old and new: none).
 Tracks of different sensors are associated when :data:`MIN_COMPARED` plots or more were
 compared, :data:`MIN_AGREEING` of them or more agree and fewer than :data:`CODE_CONFLICTS`
 conflict (equal codes prove nothing: 7000, 2000, 1200 and conspicuity codes are many
-aircraft's). Candidate pairs come from an index of the plots by time slot
+aircraft's), and the offset between them is nearly constant (:attr:`Verdict.scatter` at most
+:data:`MAX_SCATTER`: two unregistered radars see one aircraft offset by their biases; two
+aircraft crossing, by a vector that turns). Limit: two aircraft at one code and level (or
+without Mode C) closer than the gate, each seen by one radar only, flying in trail (a
+constant offset) are joined (the reviewer's cases: 4 of 32 at 60-150 km, 2-3 km apart; the
+compared plots' time span tells nothing more: a 20-s hand-over of one aircraft spans 25 s,
+a crossing 23 s). Candidate pairs come from an index of the plots by time slot
 (:data:`WINDOW_S`) and plane cell (:data:`CELL_M`, the widest gate used): no all-pairs.
 Pairs join in order of their mean normalised distance ``mean(min(d / G, 2))`` over the plots
 compared (then plots compared; keys break ties), not of reading (the share within the gate
@@ -100,6 +106,12 @@ are a few per cent; two aircraft crossing agree only near the crossing)."""
 DISTANCE_CAP = 2.0
 """A compared plot's distance over its gate counts at most this in :attr:`Verdict.mean` (a wild
 plot or a reflection does not outweigh the others)."""
+MAX_SCATTER = 2.5
+"""Largest :attr:`Verdict.scatter` of one aircraft: measured 0.8-1.2 for one aircraft seen by
+two radars (30-150 km, 11-180 plots, with and without Mode C), 8.0-8.1 for two crossing at
+right angles (11 plots in 23 s), 3.4-5.2 for two in trail 2-4 km apart 60-100 km out without
+Mode C; not told apart: 0.9-1.5 for two in trail at 150 km or with Mode C 2 km apart (a
+constant offset within the bias allowances)."""
 AMBIGUOUS_FACTOR = 2.0
 """A track that agrees with two overlapping tracks of another sensor (two aircraft) joins the
 better only when its :attr:`Verdict.mean` is this many times smaller; else neither (in the
@@ -217,6 +229,20 @@ class Verdict:
     first: float = np.inf
     last: float = -np.inf
     """Times of the first and last plot compared (s)."""
+    moments: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    """Over the agreeing plots between two of the other's: their count, sums of the
+    displacement ``a - b`` (x, z; at the common height),
+    of its squared length and of ``sigma_a^2 + sigma_b^2`` (:attr:`scatter`)."""
+
+    @property
+    def scatter(self) -> float:
+        """RMS of the displacement around its mean over the RMS of ``hypot(sigma_a, sigma_b)``
+        (agreeing plots): one aircraft seen by two radars is offset by their nearly constant
+        biases (about 1 or less), two aircraft crossing by a changing vector (0: none)."""
+        n, sx, sz, sq, ss = self.moments
+        if n < 2 or ss <= 0.0:
+            return 0.0
+        return float(np.sqrt(max(sq / n - (sx / n) ** 2 - (sz / n) ** 2, 0.0) / (ss / n)))
 
     @property
     def mean(self) -> float:
@@ -237,13 +263,14 @@ class Verdict:
     def same(self) -> bool:
         """One aircraft (module docstring)."""
         return (self.compared >= MIN_COMPARED and self.share >= MIN_AGREEING
-                and self.conflicts < CODE_CONFLICTS)
+                and self.conflicts < CODE_CONFLICTS and self.scatter <= MAX_SCATTER)
 
     @property
     def apart(self) -> bool:
-        """Two aircraft: a code conflict, or enough compared plots and too few agreeing."""
-        return self.conflicts >= CODE_CONFLICTS or (self.compared >= MIN_COMPARED
-                                                     and self.share < MIN_AGREEING)
+        """Two aircraft: a code conflict, or enough compared plots and too few agreeing or
+        an offset that moves (:attr:`scatter`)."""
+        return self.conflicts >= CODE_CONFLICTS or (self.compared >= MIN_COMPARED and (
+            self.share < MIN_AGREEING or self.scatter > MAX_SCATTER))
 
 
 def _one_way(a: Piece, b: Piece, v: float, window: float) -> Verdict:
@@ -274,13 +301,18 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> Verdict:
     dz = a.z - ((1.0 - wk) * b.z[c0] + wk * b.z[c1])
     if dx.shape[1] == 1:
         ratio = np.hypot(dx[:, 0], dz[:, 0]) / gate
+        ox, oz = dx[:, 0], dz[:, 0]
     else:  # its least length over the heights: on each segment between levels
         ex, ez = np.diff(dx, axis=1), np.diff(dz, axis=1)
         u = np.clip(-(dx[:, :-1] * ex + dz[:, :-1] * ez) / np.maximum(ex * ex + ez * ez,
                                                                      1e-9), 0.0, 1.0)
         least = np.hypot(dx[:, :-1] + u * ex, dz[:, :-1] + u * ez)
         bend = a.bend + worst(b.bend)
-        ratio = np.min(least / (gate[:, None] + np.maximum(bend[:, :-1], bend[:, 1:])), axis=1)
+        scaled = least / (gate[:, None] + np.maximum(bend[:, :-1], bend[:, 1:]))
+        best = np.argmin(np.where(np.isfinite(scaled), scaled, np.inf), axis=1)[:, None]
+        ratio = np.take_along_axis(scaled, best, axis=1)[:, 0]
+        ox = np.take_along_axis(dx[:, :-1] + u * ex, best, axis=1)[:, 0]
+        oz = np.take_along_axis(dz[:, :-1] + u * ez, best, axis=1)[:, 0]
     near = ratio <= 1.0
     compared = (has0 | has1) & (motion <= MAX_MOTION_M) & (
         gate + a.span + worst(b.span) <= CELL_M) & np.isfinite(
@@ -298,11 +330,15 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> Verdict:
     conflict = (a.code >= 0) & ((k0 >= 0) | (k1 >= 0)) & ((k0 < 0) | (k0 != a.code)) & (
         (k1 < 0) | (k1 != a.code))
     tc = a.t[compared]
+    g = agreeing & both  # interpolated: one-sided, the aircraft's motion moves the offset
+    ss = a.sigma[g] ** 2 + worst(b.sigma)[g] ** 2
     return Verdict(int(compared.sum()), int(agreeing.sum()), int(conflict.sum()),
                    float(np.minimum(np.nan_to_num(ratio[compared], nan=DISTANCE_CAP),
                                     DISTANCE_CAP).sum()),
                    float(tc.min()) if tc.size else np.inf,
-                   float(tc.max()) if tc.size else -np.inf)
+                   float(tc.max()) if tc.size else -np.inf,
+                   (float(g.sum()), float(ox[g].sum()), float(oz[g].sum()),
+                    float((ox[g] ** 2 + oz[g] ** 2).sum()), float(ss.sum())))
 
 
 def _near(p: Piece, t0: float, t1: float, levels: bool) -> Piece:
@@ -327,7 +363,10 @@ def compare(a: Piece, b: Piece, max_speed: float, window: float = WINDOW_S) -> V
     ab, ba = _one_way(a, b, max_speed, window), _one_way(b, a, max_speed, window)
     return Verdict(ab.compared + ba.compared, ab.agreeing + ba.agreeing,
                    ab.conflicts + ba.conflicts, ab.distance + ba.distance,
-                   min(ab.first, ba.first), max(ab.last, ba.last))
+                   min(ab.first, ba.first), max(ab.last, ba.last),
+                   (ab.moments[0] + ba.moments[0], ab.moments[1] - ba.moments[1],
+                    ab.moments[2] - ba.moments[2], ab.moments[3] + ba.moments[3],
+                    ab.moments[4] + ba.moments[4]))
 
 
 def candidate_pairs(pieces: list[Piece], window: float) -> list[tuple[int, int]]:
