@@ -488,7 +488,7 @@ def _held(rows: np.ndarray, names: list[str], pieces: dict[str, _Piece]) -> tupl
 def _report_associations(found: _Found, taken: np.ndarray, problems: Problems) -> None:
     """Each association made (``tracks_associated``) and refused (``association_refused``)
     of the components yielded, as its aircraft came out: keys, plots compared, share
-    agreeing."""
+    agreeing, mean distance over the gate and offset scatter."""
     for comp in found.answer.components:
         if not taken[found.pieces[comp.members[0]].rows[0]]:
             continue
@@ -497,13 +497,15 @@ def _report_associations(found: _Found, taken: np.ndarray, problems: Problems) -
                 v = j.verdict
                 problems.add("tracks_associated", f"aircraft {ac.key}", f"{j.a} and {j.b}: "
                              f"{v.compared} plots compared, {v.agreeing} ({v.share:.0%}) within "
-                             "the gate: one aircraft without Mode S seen by several sensors, "
-                             f"reconstructed as {ac.key}")
+                             f"the gate (mean distance {v.mean:.2f} of it, offset scatter "
+                             f"{v.scatter:.1f} sigma): one aircraft without Mode S seen by "
+                             f"several sensors, reconstructed as {ac.key}")
         for j in comp.refused:
             v = j.verdict
             problems.add("association_refused", f"aircraft {j.a}", f"{j.a} and {j.b}: "
                          f"{v.compared} plots compared, {v.agreeing} ({v.share:.0%}) within the "
-                         f"gate, but {j.refused}: kept apart")
+                         f"gate (mean distance {v.mean:.2f} of it, offset scatter "
+                         f"{v.scatter:.1f} sigma), but {j.refused}: kept apart")
 
 
 def _report_late(rows: PlotRows, latest: float, disorder_s: float, problems: Problems
