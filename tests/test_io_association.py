@@ -371,3 +371,11 @@ def test_a_crossing_hand_over_and_one_each_in_trail_stay_two_aircraft(fl):
         b = Flight(100e3, -3e3, 0.0, 150.0, None, {"R2": (42, 0, 400)})
         tracks, problems = split(recording([a, b]))
         assert sorted(tracks) == ["R1:track:11", "R2:track:42"] and not problems
+
+
+def test_one_aircraft_passing_close_to_a_radar_is_still_one():
+    """The offset between two radars' plots of one aircraft turns with the azimuth as it passes
+    1 km from R1 (R1's range bias, R2's azimuth bias): scatter 1.1, within MAX_SCATTER."""
+    f = Flight(1e3, -30e3, 0.0, 150.0, 50.0, {"R1": (11, 0, 400), "R2": (41, 0, 400)})
+    tracks, problems = split(recording([f]))
+    assert list(tracks) == ["R1:track:11"] and problems.counts == {"tracks_associated": 1}

@@ -108,7 +108,9 @@ DISTANCE_CAP = 2.0
 plot or a reflection does not outweigh the others)."""
 MAX_SCATTER = 2.5
 """Largest :attr:`Verdict.scatter` of one aircraft: measured 0.8-1.2 for one aircraft seen by
-two radars (30-150 km, 11-180 plots, with and without Mode C), 8.0-8.1 for two crossing at
+two radars (30-150 km, 11-180 plots, with and without Mode C), 1.3-1.5 for one passing 1-10
+km from a radar whose range bias is its whole 150-m allowance (the offset turns with the
+azimuth; without Mode C 0.8), 8.0-8.1 for two crossing at
 right angles (11 plots in 23 s), 3.4-5.2 for two in trail 2-4 km apart 60-100 km out without
 Mode C; not told apart: 0.9-1.5 for two in trail at 150 km or with Mode C 2 km apart (a
 constant offset within the bias allowances)."""
