@@ -340,7 +340,8 @@ def test_parts_told_apart_name_the_sensor_tracks_they_hold():
     """R1:11 with R2:41 to 300 s; from 320 s (within the gap split) another aircraft 6 km away
     as R1:12 and R2:41 again (its number reused): one association chain, parted by the safety
     net. Each part's members are the sensor tracks whose plots it holds (was: all on the
-    first, none on ``~2``), so a sensor track's key selects the aircraft it is in."""
+    first, none on ``~2``), so a sensor track's key selects the aircraft it is in, and each
+    join is reported under the part that holds both its tracks."""
     a = Flight(30e3, 10e3, 0.0, 150.0, 80.0, {"R1": (11, 0, 300), "R2": (41, 0, 300)})
     b = Flight(36e3, 10e3 + 150 * 320, 0.0, 150.0, 80.0,
                {"R1": (12, 320, 620), "R2": (41, 320, 620)})
@@ -353,6 +354,9 @@ def test_parts_told_apart_name_the_sensor_tracks_they_hold():
     chosen = Selection(["R1:track:12"])
     (got,) = chosen.filter(iter(tracks.values()))
     assert rows.t[got.rows].min() > 315.0
+    said = {e.message.split(": ")[0]: e.where for e in problems.of_kind("tracks_associated")}
+    assert said == {"R1:track:11 and R2:track:41": "aircraft R1:track:11",
+                    "R1:track:12 and R2:track:41": f"aircraft {got.key}"}
 
 
 @pytest.mark.parametrize("fl", [80.0, None])

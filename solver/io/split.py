@@ -349,6 +349,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
         if not complete:
             continue
         taken = np.zeros(len(buffer), dtype=bool)
+        parts: list[tuple[str, tuple[str, ...]]] = []  # each part yielded: key, members
         for key, names, members in complete:
             taken[members] = True
             for name in names:
@@ -365,10 +366,11 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                            problems) if members.size else None
             for part in _apart(track, buffer, sensors, sensor_idx, frame, min_plots, gap_s,
                                max_speed, problems):
-                yield replace(part, rows=numbers[part.rows],
-                              members=_held(part.rows, names, pieces))
+                held = _held(part.rows, names, pieces)
+                parts.append((part.key, held))
+                yield replace(part, rows=numbers[part.rows], members=held)
         if found is not None:
-            _report_associations(found, taken, problems)
+            _report_associations(found, taken, parts, problems)
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
         buffer = buffer.take(~taken)
         numbers = numbers[~taken]
@@ -485,21 +487,24 @@ def _held(rows: np.ndarray, names: list[str], pieces: dict[str, _Piece]) -> tupl
     return held if len(held) > 1 else ()
 
 
-def _report_associations(found: _Found, taken: np.ndarray, problems: Problems) -> None:
+def _report_associations(found: _Found, taken: np.ndarray,
+                         parts: list[tuple[str, tuple[str, ...]]], problems: Problems) -> None:
     """Each association made (``tracks_associated``) and refused (``association_refused``)
     of the components yielded, as its aircraft came out: keys, plots compared, share
-    agreeing, mean distance over the gate and offset scatter."""
+    agreeing, mean distance over the gate and offset scatter; a join is named by the part
+    yielded that holds both its tracks (``parts``: after :func:`_apart`, ``KEY~2`` may)."""
     for comp in found.answer.components:
         if not taken[found.pieces[comp.members[0]].rows[0]]:
             continue
         for ac in comp.aircraft:
             for j in ac.joins:
                 v = j.verdict
-                problems.add("tracks_associated", f"aircraft {ac.key}", f"{j.a} and {j.b}: "
+                name = next((k for k, held in parts if j.a in held and j.b in held), ac.key)
+                problems.add("tracks_associated", f"aircraft {name}", f"{j.a} and {j.b}: "
                              f"{v.compared} plots compared, {v.agreeing} ({v.share:.0%}) within "
                              f"the gate (mean distance {v.mean:.2f} of it, offset scatter "
                              f"{v.scatter:.1f} sigma): one aircraft without Mode S seen by "
-                             f"several sensors, reconstructed as {ac.key}")
+                             f"several sensors, reconstructed as {name}")
         for j in comp.refused:
             v = j.verdict
             problems.add("association_refused", f"aircraft {j.a}", f"{j.a} and {j.b}: "
