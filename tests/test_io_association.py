@@ -13,6 +13,7 @@ from test_io_asterix import SENSOR_FILE, SENSORS
 from test_io_split import assert_streamed_alike, concat, split
 
 from solver.frames import LocalFrame, slant_and_azimuth
+from solver.io.association import Piece, Verdict, resolve
 from solver.io.problems import Problems
 from solver.io.reading import Selection
 from solver.io.sensors_file import parse_sensors
@@ -284,3 +285,101 @@ def test_the_safety_net_still_parts_a_merged_track_and_user_keys_stay_apart():
         object))
     tracks, problems = split(user)
     assert sorted(tracks) == ["A1", "A2"] and not problems
+
+
+@pytest.mark.parametrize("fl, trail", [(100.0, 2e3), (None, 3e3)])
+@pytest.mark.parametrize("numbers", [(41, 42), (42, 41)])
+def test_two_aircraft_in_trail_seen_by_both_radars_are_never_swapped(fl, trail, numbers):
+    """Two aircraft squawking 7000 in trail 2 km apart (Mode C) or 3 km (none) 150 km from
+    the radars, each seen by R1 and R2: every pairing agrees on all plots within the gates
+    (bias allowances), so R2's numbering decided (issue: swapped). Ranked by the mean
+    distance over the gate (0.09 against 0.67 here) each track holds one aircraft, with
+    either numbering."""
+    a = Flight(150e3, 0.0, 0.0, 150.0, fl, {"R1": (11, 0, 400), "R2": (numbers[0], 0, 400)})
+    b = Flight(150e3, -trail, 0.0, 150.0, fl, {"R1": (12, 0, 400), "R2": (numbers[1], 0, 400)})
+    rows = recording([a, b])
+    tracks, problems = split(rows)
+    assert owners(rows, tracks, [a, b]) == {"R1:track:11": {0}, "R1:track:12": {1}}
+    assert tracks["R1:track:11"].members == ("R1:track:11", f"R2:track:{numbers[0]}")
+    assert problems.counts["tracks_associated"] == 2
+
+
+def _piece(key: str, sensor: int, t0: float, t1: float) -> Piece:
+    t = np.arange(t0, t1, 4.0)
+    one = np.zeros((t.size, 1))
+    return Piece(key, sensor, np.arange(t.size), t, t * 0, t * 0, t * 0, one, one, one,
+                 t * np.nan, np.full(t.size, 0o7000))
+
+
+def test_a_track_agreeing_about_as_well_with_two_aircraft_joins_neither():
+    """R2:41 agrees with R1:11 and R1:12, which overlap in time (two aircraft), with mean
+    distances over the gate 0.30 and 0.45 (less than AMBIGUOUS_FACTOR apart): neither join is
+    made, both reported ambiguous; 0.10 against 0.45 joins the better; one aircraft tracked
+    twice by R1 (twins) joins the track with more plots compared."""
+    pieces = [_piece("R1:track:11", 0, 0, 400), _piece("R1:track:12", 0, 100, 400),
+              _piece("R2:track:41", 1, 0, 400)]
+
+    def run(m11: float, m12: float, twins: bool):
+        accepted = [(0, 2, Verdict(100, 100, 0, 100 * m11)),
+                    (1, 2, Verdict(80, 80, 0, 80 * m12))]
+        return resolve(pieces, [0, 1, 2], accepted, lambda i, j: Verdict(0, 0, 0),
+                       lambda i, j: twins)
+
+    found, refused = run(0.30, 0.45, False)
+    assert found == [] and len(refused) == 2
+    assert all(j.refused.startswith("ambiguous: R2:track:41 agrees with R1:track:11 and "
+                                    "R1:track:12") for j in refused)
+    found, refused = run(0.10, 0.45, False)
+    assert [ac.members for ac in found] == [[0, 2]] and len(refused) == 1
+    assert "overlap in time" in refused[0].refused
+    found, refused = run(0.45, 0.30, True)
+    assert [ac.members for ac in found] == [[0, 2]]
+
+
+def test_parts_told_apart_name_the_sensor_tracks_they_hold():
+    """R1:11 with R2:41 to 300 s; from 320 s (within the gap split) another aircraft 6 km away
+    as R1:12 and R2:41 again (its number reused): one association chain, parted by the safety
+    net. Each part's members are the sensor tracks whose plots it holds (was: all on the
+    first, none on ``~2``), so a sensor track's key selects the aircraft it is in, and each
+    join is reported under the part that holds both its tracks."""
+    a = Flight(30e3, 10e3, 0.0, 150.0, 80.0, {"R1": (11, 0, 300), "R2": (41, 0, 300)})
+    b = Flight(36e3, 10e3 + 150 * 320, 0.0, 150.0, 80.0,
+               {"R1": (12, 320, 620), "R2": (41, 320, 620)})
+    rows = recording([a, b])
+    tracks, problems = split(rows)
+    assert problems.counts["aircraft_apart"] == 1
+    for tr in tracks.values():
+        held = {f"{rows.sensor[i]}:track:{rows.track_number[i]}" for i in tr.rows.tolist()}
+        assert set(tr.members) == held
+    chosen = Selection(["R1:track:12"])
+    (got,) = chosen.filter(iter(tracks.values()))
+    assert rows.t[got.rows].min() > 315.0
+    said = {e.message.split(": ")[0]: e.where for e in problems.of_kind("tracks_associated")}
+    assert said == {"R1:track:11 and R2:track:41": "aircraft R1:track:11",
+                    "R1:track:12 and R2:track:41": f"aircraft {got.key}"}
+
+
+@pytest.mark.parametrize("fl", [80.0, None])
+def test_a_crossing_hand_over_and_one_each_in_trail_stay_two_aircraft(fl):
+    """Two aircraft squawking 7000 crossing at right angles 80 km out, R1 dropping A 10 s after
+    the crossing, R2 picking up B 10 s before it: 11 plots agree (was: joined, a 90-degree
+    turn), but their offset turns through the crossing (scatter 8 against one aircraft's
+    0.8-1.2). In trail 3 km apart 100 km out, R1 seeing only A and R2 only B, no Mode C:
+    the best common height wanders (scatter 4.9): two."""
+    a = Flight(80e3, 10e3 - 150 * 200, 0.0, 150.0, fl, {"R1": (11, 0, 210)})
+    b = Flight(80e3 - 150 * 200, 10e3, 150.0, 0.0, fl, {"R2": (42, 190, 400)})
+    tracks, problems = split(recording([a, b]))
+    assert sorted(tracks) == ["R1:track:11", "R2:track:42"] and not problems
+    if fl is None:
+        a = Flight(100e3, 0.0, 0.0, 150.0, None, {"R1": (11, 0, 400)})
+        b = Flight(100e3, -3e3, 0.0, 150.0, None, {"R2": (42, 0, 400)})
+        tracks, problems = split(recording([a, b]))
+        assert sorted(tracks) == ["R1:track:11", "R2:track:42"] and not problems
+
+
+def test_one_aircraft_passing_close_to_a_radar_is_still_one():
+    """The offset between two radars' plots of one aircraft turns with the azimuth as it passes
+    1 km from R1 (R1's range bias, R2's azimuth bias): scatter 1.1, within MAX_SCATTER."""
+    f = Flight(1e3, -30e3, 0.0, 150.0, 50.0, {"R1": (11, 0, 400), "R2": (41, 0, 400)})
+    tracks, problems = split(recording([f]))
+    assert list(tracks) == ["R1:track:11"] and problems.counts == {"tracks_associated": 1}

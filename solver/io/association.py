@@ -36,15 +36,26 @@ old and new: none).
 Tracks of different sensors are associated when :data:`MIN_COMPARED` plots or more were
 compared, :data:`MIN_AGREEING` of them or more agree and fewer than :data:`CODE_CONFLICTS`
 conflict (equal codes prove nothing: 7000, 2000, 1200 and conspicuity codes are many
-aircraft's). Candidate pairs come from an index of the plots by time slot
+aircraft's), and the offset between them is nearly constant (:attr:`Verdict.scatter` at most
+:data:`MAX_SCATTER`: two unregistered radars see one aircraft offset by their biases; two
+aircraft crossing, by a vector that turns). Limit: two aircraft at one code and level (or
+without Mode C) closer than the gate, each seen by one radar only, flying in trail (a
+constant offset) are joined (the reviewer's cases: 4 of 32 at 60-150 km, 2-3 km apart; the
+compared plots' time span tells nothing more: a 20-s hand-over of one aircraft spans 25 s,
+a crossing 23 s). Candidate pairs come from an index of the plots by time slot
 (:data:`WINDOW_S`) and plane cell (:data:`CELL_M`, the widest gate used): no all-pairs.
-Pairs join in order of agreement (fraction, then plots compared; keys break ties), not of
-reading, into aircraft (chains: R1's with R2's with R3's, hand-overs), but two groups are not
-joined when that would put two overlapping tracks of one sensor in one aircraft or two
-tracks whose own comparison says apart (:func:`resolve`); such a refused pair is reported
-(``association_refused``), each join too (``tracks_associated``: the keys, plots compared,
-share agreeing). The aircraft's key is its members' smallest key (``R1:track:12`` with
-``R2:track:40``): stable, one of the keys the sensors gave.
+Pairs join in order of their mean normalised distance ``mean(min(d / G, 2))`` over the plots
+compared (then plots compared; keys break ties), not of reading (the share within the gate
+is the acceptance test only: two aircraft in trail 2 km apart 150 km from the radars agree
+100 % either way, at a mean of 0.09 rightly, 0.67 wrongly), into aircraft (chains: R1's with
+R2's with R3's, hand-overs), but two groups are not joined when that would put two
+overlapping tracks of one sensor in one aircraft or two tracks whose own comparison says
+apart (:func:`resolve`), and a track that agrees with two overlapping tracks of another
+sensor (two aircraft) joins neither unless the better's mean is :data:`AMBIGUOUS_FACTOR`
+times smaller ("ambiguous": none rather than a guess that swaps two aircraft); such a
+refused pair is reported (``association_refused``), each join too (``tracks_associated``:
+the keys, plots compared, share agreeing). The aircraft's key is its members' smallest key
+(``R1:track:12`` with ``R2:track:40``): stable, one of the keys the sensors gave.
 
 Streaming (:func:`associate` with ``final_before``): a pair's evidence is final once the
 track that ends first can get no more plots (the split's horizon: a later plot of its key
@@ -57,6 +68,7 @@ give the whole's aircraft.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -91,6 +103,21 @@ MIN_COMPARED = 10
 MIN_AGREEING = 0.8
 """Share of the compared plots within the gate for one aircraft (wild plots and reflections
 are a few per cent; two aircraft crossing agree only near the crossing)."""
+DISTANCE_CAP = 2.0
+"""A compared plot's distance over its gate counts at most this in :attr:`Verdict.mean` (a wild
+plot or a reflection does not outweigh the others)."""
+MAX_SCATTER = 2.5
+"""Largest :attr:`Verdict.scatter` of one aircraft: measured 0.8-1.2 for one aircraft seen by
+two radars (30-150 km, 11-180 plots, with and without Mode C), 1.3-1.5 for one passing 1-10
+km from a radar whose range bias is its whole 150-m allowance (the offset turns with the
+azimuth; without Mode C 0.8), 8.0-8.1 for two crossing at
+right angles (11 plots in 23 s), 3.4-5.2 for two in trail 2-4 km apart 60-100 km out without
+Mode C; not told apart: 0.9-1.5 for two in trail at 150 km or with Mode C 2 km apart (a
+constant offset within the bias allowances)."""
+AMBIGUOUS_FACTOR = 2.0
+"""A track that agrees with two overlapping tracks of another sensor (two aircraft) joins the
+better only when its :attr:`Verdict.mean` is this many times smaller; else neither (in the
+reviewer's trail cases the right pairs' means were 0.07-0.09, the wrong ones' 0.41-1.4)."""
 CODE_CONFLICTS = 2
 """Plots whose Mode 3/A differs from the other's at the same time that make two aircraft
 (one garbled reply does not)."""
@@ -198,6 +225,37 @@ class Verdict:
     compared: int
     agreeing: int
     conflicts: int
+    distance: float = 0.0
+    """Sum over the compared plots of their distance over their gate, each at most
+    :data:`DISTANCE_CAP` (:attr:`mean`)."""
+    first: float = np.inf
+    last: float = -np.inf
+    """Times of the first and last plot compared (s)."""
+    moments: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    """Over the agreeing plots between two of the other's: their count, sums of the
+    displacement ``a - b`` (x, z; at the common height),
+    of its squared length and of ``sigma_a^2 + sigma_b^2`` (:attr:`scatter`)."""
+
+    @property
+    def scatter(self) -> float:
+        """RMS of the displacement around its mean over the RMS of ``hypot(sigma_a, sigma_b)``
+        (agreeing plots): one aircraft seen by two radars is offset by their nearly constant
+        biases (about 1 or less), two aircraft crossing by a changing vector (0: none)."""
+        n, sx, sz, sq, ss = self.moments
+        if n < 2 or ss <= 0.0:
+            return 0.0
+        return float(np.sqrt(max(sq / n - (sx / n) ** 2 - (sz / n) ** 2, 0.0) / (ss / n)))
+
+    @property
+    def mean(self) -> float:
+        """Mean normalised distance ``sum(min(d / G, cap)) / n`` over the compared plots: the
+        graded measure pairs are ranked by (1.0: none compared)."""
+        return self.distance / self.compared if self.compared else 1.0
+
+    @property
+    def span(self) -> float:
+        """Time from the first to the last plot compared (s)."""
+        return max(self.last - self.first, 0.0)
 
     @property
     def share(self) -> float:
@@ -207,17 +265,19 @@ class Verdict:
     def same(self) -> bool:
         """One aircraft (module docstring)."""
         return (self.compared >= MIN_COMPARED and self.share >= MIN_AGREEING
-                and self.conflicts < CODE_CONFLICTS)
+                and self.conflicts < CODE_CONFLICTS and self.scatter <= MAX_SCATTER)
 
     @property
     def apart(self) -> bool:
-        """Two aircraft: a code conflict, or enough compared plots and too few agreeing."""
-        return self.conflicts >= CODE_CONFLICTS or (self.compared >= MIN_COMPARED
-                                                     and self.share < MIN_AGREEING)
+        """Two aircraft: a code conflict, or enough compared plots and too few agreeing or
+        an offset that moves (:attr:`scatter`)."""
+        return self.conflicts >= CODE_CONFLICTS or (self.compared >= MIN_COMPARED and (
+            self.share < MIN_AGREEING or self.scatter > MAX_SCATTER))
 
 
-def _one_way(a: Piece, b: Piece, v: float, window: float) -> tuple[int, int, int]:
-    """(compared, agreeing, code conflicts) of ``a``'s plots against ``b``'s track."""
+def _one_way(a: Piece, b: Piece, v: float, window: float) -> Verdict:
+    """``a``'s plots against ``b``'s track: compared, agreeing, code conflicts, summed
+    normalised distance and the compared plots' time span."""
     n = b.t.size
     j1 = np.searchsorted(b.t, a.t, side="left")
     j0 = j1 - 1
@@ -242,14 +302,20 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> tuple[int, int, int
     dx = a.x - ((1.0 - wk) * b.x[c0] + wk * b.x[c1])
     dz = a.z - ((1.0 - wk) * b.z[c0] + wk * b.z[c1])
     if dx.shape[1] == 1:
-        near = np.hypot(dx[:, 0], dz[:, 0]) <= gate
+        ratio = np.hypot(dx[:, 0], dz[:, 0]) / gate
+        ox, oz = dx[:, 0], dz[:, 0]
     else:  # its least length over the heights: on each segment between levels
         ex, ez = np.diff(dx, axis=1), np.diff(dz, axis=1)
         u = np.clip(-(dx[:, :-1] * ex + dz[:, :-1] * ez) / np.maximum(ex * ex + ez * ez,
                                                                      1e-9), 0.0, 1.0)
         least = np.hypot(dx[:, :-1] + u * ex, dz[:, :-1] + u * ez)
         bend = a.bend + worst(b.bend)
-        near = np.any(least <= gate[:, None] + np.maximum(bend[:, :-1], bend[:, 1:]), axis=1)
+        scaled = least / (gate[:, None] + np.maximum(bend[:, :-1], bend[:, 1:]))
+        best = np.argmin(np.where(np.isfinite(scaled), scaled, np.inf), axis=1)[:, None]
+        ratio = np.take_along_axis(scaled, best, axis=1)[:, 0]
+        ox = np.take_along_axis(dx[:, :-1] + u * ex, best, axis=1)[:, 0]
+        oz = np.take_along_axis(dz[:, :-1] + u * ez, best, axis=1)[:, 0]
+    near = ratio <= 1.0
     compared = (has0 | has1) & (motion <= MAX_MOTION_M) & (
         gate + a.span + worst(b.span) <= CELL_M) & np.isfinite(
         gate + a.x[:, 0] + worst(b.x[:, 0]))
@@ -265,7 +331,16 @@ def _one_way(a: Piece, b: Piece, v: float, window: float) -> tuple[int, int, int
     k1 = np.where(has1, b.code[c1], -1)
     conflict = (a.code >= 0) & ((k0 >= 0) | (k1 >= 0)) & ((k0 < 0) | (k0 != a.code)) & (
         (k1 < 0) | (k1 != a.code))
-    return int(compared.sum()), int(agreeing.sum()), int(conflict.sum())
+    tc = a.t[compared]
+    g = agreeing & both  # interpolated: one-sided, the aircraft's motion moves the offset
+    ss = a.sigma[g] ** 2 + worst(b.sigma)[g] ** 2
+    return Verdict(int(compared.sum()), int(agreeing.sum()), int(conflict.sum()),
+                   float(np.minimum(np.nan_to_num(ratio[compared], nan=DISTANCE_CAP),
+                                    DISTANCE_CAP).sum()),
+                   float(tc.min()) if tc.size else np.inf,
+                   float(tc.max()) if tc.size else -np.inf,
+                   (float(g.sum()), float(ox[g].sum()), float(oz[g].sum()),
+                    float((ox[g] ** 2 + oz[g] ** 2).sum()), float(ss.sum())))
 
 
 def _near(p: Piece, t0: float, t1: float, levels: bool) -> Piece:
@@ -288,7 +363,12 @@ def compare(a: Piece, b: Piece, max_speed: float, window: float = WINDOW_S) -> V
     if not a.t.size or not b.t.size:
         return Verdict(0, 0, 0)
     ab, ba = _one_way(a, b, max_speed, window), _one_way(b, a, max_speed, window)
-    return Verdict(ab[0] + ba[0], ab[1] + ba[1], ab[2] + ba[2])
+    return Verdict(ab.compared + ba.compared, ab.agreeing + ba.agreeing,
+                   ab.conflicts + ba.conflicts, ab.distance + ba.distance,
+                   min(ab.first, ba.first), max(ab.last, ba.last),
+                   (ab.moments[0] + ba.moments[0], ab.moments[1] - ba.moments[1],
+                    ab.moments[2] - ba.moments[2], ab.moments[3] + ba.moments[3],
+                    ab.moments[4] + ba.moments[4]))
 
 
 def candidate_pairs(pieces: list[Piece], window: float) -> list[tuple[int, int]]:
@@ -368,15 +448,52 @@ def _find(parent: list[int], i: int) -> int:
     return i
 
 
+def _rivals(pieces: list[Piece], accepted: list[tuple[int, int, Verdict]],
+            twins: Callable[[int, int], bool]) -> tuple[dict[int, str], set[int]]:
+    """Accepted pairs (by index in ``accepted``) in which one track agrees with two tracks of
+    another sensor that overlap in time: ``ambiguous`` (the reason), when the better's
+    :attr:`Verdict.mean` is not :data:`AMBIGUOUS_FACTOR` times smaller and the two are two
+    aircraft (not ``twins``: one aircraft tracked twice), and ``demoted``, the one of twins
+    with fewer plots compared (more evidence goes first)."""
+    by_track: dict[int, list[tuple[int, int, Verdict]]] = {}
+    for e, (i, j, v) in enumerate(accepted):
+        by_track.setdefault(i, []).append((e, j, v))
+        by_track.setdefault(j, []).append((e, i, v))
+    ambiguous: dict[int, str] = {}
+    demoted: set[int] = set()
+    for t, seen in by_track.items():
+        for n, (e, j, v) in enumerate(seen):
+            for f, k, w in seen[n + 1:]:
+                pj, pk = pieces[j], pieces[k]
+                if pj.sensor != pk.sensor or pj.first > pk.last or pk.first > pj.last:
+                    continue
+                if max(v.mean, w.mean) >= AMBIGUOUS_FACTOR * min(v.mean, w.mean):
+                    continue  # the better is clearly better: the order decides
+                if twins(j, k):
+                    demoted.add(f if (v.compared, pk.key) > (w.compared, pj.key) else e)
+                    continue
+                a, b = sorted((pj.key, pk.key))
+                why = (f"ambiguous: {pieces[t].key} agrees with {a} and {b}, which overlap in "
+                       f"time, about as well (mean distance over the gate {v.mean:.2f} and "
+                       f"{w.mean:.2f}, less than {AMBIGUOUS_FACTOR:g} times apart)")
+                ambiguous.setdefault(e, why)
+                ambiguous.setdefault(f, why)
+    return ambiguous, demoted
+
+
 def resolve(pieces: list[Piece], component: list[int], accepted: list[tuple[int, int, Verdict]],
-            verdict: Callable[[int, int], Verdict]) -> tuple[list[Aircraft], list[Join]]:
-    """A component's associations joined best first (share, then plots compared, then the
-    keys): two groups join unless they would hold two tracks of one sensor overlapping in time
-    or two tracks of different sensors whose own :func:`compare` says apart."""
+            verdict: Callable[[int, int], Verdict],
+            twins: Callable[[int, int], bool] = lambda i, j: False
+            ) -> tuple[list[Aircraft], list[Join]]:
+    """A component's associations joined best first (:attr:`Verdict.mean`, then plots
+    compared, then the keys), none that is ambiguous (:func:`_rivals`): two groups join unless
+    they would hold two tracks of one sensor overlapping in time or two tracks of different
+    sensors whose own :func:`compare` says apart."""
     root = {i: i for i in component}  # each track's group (its first track)
     groups: dict[int, list[int]] = {i: [i] for i in component}
     joins: dict[int, list[Join]] = {i: [] for i in component}
     refused: list[Join] = []
+    ambiguous, demoted = _rivals(pieces, accepted, twins)
 
     def conflict(g: list[int], h: list[int]) -> str | None:
         for i in g:
@@ -392,15 +509,19 @@ def resolve(pieces: list[Piece], component: list[int], accepted: list[tuple[int,
                                 f"plots within the gate, {v.conflicts} Mode 3/A conflicts)")
         return None
 
-    order = sorted(accepted, key=lambda e: (-e[2].share, -e[2].compared,
-                                            min(pieces[e[0]].key, pieces[e[1]].key),
-                                            max(pieces[e[0]].key, pieces[e[1]].key)))
-    for i, j, v in order:
+    order = sorted(range(len(accepted)), key=lambda e: (
+        e in demoted, accepted[e][2].mean, -accepted[e][2].compared,
+        sorted((pieces[accepted[e][0]].key, pieces[accepted[e][1]].key))))
+    for e in order:
+        i, j, v = accepted[e]
+        a, b = sorted((pieces[i].key, pieces[j].key))
+        if e in ambiguous:
+            refused.append(Join(a, b, v, ambiguous[e]))
+            continue
         gi, gj = root[i], root[j]
         if gi == gj:
             continue
         why = conflict(groups[gi], groups[gj])
-        a, b = sorted((pieces[i].key, pieces[j].key))
         if why is not None:
             refused.append(Join(a, b, v, why))
             continue
@@ -440,6 +561,13 @@ def associate(pieces: list[Piece], done: np.ndarray, max_speed: float, window: f
         kept[k] = known[k]
         return known[k]
 
+    def twins(i: int, j: int) -> bool:
+        """Two tracks of one sensor that are one aircraft: compared without bias allowances
+        (one radar's bias is common to both)."""
+        a, b = (dataclasses.replace(pieces[k], bias=np.zeros_like(pieces[k].bias))
+                for k in (i, j))
+        return compare(a, b, max_speed, window).same
+
     accepted: list[tuple[int, int, Verdict]] = []
     for i, j in candidate_pairs(pieces, window):
         if min(pieces[i].last, pieces[j].last) >= final_before:
@@ -465,7 +593,8 @@ def associate(pieces: list[Piece], done: np.ndarray, max_speed: float, window: f
             waiting.update(comp)
             continue
         inside = set(comp)
-        found, refused = resolve(pieces, comp, [e for e in accepted if e[0] in inside], verdict)
+        found, refused = resolve(pieces, comp, [e for e in accepted if e[0] in inside], verdict,
+                                 twins)
         resolved.append(Component(comp, found, refused))
     if cache is not None:
         cache.clear()

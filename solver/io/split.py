@@ -349,6 +349,7 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
         if not complete:
             continue
         taken = np.zeros(len(buffer), dtype=bool)
+        parts: list[tuple[str, tuple[str, ...]]] = []  # each part yielded: key, members
         for key, names, members in complete:
             taken[members] = True
             for name in names:
@@ -365,10 +366,11 @@ def split_stream(chunks: Iterable[PlotRows], sensors: SensorSet, *,
                            problems) if members.size else None
             for part in _apart(track, buffer, sensors, sensor_idx, frame, min_plots, gap_s,
                                max_speed, problems):
-                joined = tuple(sorted(names)) if len(names) > 1 and part.key == key else ()
-                yield replace(part, rows=numbers[part.rows], members=joined)
+                held = _held(part.rows, names, pieces)
+                parts.append((part.key, held))
+                yield replace(part, rows=numbers[part.rows], members=held)
         if found is not None:
-            _report_associations(found, taken, problems)
+            _report_associations(found, taken, parts, problems)
         _remember(memory, buffer.take(taken), buffer.take(~taken), horizon)
         buffer = buffer.take(~taken)
         numbers = numbers[~taken]
@@ -476,25 +478,39 @@ def _complete(pieces: dict[str, _Piece], found: _Found | None
     return sorted(out, key=lambda c: int(c[2][0]))
 
 
-def _report_associations(found: _Found, taken: np.ndarray, problems: Problems) -> None:
+def _held(rows: np.ndarray, names: list[str], pieces: dict[str, _Piece]) -> tuple[str, ...]:
+    """The associated sensor tracks (``names``) whose rows a yielded part holds (after
+    :func:`_apart` a part may hold a few of them); empty when fewer than two."""
+    if len(names) < 2:
+        return ()
+    held = tuple(sorted(n for n in names if np.isin(pieces[n].members, rows).any()))
+    return held if len(held) > 1 else ()
+
+
+def _report_associations(found: _Found, taken: np.ndarray,
+                         parts: list[tuple[str, tuple[str, ...]]], problems: Problems) -> None:
     """Each association made (``tracks_associated``) and refused (``association_refused``)
     of the components yielded, as its aircraft came out: keys, plots compared, share
-    agreeing."""
+    agreeing, mean distance over the gate and offset scatter; a join is named by the part
+    yielded that holds both its tracks (``parts``: after :func:`_apart`, ``KEY~2`` may)."""
     for comp in found.answer.components:
         if not taken[found.pieces[comp.members[0]].rows[0]]:
             continue
         for ac in comp.aircraft:
             for j in ac.joins:
                 v = j.verdict
-                problems.add("tracks_associated", f"aircraft {ac.key}", f"{j.a} and {j.b}: "
+                name = next((k for k, held in parts if j.a in held and j.b in held), ac.key)
+                problems.add("tracks_associated", f"aircraft {name}", f"{j.a} and {j.b}: "
                              f"{v.compared} plots compared, {v.agreeing} ({v.share:.0%}) within "
-                             "the gate: one aircraft without Mode S seen by several sensors, "
-                             f"reconstructed as {ac.key}")
+                             f"the gate (mean distance {v.mean:.2f} of it, offset scatter "
+                             f"{v.scatter:.1f} sigma): one aircraft without Mode S seen by "
+                             f"several sensors, reconstructed as {name}")
         for j in comp.refused:
             v = j.verdict
             problems.add("association_refused", f"aircraft {j.a}", f"{j.a} and {j.b}: "
                          f"{v.compared} plots compared, {v.agreeing} ({v.share:.0%}) within the "
-                         f"gate, but {j.refused}: kept apart")
+                         f"gate (mean distance {v.mean:.2f} of it, offset scatter "
+                         f"{v.scatter:.1f} sigma), but {j.refused}: kept apart")
 
 
 def _report_late(rows: PlotRows, latest: float, disorder_s: float, problems: Problems
