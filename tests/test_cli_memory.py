@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -54,18 +55,29 @@ def _peak_while_streaming(path, sensors) -> tuple[int, int, int]:
     return tracks, plots, peak
 
 
+def _peaks(tmp_path, make, suffix: str, short_n: int, long_n: int) -> tuple[int, Path, int]:
+    """Assert that a recording of ``long_n`` aircraft made by ``make(path, aircraft) -> rows``
+    streams every aircraft as one track with every plot, and peaks below 1.5x one of
+    ``short_n`` (after a small one warms imports and caches); the rows of the long one, its
+    path and its peak."""
+    sensors = tmp_path / "sensors.json"
+    sensors.write_text(json.dumps(SENSOR_FILE))
+    short, long = tmp_path / f"short{suffix}", tmp_path / f"long{suffix}"
+    n_short, n_long = make(short, short_n), make(long, long_n)
+    make(tmp_path / f"warm{suffix}", 2)
+    _peak_while_streaming(tmp_path / f"warm{suffix}", sensors)
+    tracks_s, plots_s, peak_s = _peak_while_streaming(short, sensors)
+    tracks_l, plots_l, peak_l = _peak_while_streaming(long, sensors)
+    assert (tracks_s, plots_s, tracks_l, plots_l) == (short_n, n_short, long_n, n_long)
+    assert peak_l < 1.5 * peak_s, (peak_s, peak_l, long.stat().st_size)
+    assert long.stat().st_size > 3 * short.stat().st_size
+    return n_long, long, peak_l
+
+
 def test_streamed_reading_memory_is_flat_in_the_recording_length(tmp_path, monkeypatch):
     monkeypatch.setattr(reading, "STREAM_BATCH_ROWS", 1000)
     sensors = tmp_path / "sensors.json"
-    sensors.write_text(json.dumps(SENSOR_FILE))
-    short, long = tmp_path / "short.csv", tmp_path / "long.csv"
-    n_short, n_long = _table(short, 16), _table(long, 96)
-    _table(tmp_path / "warm.csv", 3)
-    _peak_while_streaming(tmp_path / "warm.csv", sensors)  # imports and caches first
-    tracks_s, plots_s, peak_s = _peak_while_streaming(short, sensors)
-    tracks_l, plots_l, peak_l = _peak_while_streaming(long, sensors)
-    assert (tracks_s, plots_s, tracks_l, plots_l) == (16, n_short, 96, n_long)
-    assert peak_l < 1.5 * peak_s, (peak_s, peak_l)
+    n_long, long, peak_l = _peaks(tmp_path, _table, ".csv", 16, 96)
     # the whole-recording reader holds every row: its peak grows with the length
     tracemalloc.start()
     try:
@@ -97,16 +109,7 @@ def test_streamed_association_memory_is_flat_in_the_recording_length(tmp_path, m
     16): still the aircraft in the air, a recording 6x as long peaks as high, each aircraft
     one track of both radars."""
     monkeypatch.setattr(reading, "STREAM_BATCH_ROWS", 300)
-    sensors = tmp_path / "sensors.json"
-    sensors.write_text(json.dumps(SENSOR_FILE))
-    short, long = tmp_path / "short.csv", tmp_path / "long.csv"
-    n_short, n_long = _radar_table(short, 16), _radar_table(long, 96)
-    _radar_table(tmp_path / "warm.csv", 3)
-    _peak_while_streaming(tmp_path / "warm.csv", sensors)
-    tracks_s, plots_s, peak_s = _peak_while_streaming(short, sensors)
-    tracks_l, plots_l, peak_l = _peak_while_streaming(long, sensors)
-    assert (tracks_s, plots_s, tracks_l, plots_l) == (16, n_short, 96, n_long)
-    assert peak_l < 1.5 * peak_s, (peak_s, peak_l)
+    _peaks(tmp_path, _radar_table, ".csv", 16, 96)
 
 
 def _asterix(path, aircraft: int) -> int:
@@ -124,17 +127,8 @@ def test_streamed_asterix_memory_is_flat_in_the_recording_length(tmp_path, monke
     """An ASTERIX file is memory-mapped and decoded unit by unit: the reading of a recording
     6x as long peaks as high (it was read whole: the peak grew with the file)."""
     monkeypatch.setattr(reading, "STREAM_CHUNK_BYTES", 1 << 12)
-    sensors = tmp_path / "sensors.json"
-    sensors.write_text(json.dumps(SENSOR_FILE))
-    short, long = tmp_path / "short.ast", tmp_path / "long.ast"
-    n_short, n_long = _asterix(short, 8), _asterix(long, 48)
-    _asterix(tmp_path / "warm.ast", 2)
-    _peak_while_streaming(tmp_path / "warm.ast", sensors)
-    tracks_s, plots_s, peak_s = _peak_while_streaming(short, sensors)
-    tracks_l, plots_l, peak_l = _peak_while_streaming(long, sensors)
-    assert (tracks_s, plots_s, tracks_l, plots_l) == (8, n_short, 48, n_long)
-    assert long.stat().st_size > 5 * short.stat().st_size
-    assert peak_l < 1.5 * peak_s, (peak_s, peak_l, long.stat().st_size)
+    _, long, _ = _peaks(tmp_path, _asterix, ".ast", 8, 48)
+    assert long.stat().st_size > 5 * (tmp_path / "short.ast").stat().st_size
 
 
 def _stub_task(key, table, config, time_limit_s, figures_dir=None, filters=(),

@@ -10,14 +10,14 @@ import dataclasses
 import numpy as np
 import pytest
 from test_io_asterix import SENSOR_FILE, SENSORS
-from test_io_split import assert_streamed_alike, concat, split
+from test_io_split import assert_streamed_alike, concat, split, streamed_as_whole
 
 from solver.frames import LocalFrame, slant_and_azimuth
 from solver.io.association import Piece, Verdict, resolve
 from solver.io.problems import Problems
 from solver.io.reading import Selection
 from solver.io.sensors_file import parse_sensors
-from solver.io.split import recording_frame, split_aircraft, split_stream
+from solver.io.split import split_aircraft, split_stream
 from solver.io.tables import FL_M, PlotRows
 
 PLANE = LocalFrame(46.0, 14.0)  # R1's site: the recording's plane
@@ -246,21 +246,9 @@ def test_streaming_association_gives_the_same_tracks():
     for case in range(12):
         rows = recording(random_aircraft(rng, int(rng.integers(3, 9))), seed=case)
         rows = rows.take(np.argsort(rows.t + rng.uniform(0.0, 5.0, len(rows)), kind="stable"))
-        size = int(rng.integers(5, 60))
-        chunks = [rows.take(np.arange(a, min(a + size, len(rows))))
-                  for a in range(0, len(rows), size)]
-        whole_p, stream_p = Problems(), Problems()
-        whole = {tr.key: tr.rows.tolist()
-                 for tr in split_aircraft(rows, SENSORS, gap_s=40.0, problems=whole_p)}
-        consumed: list[int] = []
-        stream = {}
-        fed = (consumed.append(k) or c for k, c in enumerate(chunks))
-        for tr in split_stream(fed, SENSORS, gap_s=40.0, disorder_s=5.0, problems=stream_p,
-                               reference=recording_frame(SENSORS, rows)):
-            stream[tr.key] = tr.rows.tolist()
-            closed_early += len(consumed) < len(chunks)
-        assert stream == whole, case
-        assert (stream_p.counts, stream_p.dropped) == (whole_p.counts, whole_p.dropped)
+        early, whole_p = streamed_as_whole(rows, int(rng.integers(5, 60)), gap_s=40.0,
+                                           case=case)
+        closed_early += early
         made += whole_p.counts.get("tracks_associated", 0)
     assert made > 10 and closed_early > 10, (made, closed_early)
 

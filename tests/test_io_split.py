@@ -268,20 +268,30 @@ def test_streaming_split_gives_the_same_tracks(ground):
                 np.int8))
         rows = rows.take(np.argsort(rows.t + rng.uniform(0.0, 5.0, n), kind="stable"))
         size = int(rng.integers(1, 12))
-        chunks = [rows.take(np.arange(a, min(a + size, n))) for a in range(0, n, size)]
-        whole_p, stream_p = Problems(), Problems()
-        whole = {tr.key: tr.rows.tolist()
-                 for tr in split_aircraft(rows, SENSORS, gap_s=8.0, problems=whole_p)}
-        consumed: list[int] = []
-        stream = {}
-        fed = (consumed.append(k) or c for k, c in enumerate(chunks))
-        for tr in split_stream(fed, SENSORS, gap_s=8.0, disorder_s=5.0, problems=stream_p,
-                               reference=recording_frame(SENSORS, rows)):
-            stream[tr.key] = tr.rows.tolist()
-            closed_early += len(consumed) < len(chunks)
-        assert stream == whole
-        assert (stream_p.counts, stream_p.dropped) == (whole_p.counts, whole_p.dropped)
+        closed_early += streamed_as_whole(rows, size, gap_s=8.0)[0]
     assert closed_early > 100  # tracks did come out before the end of their recording
+
+
+def streamed_as_whole(rows: PlotRows, size: int, gap_s: float, case: object = None
+                      ) -> tuple[int, Problems]:
+    """Assert that split_stream over ``rows`` in chunks of ``size`` (disorder_s 5 s) gives
+    split_aircraft's tracks, keys, rows and problems on the whole; the number of tracks that
+    came out before the last chunk was read, and the problems."""
+    n = len(rows)
+    chunks = [rows.take(np.arange(a, min(a + size, n))) for a in range(0, n, size)]
+    whole_p, stream_p = Problems(), Problems()
+    whole = {tr.key: tr.rows.tolist()
+             for tr in split_aircraft(rows, SENSORS, gap_s=gap_s, problems=whole_p)}
+    consumed: list[int] = []
+    stream, early = {}, 0
+    fed = (consumed.append(k) or c for k, c in enumerate(chunks))
+    for tr in split_stream(fed, SENSORS, gap_s=gap_s, disorder_s=5.0, problems=stream_p,
+                           reference=recording_frame(SENSORS, rows)):
+        stream[tr.key] = tr.rows.tolist()
+        early += len(consumed) < len(chunks)
+    assert stream == whole, case
+    assert (stream_p.counts, stream_p.dropped) == (whole_p.counts, whole_p.dropped), case
+    return early, whole_p
 
 
 def test_streaming_split_yields_an_aircraft_once_it_has_landed():
